@@ -1,0 +1,5 @@
+import sys
+
+from scenegen.cli import main
+
+sys.exit(main())

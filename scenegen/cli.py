@@ -1,0 +1,48 @@
+"""Command line of the pipeline's scene and render stages (``python -m scenegen <command>``)."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="scenegen", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    gen = sub.add_parser("generate", help="draw one seeded random scene")
+    gen.add_argument("--config", type=Path, required=True)
+    gen.add_argument("--scene", required=True, help="scene id, e.g. train_000")
+    gen.add_argument("--out", type=Path, required=True, help="scene directory to create")
+
+    for name, help_text in (("render-noisy", "render per-sample noisy frames of one chunk"),
+                            ("render-reference", "render high-spp references of one chunk")):
+        cmd = sub.add_parser(name, help=help_text)
+        cmd.add_argument("--config", type=Path, required=True)
+        cmd.add_argument("--scene", required=True)
+        cmd.add_argument("--chunk", type=int, required=True)
+        cmd.add_argument("--scene-dir", type=Path, required=True)
+        cmd.add_argument("--out", type=Path, required=True)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
+                        stream=sys.stderr)
+    from scenegen.config import load_config
+    from scenegen import jobs
+
+    cfg = load_config(args.config)
+    if args.command == "generate":
+        jobs.run_generate(cfg, args.scene, args.out)
+    elif args.command == "render-noisy":
+        jobs.run_render_noisy(cfg, args.scene, args.chunk, args.scene_dir, args.out)
+    elif args.command == "render-reference":
+        jobs.run_render_reference(cfg, args.scene, args.chunk, args.scene_dir, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

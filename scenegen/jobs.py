@@ -1,0 +1,192 @@
+"""The pipeline's jobs: generate one scene, render one chunk of noisy frames or references.
+
+Every job writes into a hidden temporary sibling of its output directory and renames it into
+place only when everything is written, so an interrupted job leaves nothing that looks complete.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+from scenegen.mitsuba_env import init_mitsuba
+from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_layer_seeds,
+                             preview_luminance, psnr_between_halves, reference_batch_seeds,
+                             render_gbuffer, render_reference_frame, render_sample_layers)
+from scenegen.seeds import scene_seed
+
+log = logging.getLogger("scenegen")
+
+
+@contextmanager
+def atomic_directory(out_dir: Path) -> Iterator[Path]:
+    """Yield a temporary directory that replaces ``out_dir`` only if the block completes."""
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp_dir = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
+    if tmp_dir.exists():
+        shutil.rmtree(tmp_dir)
+    tmp_dir.mkdir()
+    try:
+        yield tmp_dir
+    except BaseException:
+        shutil.rmtree(tmp_dir, ignore_errors=True)
+        raise
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(tmp_dir, out_dir)
+
+
+def _write_json_atomic(path: Path, payload: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(payload, indent=1, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def chunk_frames(n_frames: int, frames_per_chunk: int, chunk: int) -> list[int]:
+    """Global frame indices of ``chunk``; raises if the chunk does not exist."""
+    n_chunks = math.ceil(n_frames / frames_per_chunk)
+    if not 0 <= chunk < n_chunks:
+        raise ValueError(f"chunk {chunk} out of range: the clip of {n_frames} frames has {n_chunks} chunks "
+                         f"of {frames_per_chunk} frames")
+    return list(range(chunk * frames_per_chunk, min(n_frames, (chunk + 1) * frames_per_chunk)))
+
+
+def _load_manifest(scene_dir: Path) -> dict:
+    path = Path(scene_dir) / "manifest.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"scene manifest not found: {path}")
+    return json.loads(path.read_text())
+
+
+def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
+    """Draw scene ``scene_id`` and write it to ``out_dir`` (manifest, meshes, textures)."""
+    from scenegen.generate import generate_scene
+
+    init_mitsuba(cfg["render"]["variant"])
+    seed = scene_seed(cfg["seed"], scene_id)
+    with atomic_directory(out_dir) as tmp_dir:
+        manifest = generate_scene(cfg["scenes"], seed, scene_id, tmp_dir, n_frames=cfg["scenes"]["frames"],
+                                  luminance_check=preview_luminance)
+    log.info("scene %s: seed %d, %d shapes, %d redraws", scene_id, seed, len(manifest["shapes"]),
+             len(manifest.get("redraws", [])))
+    return manifest
+
+
+def _frame_meta(manifest: dict, scene_id: str, frame: int, settings: RenderSettings, variant: str) -> dict:
+    from scenegen.mitsuba_scene import camera_matrices
+
+    meta = {
+        "scene": scene_id, "frame": frame, "width": settings.width, "height": settings.height,
+        "variant": variant, "max_depth": settings.max_depth, "rr_depth": settings.rr_depth,
+        "camera": _jsonable(camera_matrices(manifest, frame, settings.width, settings.height)),
+        "prev_camera": (_jsonable(camera_matrices(manifest, frame - 1, settings.width, settings.height))
+                        if frame > 0 else None),
+        "camera_cut": bool(manifest["camera"]["frames"][frame].get("cut", False)),
+    }
+    return meta
+
+
+def _jsonable(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
+    """Render the per-sample noisy frames of one chunk, with motion vectors and G-buffers."""
+    from scenegen.dataset import noisy_channels, pixel_channels
+    from scenegen.exr import write_exr
+    from scenegen.motion import motion_vectors
+
+    settings = RenderSettings.from_config(cfg["render"])
+    variant = init_mitsuba(settings.variant)
+    manifest = _load_manifest(scene_dir)
+    frames = chunk_frames(manifest["n_frames"], cfg["scenes"]["frames_per_chunk"], chunk)
+    n_layers = settings.spp + settings.extra_radiance_spp
+    samples_per_frame = n_layers * settings.width * settings.height
+
+    gbuffer_prev = (render_gbuffer(manifest, scene_dir, frames[0] - 1, settings) if frames[0] > 0 else None)
+    with atomic_directory(out_dir) as tmp_dir, \
+            tqdm(total=len(frames) * n_layers, desc=f"noisy {scene_id} chunk {chunk}", unit="layer") as bar:
+        for frame in frames:
+            start = time.perf_counter()
+            scene = load_frame_scene(manifest, scene_dir, frame, settings)
+            counter = NonFiniteCounter()
+            seeds = noisy_layer_seeds(cfg["seed"], scene_id, frame, n_layers)
+            samples = render_sample_layers(scene, n_layers=settings.spp, n_radiance_only=settings.extra_radiance_spp,
+                                           seeds=seeds, counter=counter, progress=bar)
+            render_seconds = time.perf_counter() - start
+            gbuffer = render_gbuffer(manifest, scene_dir, frame, settings, scene=scene)
+            cut = bool(manifest["camera"]["frames"][frame].get("cut", False))
+            motion, valid = motion_vectors(gbuffer, gbuffer_prev, manifest, frame, settings.width,
+                                           settings.height, camera_cut=cut)
+            meta = _frame_meta(manifest, scene_id, frame, settings, variant)
+            meta.update({
+                "spp": settings.spp, "extra_radiance_spp": settings.extra_radiance_spp,
+                "seeds": {"layers": seeds}, "nonfinite": counter.counts,
+                "nonfinite_total": int(sum(counter.counts.values())),
+                "valid_fraction": float(valid.mean()),
+                "timing_s": render_seconds, "samples_per_s": samples_per_frame / render_seconds,
+            })
+            if meta["nonfinite_total"]:
+                log.warning("frame %d: replaced %d non-finite sample values %s", frame,
+                            meta["nonfinite_total"], counter.counts)
+            channels, half = noisy_channels(samples)
+            pixel, pixel_half = pixel_channels(motion, valid, gbuffer)
+            channels.update(pixel)
+            write_exr(tmp_dir / f"frame_{frame:04d}.exr", channels, half=half | pixel_half,
+                      attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
+            _write_json_atomic(tmp_dir / f"frame_{frame:04d}.json", meta)
+            bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")
+            gbuffer_prev = gbuffer
+
+
+def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
+    """Render the high-spp references (two independent halves) of one chunk."""
+    from scenegen.dataset import reference_channels
+    from scenegen.exr import write_exr
+
+    settings = RenderSettings.from_config(cfg["render"])
+    variant = init_mitsuba(settings.variant)
+    manifest = _load_manifest(scene_dir)
+    frames = chunk_frames(manifest["n_frames"], cfg["scenes"]["frames_per_chunk"], chunk)
+    half_spp = settings.reference_spp // 2
+    n_batches = math.ceil(half_spp / settings.reference_batch_spp)
+    with atomic_directory(out_dir) as tmp_dir, \
+            tqdm(total=len(frames) * 2 * half_spp, desc=f"reference {scene_id} chunk {chunk}", unit="spp") as bar:
+        for frame in frames:
+            start = time.perf_counter()
+            scene = load_frame_scene(manifest, scene_dir, frame, settings)
+            counter = NonFiniteCounter()
+            seeds = tuple(reference_batch_seeds(cfg["seed"], scene_id, frame, half, n_batches) for half in (0, 1))
+            reference = render_reference_frame(scene, spp=2 * half_spp, batch_spp=settings.reference_batch_spp,
+                                               seeds_half=seeds, counter=counter, progress=bar)
+            seconds = time.perf_counter() - start
+            meta = _frame_meta(manifest, scene_id, frame, settings, variant)
+            meta.update({
+                "spp": 2 * half_spp, "seeds": {"half0": seeds[0], "half1": seeds[1]},
+                "psnr_halves": psnr_between_halves(reference["radiance_half0"], reference["radiance_half1"]),
+                "nonfinite": counter.counts, "nonfinite_total": int(sum(counter.counts.values())),
+                "timing_s": seconds,
+                "samples_per_s": 2 * half_spp * settings.width * settings.height / seconds,
+            })
+            write_exr(tmp_dir / f"frame_{frame:04d}.exr", reference_channels(reference),
+                      attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
+            _write_json_atomic(tmp_dir / f"frame_{frame:04d}.json", meta)
+            bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")

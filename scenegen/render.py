@@ -1,0 +1,265 @@
+"""Render per-sample noisy frames, pixel-centre G-buffers and high-spp references with Mitsuba 3.
+
+All light transport goes through the ``mcdn_features`` integrator (``scenegen.integrator``) via
+``mi.render``: one call per 1-spp sample layer with a box reconstruction filter, so every pixel of
+a layer holds exactly one independent sample. The only Python loops are over sample layers and
+reference batches; pixels and paths run in Mitsuba's vectorised wavefront.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from scenegen.mitsuba_env import init_mitsuba
+from scenegen.seeds import derive_seed
+
+# Buffer name -> channel count of the per-sample arrays this module returns.
+SAMPLE_BUFFER_SIZES: dict[str, int] = {
+    "radiance": 3, "diffuse": 3, "specular": 3, "albedo": 3, "normal": 3,
+    "depth": 1, "roughness": 1, "flags": 4, "position": 3,
+}
+SPECULAR_LIKE_ROUGHNESS = 0.1  # Isik et al. 2021, Sec. 3.1: alpha below this is treated as specular
+
+
+@dataclass
+class RenderSettings:
+    """Render parameters shared by every pass (from the ``render`` config section)."""
+
+    width: int = 128
+    height: int = 128
+    spp: int = 8
+    extra_radiance_spp: int = 0
+    reference_spp: int = 1024
+    reference_batch_spp: int = 32
+    max_depth: int = 8
+    rr_depth: int = 5
+    variant: str = "llvm_ad_rgb"
+
+    @classmethod
+    def from_config(cls, render_cfg: dict) -> "RenderSettings":
+        known = {k: render_cfg[k] for k in cls.__dataclass_fields__ if k in render_cfg}
+        return cls(**known)
+
+
+@dataclass
+class NonFiniteCounter:
+    """Counts non-finite values replaced by zero, per buffer."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def sanitise(self, name: str, array: np.ndarray) -> np.ndarray:
+        bad = ~np.isfinite(array)
+        n_bad = int(bad.sum())
+        self.counts[name] = self.counts.get(name, 0) + n_bad
+        if n_bad:
+            array = np.where(bad, 0.0, array).astype(array.dtype)
+        return array
+
+
+def _material_is_specular_like(material: dict) -> bool:
+    """Smooth Dirac materials, or non-diffuse materials rougher than nothing but below 0.1 alpha."""
+    if material["type"] in ("conductor", "dielectric", "thindielectric"):
+        return True
+    if material["type"] in ("roughconductor", "roughdielectric"):
+        return float(material.get("roughness", 1.0)) < SPECULAR_LIKE_ROUGHNESS
+    return False
+
+
+def _attach_face_attributes(mesh, shape: dict, material: dict | None) -> None:
+    """Store (roughness, metallic, transmissive) and (shape index, specular-like, 0) per face."""
+    import mitsuba as mi
+
+    n_faces = mesh.face_count()
+    if material is None:
+        mat_row = np.array([1.0, 0.0, 0.0], np.float32)
+        ident_row = np.array([float(shape["index"]), 0.0, 0.0], np.float32)
+    else:
+        mat_row = np.array([float(material.get("roughness", 1.0)), float(bool(material.get("metallic"))),
+                            float(bool(material.get("transmissive")))], np.float32)
+        ident_row = np.array([float(shape["index"]), float(_material_is_specular_like(material)), 0.0],
+                             np.float32)
+    mesh.add_attribute("face_material", 3, mi.Float(np.tile(mat_row, n_faces)))
+    mesh.add_attribute("face_ident", 3, mi.Float(np.tile(ident_row, n_faces)))
+
+
+def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: RenderSettings,
+                     *, mode: str = "samples"):
+    """Load the Mitsuba scene of ``frame`` with the feature integrator and per-face attributes."""
+    import mitsuba as mi
+
+    import scenegen.integrator  # noqa: F401 -- registers "mcdn_features"
+    from scenegen.mitsuba_scene import build_scene_dict
+
+    integrator = {"type": "mcdn_features", "max_depth": settings.max_depth,
+                  "rr_depth": settings.rr_depth, "mode": mode}
+    scene_dict = build_scene_dict(manifest, Path(scene_dir), frame, width=settings.width,
+                                  height=settings.height, integrator=integrator)
+    for shape in manifest["shapes"]:
+        key = f"shape_{shape['index']:03d}"
+        mesh = mi.load_dict(scene_dict[key])
+        material = manifest["materials"][shape["material"]] if shape.get("material") is not None else None
+        _attach_face_attributes(mesh, shape, material)
+        scene_dict[key] = mesh
+    return mi.load_dict(scene_dict)
+
+
+def _gbuffer_sensor(manifest: dict, scene_dir: Path, frame: int, settings: RenderSettings):
+    """The frame's sensor with a non-jittered 1-spp stratified sampler: rays through pixel centres."""
+    import mitsuba as mi
+
+    from scenegen.mitsuba_scene import build_scene_dict
+
+    sampler = {"type": "stratified", "sample_count": 1, "jitter": False}
+    sensor_dict = build_scene_dict(manifest, Path(scene_dir), frame, width=settings.width,
+                                   height=settings.height, sampler=sampler)["sensor"]
+    return mi.load_dict(sensor_dict)
+
+
+def _split_channels(image: np.ndarray, sizes: list[tuple[str, int]]) -> dict[str, np.ndarray]:
+    """(H, W, C) -> {name: (c, H, W)} following ``sizes`` in order."""
+    out, start = {}, 0
+    for name, size in sizes:
+        out[name] = np.ascontiguousarray(np.moveaxis(image[..., start:start + size], -1, 0))
+        start += size
+    if start != image.shape[-1]:
+        raise RuntimeError(f"renderer returned {image.shape[-1]} channels, expected {start}")
+    return out
+
+
+def _render(scene, *, spp: int, seed: int, sensor=None) -> np.ndarray:
+    import mitsuba as mi
+
+    image = mi.render(scene, spp=spp, seed=seed, sensor=sensor if sensor is not None else 0)
+    return np.array(image, dtype=np.float32)
+
+
+def render_gbuffer(manifest: dict, scene_dir: Path, frame: int, settings: RenderSettings,
+                   scene=None) -> dict[str, np.ndarray]:
+    """Primary-hit G-buffer through pixel centres: position (3,H,W), normal (3,H,W), depth (1,H,W), object (1,H,W)."""
+    import mitsuba as mi
+
+    from scenegen.integrator import GBUFFER_AOVS
+
+    if scene is None:
+        scene = load_frame_scene(manifest, scene_dir, frame, settings)
+    sensor = _gbuffer_sensor(manifest, scene_dir, frame, settings)
+    integrator = mi.load_dict({"type": "mcdn_features", "mode": "gbuffer"})
+    image = np.array(mi.render(scene, spp=1, seed=0, sensor=sensor, integrator=integrator), np.float32)
+    return _split_channels(image, [("rgb", 3), *GBUFFER_AOVS])
+
+
+def render_sample_layers(scene, *, n_layers: int, n_radiance_only: int, seeds: list[int],
+                         counter: NonFiniteCounter, progress=None) -> dict[str, np.ndarray]:
+    """Render ``n_layers`` full-feature 1-spp layers plus ``n_radiance_only`` radiance-only layers.
+
+    Returns {buffer: (S, C, H, W) float32}; ``radiance`` has S = n_layers + n_radiance_only layers,
+    every other buffer n_layers. Non-finite values are replaced by 0 and counted in ``counter``.
+    """
+    from scenegen.integrator import SAMPLE_AOVS
+
+    layout = [("radiance", 3), *SAMPLE_AOVS]
+    layers: dict[str, list[np.ndarray]] = {name: [] for name in SAMPLE_BUFFER_SIZES}
+    for layer in range(n_layers + n_radiance_only):
+        parts = _split_channels(_render(scene, spp=1, seed=seeds[layer]), layout)
+        radiance = counter.sanitise("radiance", parts["radiance"])
+        layers["radiance"].append(radiance)
+        if layer < n_layers:
+            diffuse = counter.sanitise("diffuse", parts["diffuse"])
+            layers["diffuse"].append(diffuse)
+            layers["specular"].append(radiance - diffuse)
+            for name in ("albedo", "normal", "depth", "roughness", "flags", "position"):
+                layers[name].append(counter.sanitise(name, parts[name]))
+        if progress is not None:
+            progress.update(1)
+    return {name: np.stack(arrays) for name, arrays in layers.items() if arrays}
+
+
+def noisy_layer_seeds(global_seed: int, scene_id: str, frame: int, n: int) -> list[int]:
+    """Independent seeds for the sample layers of one frame."""
+    return [derive_seed(global_seed, scene_id, "noisy", frame, layer) for layer in range(n)]
+
+
+def reference_batch_seeds(global_seed: int, scene_id: str, frame: int, half: int, n: int) -> list[int]:
+    """Seeds of the reference batches of one half; disjoint from the noisy seeds by construction."""
+    return [derive_seed(global_seed, scene_id, "reference", frame, half, batch) for batch in range(n)]
+
+
+def render_reference_frame(scene, *, spp: int, batch_spp: int, seeds_half: tuple[list[int], list[int]],
+                           counter: NonFiniteCounter, progress=None) -> dict[str, np.ndarray]:
+    """Two independent halves of ``spp/2`` samples each; returns {buffer: (C, H, W)} with
+    ``radiance`` (their mean), ``radiance_half0``, ``radiance_half1``, and the mean of diffuse,
+    specular, albedo, normal and depth over all samples."""
+    from scenegen.integrator import SAMPLE_AOVS
+
+    layout = [("radiance", 3), *SAMPLE_AOVS]
+    half_spp = spp // 2
+    n_batches = math.ceil(half_spp / batch_spp)
+    sums: dict[str, np.ndarray] = {}
+    half_radiance = []
+    for half in range(2):
+        acc = None
+        remaining = half_spp
+        for batch in range(n_batches):
+            batch_count = min(batch_spp, remaining)
+            remaining -= batch_count
+            parts = _split_channels(_render(scene, spp=batch_count, seed=seeds_half[half][batch]), layout)
+            for name in ("radiance", "diffuse", "albedo", "normal", "depth"):
+                value = counter.sanitise(name, parts[name]).astype(np.float64) * batch_count
+                sums[name] = sums.get(name, 0.0) + value
+            rad = counter.sanitise("radiance", parts["radiance"]).astype(np.float64) * batch_count
+            acc = rad if acc is None else acc + rad
+            if progress is not None:
+                progress.update(batch_count)
+        half_radiance.append(acc / half_spp)
+    total = 2 * half_spp
+    out = {name: (value / total).astype(np.float32) for name, value in sums.items()}
+    out["specular"] = out["radiance"] - out["diffuse"]
+    out["radiance_half0"] = half_radiance[0].astype(np.float32)
+    out["radiance_half1"] = half_radiance[1].astype(np.float32)
+    return out
+
+
+def preview_luminance(manifest: dict, scene_dir: Path, *, size: int = 32, spp: int = 16,
+                      frames: tuple[int, ...] | None = None) -> float:
+    """Mean luminance (Rec. 709 weights) of small ``path`` renders of a few frames of a scene."""
+    import mitsuba as mi
+
+    from scenegen.mitsuba_scene import build_scene_dict
+
+    init_mitsuba()
+    n_frames = int(manifest["n_frames"])
+    if frames is None:
+        frames = tuple(sorted({0, n_frames // 2, n_frames - 1}))
+    values = []
+    for frame in frames:
+        scene_dict = build_scene_dict(manifest, Path(scene_dir), frame, width=size, height=size,
+                                      integrator={"type": "path", "max_depth": 6})
+        image = np.array(mi.render(mi.load_dict(scene_dict), spp=spp, seed=frame), np.float64)
+        image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
+        values.append(float((image[..., :3] @ np.array([0.2126, 0.7152, 0.0722])).mean()))
+    return float(np.mean(values))
+
+
+def psnr_between_halves(half0: np.ndarray, half1: np.ndarray) -> float:
+    """PSNR (dB) between the two reference halves on tonemapped radiance, x -> (x/(1+x))^(1/2.4).
+
+    The error of the averaged reference is half the variance of the halves' difference, so this is a
+    conservative estimate of the reference's own noise floor.
+    """
+    tonemap = lambda x: np.power(np.clip(x, 0, None) / (1.0 + np.clip(x, 0, None)), 1.0 / 2.4)  # noqa: E731
+    mse = float(np.mean((tonemap(half0) - tonemap(half1)) ** 2))
+    return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
+
+
+class Stopwatch:
+    """Wall-clock timer for samples/s bookkeeping."""
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
