@@ -178,10 +178,12 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
             reference = render_reference_frame(scene, spp=2 * half_spp, batch_spp=settings.reference_batch_spp,
                                                seeds_half=seeds, counter=counter, progress=bar)
             seconds = time.perf_counter() - start
+            psnr_halves = psnr_between_halves(reference["radiance_half0"], reference["radiance_half1"])
             meta = _frame_meta(manifest, scene_id, frame, settings, variant)
             meta.update({
                 "spp": 2 * half_spp, "seeds": {"half0": seeds[0], "half1": seeds[1]},
-                "psnr_halves": psnr_between_halves(reference["radiance_half0"], reference["radiance_half1"]),
+                "psnr_halves": psnr_halves,
+                "psnr_reference_noise_floor": psnr_halves + 10.0 * math.log10(4.0),
                 "nonfinite": counter.counts, "nonfinite_total": int(sum(counter.counts.values())),
                 "timing_s": seconds,
                 "samples_per_s": 2 * half_spp * settings.width * settings.height / seconds,

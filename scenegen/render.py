@@ -247,8 +247,9 @@ def preview_luminance(manifest: dict, scene_dir: Path, *, size: int = 32, spp: i
 def psnr_between_halves(half0: np.ndarray, half1: np.ndarray) -> float:
     """PSNR (dB) between the two reference halves on tonemapped radiance, x -> (x/(1+x))^(1/2.4).
 
-    The error of the averaged reference is half the variance of the halves' difference, so this is a
-    conservative estimate of the reference's own noise floor.
+    The halves are independent, so E|h0 - h1|^2 = 2 var(half) and the averaged reference has
+    variance var(half)/2 = E|h0 - h1|^2 / 4: its own noise floor is about this value + 6.02 dB
+    (to first order in the tonemapper).
     """
     tonemap = lambda x: np.power(np.clip(x, 0, None) / (1.0 + np.clip(x, 0, None)), 1.0 / 2.4)  # noqa: E731
     mse = float(np.mean((tonemap(half0) - tonemap(half1)) ** 2))
