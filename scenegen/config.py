@@ -1,0 +1,251 @@
+"""Loading, validating and fingerprinting the harness configuration.
+
+The JSON schema in workflow/schemas/config.schema.yaml is the single source of truth for the
+keys, types, ranges and defaults; the Snakemake workflow validates against the same file. This
+module adds readable error messages (key path plus allowed values) and the few cross-key
+constraints that JSON Schema cannot express.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import hashlib
+import json
+import math
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import yaml
+
+SCHEMA_PATH = Path(__file__).resolve().parents[1] / "workflow" / "schemas" / "config.schema.yaml"
+
+#: Upper bound on per-pixel sample layers (spp + extra_radiance_spp) of a noisy render.
+MAX_SAMPLE_LAYERS = 32
+
+SCENE_SPLITS = ("train", "test")
+CUSTOM_PREFIX = "custom_"
+
+
+class ConfigError(ValueError):
+    """Raised for an invalid configuration; the message names every offending key path."""
+
+
+def load_schema() -> dict[str, Any]:
+    """Return a fresh copy of the config JSON schema (callers may mutate it)."""
+    with SCHEMA_PATH.open("r", encoding="utf-8") as handle:
+        return yaml.safe_load(handle)
+
+
+def _with_defaults(validator_class: type) -> type:
+    """Extend a jsonschema validator class so that validation also fills in `default` values."""
+    validate_properties = validator_class.VALIDATORS["properties"]
+
+    def fill_defaults_then_validate(validator, properties, instance, schema):
+        if isinstance(instance, dict):
+            for key, subschema in properties.items():
+                if "default" in subschema and key not in instance:
+                    # Deep copy: a shared mutable default would leak between configs.
+                    instance[key] = copy.deepcopy(subschema["default"])
+        yield from validate_properties(validator, properties, instance, schema)
+
+    return jsonschema.validators.extend(validator_class, {"properties": fill_defaults_then_validate})
+
+
+_DefaultFillingValidator = _with_defaults(jsonschema.Draft202012Validator)
+
+
+def format_key_path(path: Sequence[Any]) -> str:
+    """Render a jsonschema path like ('extra_scenes', 0, 'name') as 'extra_scenes[0].name'."""
+    text = ""
+    for part in path:
+        if isinstance(part, int):
+            text += f"[{part}]"
+        else:
+            text += f".{part}" if text else str(part)
+    return text or "<top level>"
+
+
+def _allowed_range(schema: dict[str, Any]) -> str:
+    """Describe the numeric bounds of a schema node, e.g. '1..32' or '> 0'."""
+    low, high = schema.get("minimum"), schema.get("maximum")
+    if low is not None and high is not None:
+        return f"{low}..{high}"
+    parts = []
+    if low is not None:
+        parts.append(f">= {low}")
+    if "exclusiveMinimum" in schema:
+        parts.append(f"> {schema['exclusiveMinimum']}")
+    if high is not None:
+        parts.append(f"<= {high}")
+    if "exclusiveMaximum" in schema:
+        parts.append(f"< {schema['exclusiveMaximum']}")
+    return " and ".join(parts)
+
+
+# JSON Schema type names as a YAML author knows them.
+_YAML_TYPE_NAMES = {"object": "mapping", "array": "list", "number": "number", "integer": "integer", "string": "string"}
+
+
+def _describe_error(error: jsonschema.ValidationError) -> list[str]:
+    """Turn one jsonschema error into messages naming the key path and what is allowed."""
+    path = list(error.absolute_path)
+    key = format_key_path(path)
+    value = error.instance
+    kind = error.validator
+    subschema = error.schema if isinstance(error.schema, dict) else {}
+
+    if kind == "additionalProperties":
+        allowed = sorted(subschema.get("properties", {}))
+        where = f"'{format_key_path(path)}'" if path else "the top level"
+        messages = []
+        for extra in sorted(set(value) - set(allowed)):
+            hint = difflib.get_close_matches(str(extra), allowed, n=1)
+            did_you_mean = f" (did you mean '{hint[0]}'?)" if hint else ""
+            messages.append(
+                f"unknown config key '{format_key_path([*path, extra])}'{did_you_mean}; "
+                f"allowed keys in {where}: {', '.join(allowed)}"
+            )
+        return messages
+    if kind == "required":
+        missing = [name for name in error.validator_value if name not in value]
+        return [f"missing required config key '{format_key_path([*path, name])}'" for name in missing]
+    if kind == "enum":
+        allowed = ", ".join(str(option) for option in error.validator_value)
+        return [f"config key '{key}' = {value!r} is not allowed; allowed values: {allowed}"]
+    if kind in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum"):
+        return [f"config key '{key}' = {value!r} is out of range; allowed range: {_allowed_range(subschema)}"]
+    if kind == "multipleOf":
+        return [f"config key '{key}' = {value!r} must be a multiple of {error.validator_value}"]
+    if kind == "type":
+        expected = _YAML_TYPE_NAMES.get(error.validator_value, error.validator_value)
+        return [f"config key '{key}' = {value!r} has the wrong type; allowed type: {expected}"]
+    if kind in ("minItems", "maxItems"):
+        low, high = subschema.get("minItems", 0), subschema.get("maxItems")
+        count = f"exactly {low}" if low == high else f"{low}..{high if high is not None else 'any'}"
+        return [f"config key '{key}' = {value!r} has {len(value)} items; allowed: {count} items"]
+    if kind == "pattern":
+        return [f"config key '{key}' = {value!r} does not match the allowed pattern {error.validator_value}"]
+    if kind == "uniqueItems":
+        return [f"config key '{key}' = {value!r} contains duplicates; allowed: each value at most once"]
+    return [f"config key '{key}': {error.message}"]
+
+
+def _cross_key_problems(cfg: dict[str, Any]) -> Iterator[str]:
+    """Constraints between keys that the JSON schema cannot express (assumes a schema-valid cfg)."""
+    render, scenes = cfg["render"], cfg["scenes"]
+    layers = render["spp"] + render["extra_radiance_spp"]
+    if layers > MAX_SAMPLE_LAYERS:
+        yield (
+            f"config keys 'render.spp' + 'render.extra_radiance_spp' = {layers} is out of range; "
+            f"allowed: spp + extra_radiance_spp <= {MAX_SAMPLE_LAYERS}"
+        )
+    low, high = scenes["objects"]
+    if low > high:
+        yield f"config key 'scenes.objects' = {scenes['objects']!r} is invalid; allowed: [min, max] with min <= max"
+    low, high = scenes["luminance_range"]
+    if low >= high:
+        yield (
+            f"config key 'scenes.luminance_range' = {scenes['luminance_range']!r} is invalid; "
+            "allowed: [low, high] with 0 < low < high"
+        )
+    names = [entry["name"] for entry in cfg["extra_scenes"]]
+    for name in sorted({name for name in names if names.count(name) > 1}):
+        yield f"config key 'extra_scenes' has the name {name!r} more than once; allowed: unique names"
+
+
+def config_problems(cfg: Any) -> list[str]:
+    """Validate `cfg` in place (filling defaults) and return readable problems; empty when valid."""
+    validator = _DefaultFillingValidator(load_schema())
+    errors = sorted(validator.iter_errors(cfg), key=lambda err: [str(part) for part in err.absolute_path])
+    problems = [message for error in errors for message in _describe_error(error)]
+    if not problems:
+        problems = list(_cross_key_problems(cfg))
+    return problems
+
+
+def validate_config(cfg: dict[str, Any]) -> dict[str, Any]:
+    """Validate `cfg` in place, fill defaults and return it; raise ConfigError listing all problems."""
+    problems = config_problems(cfg)
+    if problems:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+    return cfg
+
+
+def load_config(path: str | Path) -> dict[str, Any]:
+    """Load a YAML config file, validate it against the schema and return it with defaults filled."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"cannot read config file {path}: {err}") from err
+    try:
+        cfg = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"config file {path} is not valid YAML: {err}") from err
+    if not isinstance(cfg, dict):
+        raise ConfigError(f"config file {path} must contain a mapping of keys, got {type(cfg).__name__}")
+    try:
+        return validate_config(cfg)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+
+
+def _lookup(cfg: dict[str, Any], dotted_key: str) -> Any:
+    node: Any = cfg
+    for part in dotted_key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            raise KeyError(f"config has no key '{dotted_key}'")
+        node = node[part]
+    return node
+
+
+def config_digest(cfg: dict[str, Any], *sections: str) -> str:
+    """SHA-256 hex digest of the canonical JSON of the given config sections.
+
+    `sections` are dotted key paths ('seed', 'render', 'scenes.frames'); with none, the whole
+    config is hashed. Key order in the YAML does not matter.
+    """
+    selected = {section: _lookup(cfg, section) for section in sections} if sections else cfg
+    canonical = json.dumps(selected, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+
+
+def extra_scene(cfg: dict[str, Any], scene_id: str) -> dict[str, Any]:
+    """Return the extra_scenes entry of a custom_{name} scene id; KeyError if there is none."""
+    if not scene_id.startswith(CUSTOM_PREFIX):
+        raise KeyError(f"{scene_id!r} is not a custom scene id")
+    name = scene_id[len(CUSTOM_PREFIX) :]
+    for entry in cfg.get("extra_scenes", []):
+        if entry["name"] == name:
+            return entry
+    raise KeyError(f"no extra_scenes entry named {name!r} (scene id {scene_id!r})")
+
+
+def scene_ids(cfg: dict[str, Any]) -> list[str]:
+    """All scene ids: train_000.., test_000.., then custom_{name} for every extra scene."""
+    ids = [f"{split}_{index:03d}" for split in SCENE_SPLITS for index in range(cfg["scenes"][f"n_{split}"])]
+    ids += [f"{CUSTOM_PREFIX}{entry['name']}" for entry in cfg.get("extra_scenes", [])]
+    return ids
+
+
+def scene_frame_count(cfg: dict[str, Any], scene_id: str) -> int:
+    """Frames in the clip of a scene (the extra scene's own count for custom scenes)."""
+    if scene_id.startswith(CUSTOM_PREFIX):
+        return int(extra_scene(cfg, scene_id)["frames"])
+    return int(cfg["scenes"]["frames"])
+
+
+def chunk_count(cfg: dict[str, Any], scene_id: str) -> int:
+    """Number of render chunks of a scene: ceil(frames / frames_per_chunk)."""
+    return math.ceil(scene_frame_count(cfg, scene_id) / cfg["scenes"]["frames_per_chunk"])
+
+
+def chunk_frames(cfg: dict[str, Any], scene_id: str, chunk: int) -> range:
+    """Frame indices rendered by one chunk (the last chunk may be shorter)."""
+    if not 0 <= chunk < chunk_count(cfg, scene_id):
+        raise ValueError(f"scene {scene_id!r} has no chunk {chunk} (it has {chunk_count(cfg, scene_id)})")
+    per_chunk = cfg["scenes"]["frames_per_chunk"]
+    return range(chunk * per_chunk, min((chunk + 1) * per_chunk, scene_frame_count(cfg, scene_id)))

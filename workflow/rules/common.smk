@@ -1,0 +1,139 @@
+# Shared set-up of the workflow: config validation, scene and chunk lists, input and param functions.
+# Only functions and plain Python live here (no rules), so the rule files stay declarative.
+
+import os
+from pathlib import Path
+
+import yaml
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
+
+from scenegen.config import (
+    chunk_count,
+    config_digest,
+    config_problems,
+    extra_scene,
+    scene_frame_count,
+    scene_ids,
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation. snakemake.utils.validate checks the schema and fills defaults in `config`; its
+# message dumps whole schema fragments, so problems are re-described by scenegen.config, which
+# names the key path and the allowed values, and also checks the cross-key constraints.
+# ---------------------------------------------------------------------------------------------
+try:
+    validate(config, "../schemas/config.schema.yaml")
+    schema_error = None
+except Exception as err:  # WorkflowError, or AttributeError when a section is not a mapping
+    schema_error = err
+config_errors = config_problems(config) or ([str(schema_error)] if schema_error else [])
+if config_errors:
+    raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
+
+
+wildcard_constraints:
+    scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+",
+    chunk=r"\d{3}",
+
+
+SCENES = scene_ids(config)
+
+
+def scene_dirs() -> list[str]:
+    """Output directories of all scenes (stage target `scenes`)."""
+    return [f"results/scenes/{scene}" for scene in SCENES]
+
+
+def chunk_dirs(kind: str) -> list[str]:
+    """Output directories of all render chunks of one kind ('noisy' or 'reference')."""
+    return [
+        f"results/renders/{scene}/{kind}/chunk_{chunk:03d}"
+        for scene in SCENES
+        for chunk in range(chunk_count(config, scene))
+    ]
+
+
+# ---------------------------------------------------------------------------------------------
+# Passing the config to the CLI and rerunning jobs when it changes.
+#
+# The validated config (defaults filled, --config overrides applied) is dumped once per distinct
+# config to a content-addressed file results/.config/<digest>.yaml at parse time; every job
+# reads it with `--config`. Because the file name changes whenever any key changes, the path is
+# handed over by a param function taking `output`: Snakemake treats such params as derived and
+# leaves them out of the "params" rerun trigger. What does trigger reruns is a second param, the
+# SHA-256 of only the config keys that job's output depends on; Snakemake records params in
+# .snakemake/metadata and (default --rerun-triggers) reruns a job whose params changed. So e.g.
+# raising n_train adds scenes without touching existing ones, and changing reference_spp reruns
+# only the reference renders.
+# ---------------------------------------------------------------------------------------------
+RESOLVED_CONFIG_FILE = f"results/.config/{config_digest(config)[:16]}.yaml"
+
+
+def write_resolved_config(path: str) -> None:
+    """Write `config` to `path` once; atomic, so concurrent parses (e.g. cluster jobs) are safe."""
+    target = Path(path)
+    if target.exists():
+        return
+    target.parent.mkdir(parents=True, exist_ok=True)
+    partial = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    partial.write_text(yaml.safe_dump(config, sort_keys=False), encoding="utf-8")
+    os.replace(partial, target)
+
+
+write_resolved_config(RESOLVED_CONFIG_FILE)
+
+
+def resolved_config_file(wildcards, output) -> str:
+    """Param: the resolved config file (derived from `output`, hence not a rerun trigger)."""
+    return RESOLVED_CONFIG_FILE
+
+
+# Keys that do not change a scene's content or renders: they only say how many scenes exist or
+# how frames are batched into jobs (frames_per_chunk is added back for the render jobs).
+SCENE_LAYOUT_KEYS = {"n_train", "n_test", "frames_per_chunk"}
+NOISY_ONLY_KEYS = {"spp", "extra_radiance_spp"}
+REFERENCE_ONLY_KEYS = {"reference_spp", "reference_batch_spp"}
+# Render keys that change both noisy and reference images (resolution, variant, path depth); the
+# scene generator's preview render may use them too, so they are part of the scene digest.
+RENDER_SHARED_KEYS = [
+    f"render.{key}" for key in config["render"] if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS
+]
+
+
+def scene_settings(scene: str) -> dict:
+    """The config values a scene's content depends on (not the number of scenes)."""
+    if scene.startswith("custom_"):
+        procedural = {"extra_scene": extra_scene(config, scene)}
+    else:
+        procedural = {key: value for key, value in config["scenes"].items() if key not in SCENE_LAYOUT_KEYS}
+    return {"seed": config["seed"], "scenes": procedural, "render_shared": config_digest(config, *RENDER_SHARED_KEYS)}
+
+
+def generate_scene_input(wildcards) -> dict[str, str]:
+    """Named inputs of generate_scene: the XML file of a custom scene, nothing for procedural ones."""
+    if wildcards.scene.startswith("custom_"):
+        return {"xml": extra_scene(config, wildcards.scene)["xml"]}
+    return {}
+
+
+def generate_scene_digest(wildcards) -> str:
+    """Param: digest of the config values that determine the scene (rerun trigger)."""
+    return config_digest(scene_settings(wildcards.scene))
+
+
+def render_digest(kind: str):
+    """Param function: digest of the config values that determine a noisy/reference chunk."""
+    own_keys = NOISY_ONLY_KEYS if kind == "noisy" else REFERENCE_ONLY_KEYS
+
+    def digest(wildcards) -> str:
+        settings = {
+            "scene": scene_settings(wildcards.scene),
+            "frames": scene_frame_count(config, wildcards.scene),
+            "frames_per_chunk": config["scenes"]["frames_per_chunk"],
+            "render": {key: config["render"][key] for key in sorted(own_keys)},
+        }
+        return config_digest(settings)
+
+    return digest

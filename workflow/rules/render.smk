@@ -1,0 +1,52 @@
+# Stage 2: Mitsuba 3 renders per (scene, chunk of frames).
+#   noisy:     results/renders/{scene}/noisy/chunk_{chunk}/frame_{t:04d}.exr + .json
+#   reference: results/renders/{scene}/reference/chunk_{chunk}/frame_{t:04d}.exr + .json
+# {chunk} is the zero-padded chunk index (000, 001, ...); the CLI gets it as an integer.
+
+
+rule render_noisy:
+    input:
+        scene_dir="results/scenes/{scene}",
+    output:
+        chunk_dir=directory("results/renders/{scene}/noisy/chunk_{chunk}"),
+    params:
+        config_file=resolved_config_file,
+        config_digest=render_digest("noisy"),
+        chunk=lambda wildcards: int(wildcards.chunk),
+    log:
+        "results/logs/render_noisy/{scene}/chunk_{chunk}.log",
+    benchmark:
+        "results/benchmarks/render_noisy/{scene}/chunk_{chunk}.tsv"
+    conda:
+        "../envs/harness.yaml"
+    threads: 2
+    resources:
+        mem_mb=8000,
+        runtime=60,
+    shell:
+        "python -m scenegen render-noisy --config {params.config_file} --scene {wildcards.scene}"
+        " --chunk {params.chunk} --scene-dir {input.scene_dir} --out {output.chunk_dir} > {log} 2>&1"
+
+
+rule render_reference:
+    input:
+        scene_dir="results/scenes/{scene}",
+    output:
+        chunk_dir=directory("results/renders/{scene}/reference/chunk_{chunk}"),
+    params:
+        config_file=resolved_config_file,
+        config_digest=render_digest("reference"),
+        chunk=lambda wildcards: int(wildcards.chunk),
+    log:
+        "results/logs/render_reference/{scene}/chunk_{chunk}.log",
+    benchmark:
+        "results/benchmarks/render_reference/{scene}/chunk_{chunk}.tsv"
+    conda:
+        "../envs/harness.yaml"
+    threads: 2
+    resources:
+        mem_mb=8000,
+        runtime=240,
+    shell:
+        "python -m scenegen render-reference --config {params.config_file} --scene {wildcards.scene}"
+        " --chunk {params.chunk} --scene-dir {input.scene_dir} --out {output.chunk_dir} > {log} 2>&1"

@@ -1,0 +1,25 @@
+# Stage 1: seeded procedural scenes (and imported custom XML scenes).
+# Output layout: results/scenes/{scene}/manifest.json, meshes/*.ply, textures/*.png
+
+
+rule generate_scene:
+    input:
+        unpack(generate_scene_input),
+    output:
+        scene_dir=directory("results/scenes/{scene}"),
+    params:
+        config_file=resolved_config_file,
+        config_digest=generate_scene_digest,
+    log:
+        "results/logs/generate_scene/{scene}.log",
+    benchmark:
+        "results/benchmarks/generate_scene/{scene}.tsv"
+    conda:
+        "../envs/harness.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=20,
+    shell:
+        "python -m scenegen generate --config {params.config_file} --scene {wildcards.scene}"
+        " --out {output.scene_dir} > {log} 2>&1"
