@@ -24,6 +24,8 @@ def _parser() -> argparse.ArgumentParser:
         cmd.add_argument("--chunk", type=int, required=True)
         cmd.add_argument("--scene-dir", type=Path, required=True)
         cmd.add_argument("--out", type=Path, required=True)
+        cmd.add_argument("--threads", type=int, default=None,
+                         help="Dr.Jit worker threads (default: all cores); the workflow passes {threads}")
     return parser
 
 
@@ -35,6 +37,13 @@ def main(argv: list[str] | None = None) -> int:
     from scenegen import jobs
 
     cfg = load_config(args.config)
+    if getattr(args, "threads", None):
+        from scenegen.mitsuba_env import init_mitsuba
+
+        init_mitsuba(cfg["render"]["variant"])
+        import drjit as dr
+
+        dr.set_thread_count(args.threads)
     if args.command == "generate":
         jobs.run_generate(cfg, args.scene, args.out)
     elif args.command == "render-noisy":

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from scenegen.mitsuba_env import init_mitsuba
 from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_layer_seeds,
-                             preview_luminance, psnr_between_halves, reference_batch_seeds,
+                             psnr_between_halves, reference_batch_seeds,
                              render_gbuffer, render_reference_frame, render_sample_layers)
 from scenegen.seeds import scene_seed
 
@@ -71,12 +71,13 @@ def _load_manifest(scene_dir: Path) -> dict:
 def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
     """Draw scene ``scene_id`` and write it to ``out_dir`` (manifest, meshes, textures)."""
     from scenegen.generate import generate_scene
+    from scenegen.mitsuba_scene import preview_mean_luminance
 
     init_mitsuba(cfg["render"]["variant"])
     seed = scene_seed(cfg["seed"], scene_id)
     with atomic_directory(out_dir) as tmp_dir:
         manifest = generate_scene(cfg["scenes"], seed, scene_id, tmp_dir, n_frames=cfg["scenes"]["frames"],
-                                  luminance_check=preview_luminance)
+                                  luminance_check=preview_mean_luminance)
     log.info("scene %s: seed %d, %d shapes, %d redraws", scene_id, seed, len(manifest["shapes"]),
              len(manifest.get("redraws", [])))
     return manifest

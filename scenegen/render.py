@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from scenegen.mitsuba_env import init_mitsuba
 from scenegen.seeds import derive_seed
 
 # Buffer name -> channel count of the per-sample arrays this module returns.
@@ -221,27 +220,6 @@ def render_reference_frame(scene, *, spp: int, batch_spp: int, seeds_half: tuple
     out["radiance_half0"] = half_radiance[0].astype(np.float32)
     out["radiance_half1"] = half_radiance[1].astype(np.float32)
     return out
-
-
-def preview_luminance(manifest: dict, scene_dir: Path, *, size: int = 32, spp: int = 16,
-                      frames: tuple[int, ...] | None = None) -> float:
-    """Mean luminance (Rec. 709 weights) of small ``path`` renders of a few frames of a scene."""
-    import mitsuba as mi
-
-    from scenegen.mitsuba_scene import build_scene_dict
-
-    init_mitsuba()
-    n_frames = int(manifest["n_frames"])
-    if frames is None:
-        frames = tuple(sorted({0, n_frames // 2, n_frames - 1}))
-    values = []
-    for frame in frames:
-        scene_dict = build_scene_dict(manifest, Path(scene_dir), frame, width=size, height=size,
-                                      integrator={"type": "path", "max_depth": 6})
-        image = np.array(mi.render(mi.load_dict(scene_dict), spp=spp, seed=frame), np.float64)
-        image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
-        values.append(float((image[..., :3] @ np.array([0.2126, 0.7152, 0.0722])).mean()))
-    return float(np.mean(values))
 
 
 def psnr_between_halves(half0: np.ndarray, half1: np.ndarray) -> float:

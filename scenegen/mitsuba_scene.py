@@ -1,0 +1,196 @@
+"""Manifest -> Mitsuba 3 scene dict for one frame, and the matching numpy camera projection.
+
+`camera_matrices`, `project_to_pixels` and `object_to_world` are pure numpy (no Mitsuba variant
+needed); `build_scene_dict` imports mitsuba lazily and expects a variant to be set
+(`scenegen.mitsuba_env.init_mitsuba()`).
+"""
+from __future__ import annotations
+
+import copy
+import pathlib
+from typing import Any
+
+import numpy as np
+
+from scenegen.camera import camera_to_pixel_matrix, look_at_matrix
+
+DEFAULT_INTEGRATOR = {"type": "path", "max_depth": 8}
+DEFAULT_SAMPLER = {"type": "independent", "sample_count": 1}
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure numpy
+# ---------------------------------------------------------------------------------------------
+
+def _frame_camera(manifest: dict, frame: int) -> dict:
+    frames = manifest["camera"]["frames"]
+    if not 0 <= frame < len(frames):
+        raise IndexError(f"frame {frame} outside clip of {len(frames)} frames")
+    return frames[frame]
+
+
+def camera_matrices(manifest: dict, frame: int, width: int, height: int) -> dict:
+    """Camera of `frame` as numpy matrices.
+
+    Returns {'to_world': (4, 4) camera-to-world (Mitsuba look_at: +z forward, +y up, +x = image left),
+    'world_to_camera': (4, 4), 'fov_x_deg', 'fov_y_deg', 'origin', 'target', 'up' (3,),
+    'intrinsics': (3, 3) K with [u w, v w, w] = K @ p_camera (u, v in pixels, x right, y down, w = depth),
+    'world_to_pixel': (3, 4) = K @ world_to_camera[:3],
+    'world_to_ndc': (3, 4) like world_to_pixel but u / W, v / H, i.e. Mitsuba film coordinates in [0, 1]^2},
+    plus 'width', 'height'.
+    """
+    cam = _frame_camera(manifest, frame)
+    fov_x = float(cam.get("fov_x_deg", manifest["camera"]["fov_x_deg"]))
+    origin, target, up = (np.asarray(cam[k], dtype=np.float64) for k in ("origin", "target", "up"))
+    to_world = look_at_matrix(origin, target, up)
+    world_to_camera = np.linalg.inv(to_world)
+    intrinsics = camera_to_pixel_matrix(fov_x, width, height)
+    world_to_pixel = intrinsics @ world_to_camera[:3]
+    fov_y = float(np.degrees(2 * np.arctan(np.tan(np.radians(fov_x) / 2) * height / width)))
+    return {
+        "to_world": to_world, "world_to_camera": world_to_camera, "fov_x_deg": fov_x, "fov_y_deg": fov_y,
+        "origin": origin, "target": target, "up": up, "intrinsics": intrinsics,
+        "world_to_pixel": world_to_pixel,
+        "world_to_ndc": np.diag([1.0 / width, 1.0 / height, 1.0]) @ world_to_pixel,
+        "width": int(width), "height": int(height),
+    }
+
+
+def project_to_pixels(points_world: np.ndarray, manifest: dict, frame: int, width: int,
+                      height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Project (N, 3) world points into `frame`'s image.
+
+    Returns ((N, 2) continuous pixel coords (x right, y down; pixel (i, j) has its centre at
+    (i + 0.5, j + 0.5), the visible image is [0, W) x [0, H)), (N,) bool: point is in front of the
+    camera). Coordinates of points behind the camera are meaningless (NaN when exactly on the
+    camera plane).
+    """
+    points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    world_to_pixel = camera_matrices(manifest, frame, width, height)["world_to_pixel"]
+    homogeneous = points @ world_to_pixel[:, :3].T + world_to_pixel[:, 3]
+    depth = homogeneous[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pixels = homogeneous[:, :2] / depth[:, None]
+    return pixels, depth > 0.0
+
+
+def object_to_world(manifest: dict, frame: int) -> np.ndarray:
+    """(n_shapes, 4, 4) to_world of every shape at `frame` (row = the shape's `index`)."""
+    out = np.empty((len(manifest["shapes"]), 4, 4))
+    for shape in manifest["shapes"]:
+        per_frame = shape.get("to_world_per_frame")
+        out[shape["index"]] = per_frame[frame] if per_frame is not None else shape["to_world"]
+    return out
+
+
+def emitter_position(emitter: dict, frame: int) -> np.ndarray | None:
+    """(3,) position of a point / spot emitter at `frame` (None for emitters without a position)."""
+    if "position_per_frame" in emitter:
+        return np.asarray(emitter["position_per_frame"][frame], dtype=np.float64)
+    if "position" in emitter:
+        return np.asarray(emitter["position"], dtype=np.float64)
+    return None
+
+
+# ---------------------------------------------------------------------------------------------
+# Mitsuba dict
+# ---------------------------------------------------------------------------------------------
+
+def _resolve_params(params: Any, scene_dir: pathlib.Path, mi: Any) -> Any:
+    """Copy of manifest material params with bitmap filenames made absolute and `to_uv` lists turned
+    into mi.ScalarTransform4f."""
+    if isinstance(params, dict):
+        out = {k: _resolve_params(v, scene_dir, mi) for k, v in params.items()}
+        if out.get("type") == "bitmap":
+            out["filename"] = str((scene_dir / params["filename"]).resolve())
+            if "to_uv" in params:
+                out["to_uv"] = mi.ScalarTransform4f(np.asarray(params["to_uv"], dtype=np.float64))
+        return out
+    if isinstance(params, list):
+        return [_resolve_params(v, scene_dir, mi) for v in params]
+    return copy.deepcopy(params)
+
+
+def _rgb(value: list[float]) -> dict:
+    return {"type": "rgb", "value": [float(v) for v in value]}
+
+
+def _spot_up(direction: np.ndarray) -> list[float]:
+    """An up vector not parallel to the spot direction (look_at needs one)."""
+    return [0.0, 0.0, 1.0] if abs(direction[1]) > 0.99 * np.linalg.norm(direction) else [0.0, 1.0, 0.0]
+
+
+def build_scene_dict(manifest: dict, scene_dir: pathlib.Path, frame: int, *, width: int, height: int,
+                     integrator: dict | None = None, sampler: dict | None = None) -> dict:
+    """Plain Mitsuba scene dict for one frame (camera, object transforms, light positions of that frame).
+
+    Shapes are keyed `shape_{index:03d}`, non-area emitters `emitter_{name}`. Note: `mi.load_dict` with
+    its default `optimize=True` merges meshes whose BSDF dicts are identical into one shape (rendering is
+    unchanged); load with `optimize=False`, or load each shape first, when per-shape identity matters.
+    """
+    import mitsuba as mi
+
+    scene_dir = pathlib.Path(scene_dir)
+    cam = _frame_camera(manifest, frame)
+    fov_x = float(cam.get("fov_x_deg", manifest["camera"]["fov_x_deg"]))
+    scene: dict[str, Any] = {
+        "type": "scene",
+        "integrator": copy.deepcopy(integrator) if integrator is not None else dict(DEFAULT_INTEGRATOR),
+        "sensor": {
+            "type": "perspective",
+            "fov": fov_x,
+            "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f().look_at(origin=cam["origin"], target=cam["target"], up=cam["up"]),
+            "film": {"type": "hdrfilm", "width": int(width), "height": int(height),
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "sampler": copy.deepcopy(sampler) if sampler is not None else dict(DEFAULT_SAMPLER),
+        },
+    }
+    to_worlds = object_to_world(manifest, frame)
+    materials = manifest["materials"]
+    for shape in manifest["shapes"]:
+        index = shape["index"]
+        entry: dict[str, Any] = {
+            "type": "ply",
+            "filename": str((scene_dir / shape["mesh"]).resolve()),
+            "to_world": mi.ScalarTransform4f(to_worlds[index]),
+            # The PLYs carry explicit (crease-aware) vertex normals; flat meshes carry face normals.
+            "face_normals": False,
+            "bsdf": _resolve_params(materials[shape["material"]]["params"], scene_dir, mi),
+        }
+        if shape.get("emitter") is not None:
+            entry["emitter"] = {"type": "area", "radiance": _rgb(shape["emitter"]["radiance"])}
+        scene[f"shape_{index:03d}"] = entry
+
+    for emitter in manifest["emitters"]:
+        key = f"emitter_{emitter['name']}"
+        if emitter["type"] == "point":
+            scene[key] = {"type": "point", "position": emitter_position(emitter, frame).tolist(),
+                          "intensity": _rgb(emitter["intensity"])}
+        elif emitter["type"] == "spot":
+            position = emitter_position(emitter, frame)
+            target = np.asarray(emitter["target_per_frame"][frame] if "target_per_frame" in emitter
+                                else emitter["target"], dtype=np.float64)
+            scene[key] = {"type": "spot", "intensity": _rgb(emitter["intensity"]),
+                          "cutoff_angle": float(emitter["cutoff_angle"]),
+                          "beam_width": float(emitter.get("beam_width", 0.75 * emitter["cutoff_angle"])),
+                          "to_world": mi.ScalarTransform4f().look_at(
+                              origin=position.tolist(), target=target.tolist(), up=_spot_up(target - position))}
+        elif emitter["type"] == "constant":
+            scene[key] = {"type": "constant", "radiance": _rgb(emitter["radiance"])}
+        else:
+            raise ValueError(f"unknown emitter type {emitter['type']!r}")
+    return scene
+
+
+def preview_mean_luminance(manifest: dict, scene_dir: pathlib.Path, *, frame: int = 0, width: int = 32,
+                           height: int = 32, spp: int = 4, max_depth: int = 6, seed: int = 0) -> float:
+    """Render a tiny preview of `frame` and return its mean Rec.709 luminance (usable as luminance_check)."""
+    import mitsuba as mi
+
+    scene = mi.load_dict(build_scene_dict(
+        manifest, scene_dir, frame, width=width, height=height,
+        integrator={"type": "path", "max_depth": max_depth},
+        sampler={"type": "independent", "sample_count": spp}))
+    image = np.asarray(mi.render(scene, seed=seed), dtype=np.float64)[..., :3]
+    return float((image @ np.array([0.2126, 0.7152, 0.0722])).mean())
