@@ -58,10 +58,9 @@ def main() -> None:
         manifest = run_generate(cfg, args.scene, scene_dir)
         scene = load_frame_scene(manifest, scene_dir, args.frame, settings)
         pixels = settings.width * settings.height
-        seeds = list(range(spp))
 
         def ours() -> None:
-            render_sample_layers(scene, n_layers=spp, n_radiance_only=0, seeds=seeds, counter=NonFiniteCounter())
+            render_sample_layers(scene, n_layers=spp, n_radiance_only=0, seed=1, counter=NonFiniteCounter())
 
         aov = mi.load_dict({"type": "aov", "aovs": "albedo:albedo,nn:sh_normal,dd:depth,pp:position",
                             "integrator": {"type": "path", "max_depth": settings.max_depth,

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen.mitsuba_env import init_mitsuba
-from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_layer_seeds,
+from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_frame_seed,
                              psnr_between_halves, reference_batch_seeds,
                              render_gbuffer, render_reference_frame, render_sample_layers)
 from scenegen.seeds import scene_seed
@@ -129,9 +129,9 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
             start = time.perf_counter()
             scene = load_frame_scene(manifest, scene_dir, frame, settings)
             counter = NonFiniteCounter()
-            seeds = noisy_layer_seeds(cfg["seed"], scene_id, frame, n_layers)
+            seed = noisy_frame_seed(cfg["seed"], scene_id, frame)
             samples = render_sample_layers(scene, n_layers=settings.spp, n_radiance_only=settings.extra_radiance_spp,
-                                           seeds=seeds, counter=counter, progress=bar)
+                                           seed=seed, counter=counter, progress=bar)
             render_seconds = time.perf_counter() - start
             gbuffer = render_gbuffer(manifest, scene_dir, frame, settings, scene=scene)
             cut = bool(manifest["camera"]["frames"][frame].get("cut", False))
@@ -140,7 +140,7 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
             meta = _frame_meta(manifest, scene_id, frame, settings, variant)
             meta.update({
                 "spp": settings.spp, "extra_radiance_spp": settings.extra_radiance_spp,
-                "seeds": {"layers": seeds}, "nonfinite": counter.counts,
+                "seeds": {"layers": seed}, "nonfinite": counter.counts,
                 "nonfinite_total": int(sum(counter.counts.values())),
                 "valid_fraction": float(valid.mean()),
                 "timing_s": render_seconds, "samples_per_s": samples_per_frame / render_seconds,

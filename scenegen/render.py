@@ -151,35 +151,69 @@ def render_gbuffer(manifest: dict, scene_dir: Path, frame: int, settings: Render
     return _split_channels(image, [("rgb", 3), *GBUFFER_AOVS])
 
 
-def render_sample_layers(scene, *, n_layers: int, n_radiance_only: int, seeds: list[int],
+def _sample_wavefront(scene, *, n_layers: int, seed: int) -> np.ndarray:
+    """Trace ``n_layers`` independent 1-spp samples of every pixel in one wavefront.
+
+    Direct call of the integrator's ``sample`` (JIT variants only): rays are generated like
+    Mitsuba's film loop at 1 spp (uniform jitter in the pixel, box filter), lanes ordered
+    layer-major. Returns (S, H, W, 3 + n_aov) float32: radiance then the AOVs.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    sensor = scene.sensors()[0]
+    width, height = (int(v) for v in sensor.film().crop_size())
+    n_pixels = width * height
+    sampler = sensor.sampler().clone()
+    sampler.set_sample_count(1)
+    sampler.seed(seed, n_layers * n_pixels)
+    index = dr.arange(mi.UInt32, n_layers * n_pixels)
+    pixel = index % n_pixels
+    film_position = mi.Vector2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
+    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+    ray, _ = sensor.sample_ray_differential(0.0, sampler.next_1d(),
+                                            film_position / mi.ScalarVector2f(width, height), aperture)
+    radiance, _, aovs = scene.integrator().sample(scene, sampler, ray, None, mi.Bool(True))
+    outputs = [radiance.x, radiance.y, radiance.z, *aovs]
+    dr.eval(*outputs)
+    stacked = np.stack([np.asarray(value, dtype=np.float32) for value in outputs], axis=-1)
+    return stacked.reshape(n_layers, height, width, len(outputs))
+
+
+def render_sample_layers(scene, *, n_layers: int, n_radiance_only: int, seed: int,
                          counter: NonFiniteCounter, progress=None) -> dict[str, np.ndarray]:
     """Render ``n_layers`` full-feature 1-spp layers plus ``n_radiance_only`` radiance-only layers.
 
     Returns {buffer: (S, C, H, W) float32}; ``radiance`` has S = n_layers + n_radiance_only layers,
     every other buffer n_layers. Non-finite values are replaced by 0 and counted in ``counter``.
+    JIT variants trace all layers in one wavefront; the scalar fallback renders one layer per
+    ``mi.render`` call (seeds derived from ``seed``).
     """
     from scenegen.integrator import SAMPLE_AOVS
+    from scenegen.mitsuba_env import is_jit_variant
 
     layout = [("radiance", 3), *SAMPLE_AOVS]
-    layers: dict[str, list[np.ndarray]] = {name: [] for name in SAMPLE_BUFFER_SIZES}
-    for layer in range(n_layers + n_radiance_only):
-        parts = _split_channels(_render(scene, spp=1, seed=seeds[layer]), layout)
-        radiance = counter.sanitise("radiance", parts["radiance"])
-        layers["radiance"].append(radiance)
-        if layer < n_layers:
-            diffuse = counter.sanitise("diffuse", parts["diffuse"])
-            layers["diffuse"].append(diffuse)
-            layers["specular"].append(radiance - diffuse)
-            for name in ("albedo", "normal", "depth", "roughness", "flags", "position"):
-                layers[name].append(counter.sanitise(name, parts[name]))
-        if progress is not None:
-            progress.update(1)
-    return {name: np.stack(arrays) for name, arrays in layers.items() if arrays}
+    total = n_layers + n_radiance_only
+    if is_jit_variant():
+        images = _sample_wavefront(scene, n_layers=total, seed=seed)
+    else:
+        images = np.stack([_render(scene, spp=1, seed=derive_seed(seed, layer)) for layer in range(total)])
+    parts = {name: np.stack([_split_channels(image, layout)[name] for image in images])
+             for name, _ in layout}
+    out = {"radiance": counter.sanitise("radiance", parts["radiance"])}
+    diffuse = counter.sanitise("diffuse", parts["diffuse"][:n_layers])
+    out["diffuse"] = diffuse
+    out["specular"] = out["radiance"][:n_layers] - diffuse
+    for name in ("albedo", "normal", "depth", "roughness", "flags", "position"):
+        out[name] = counter.sanitise(name, parts[name][:n_layers])
+    if progress is not None:
+        progress.update(total)
+    return out
 
 
-def noisy_layer_seeds(global_seed: int, scene_id: str, frame: int, n: int) -> list[int]:
-    """Independent seeds for the sample layers of one frame."""
-    return [derive_seed(global_seed, scene_id, "noisy", frame, layer) for layer in range(n)]
+def noisy_frame_seed(global_seed: int, scene_id: str, frame: int) -> int:
+    """Seed of the noisy sample layers of one frame."""
+    return derive_seed(global_seed, scene_id, "noisy", frame)
 
 
 def reference_batch_seeds(global_seed: int, scene_id: str, frame: int, half: int, n: int) -> list[int]:

@@ -20,10 +20,18 @@ def _luminance_blocks(image: np.ndarray) -> np.ndarray:
 
 
 def _batches(scene, integrator, *, n_batches: int, spp: int, seed0: int) -> np.ndarray:
+    """(n_batches, blocks) luminance block means of independent ``spp``-sample estimates; with
+    ``integrator=None`` the estimate is the mean of the project's per-sample layers."""
     import mitsuba as mi
 
-    return np.stack([_luminance_blocks(np.array(mi.render(scene, spp=spp, seed=seed0 + k, integrator=integrator)))
-                     for k in range(n_batches)])
+    def estimate(seed: int) -> np.ndarray:
+        if integrator is None:
+            layers = render_sample_layers(scene, n_layers=spp, n_radiance_only=0, seed=seed,
+                                          counter=NonFiniteCounter())
+            return np.moveaxis(layers["radiance"].mean(axis=0), 0, -1)
+        return np.array(mi.render(scene, spp=spp, seed=seed, integrator=integrator))
+
+    return np.stack([_luminance_blocks(estimate(seed0 + k)) for k in range(n_batches)])
 
 
 @pytest.fixture(scope="module")
@@ -34,11 +42,11 @@ def scene(test_scene_dir):
 
 
 def test_mean_converges_to_mitsuba_path(scene):
-    """Block means of the feature integrator agree with ``path`` within their joint standard error,
+    """Block means of the per-sample layers agree with ``path`` within their joint standard error,
     and the error against a high-spp ``path`` image falls as the sample count grows."""
     import mitsuba as mi
 
-    ours_integrator = mi.load_dict({"type": "mcdn_features", "max_depth": MAX_DEPTH})
+    ours_integrator = None  # the per-sample layers rendered by render_sample_layers
     path_integrator = mi.load_dict({"type": "path", "max_depth": MAX_DEPTH})
     n_batches = 8
     ours = _batches(scene, ours_integrator, n_batches=n_batches, spp=128, seed0=1000)
@@ -61,7 +69,7 @@ def test_mean_converges_to_mitsuba_path(scene):
 
 def test_sample_layers_buffers(scene):
     counter = NonFiniteCounter()
-    layers = render_sample_layers(scene, n_layers=4, n_radiance_only=2, seeds=list(range(100, 106)),
+    layers = render_sample_layers(scene, n_layers=4, n_radiance_only=2, seed=100,
                                   counter=counter)
     assert layers["radiance"].shape == (6, 3, 32, 32)
     for name, channels in (("diffuse", 3), ("specular", 3), ("albedo", 3), ("normal", 3), ("depth", 1),
@@ -80,8 +88,8 @@ def test_sample_layers_buffers(scene):
 
 
 def test_radiance_layers_are_deterministic_and_independent(scene):
-    a = render_sample_layers(scene, n_layers=2, n_radiance_only=0, seeds=[7, 8], counter=NonFiniteCounter())
-    b = render_sample_layers(scene, n_layers=2, n_radiance_only=0, seeds=[7, 8], counter=NonFiniteCounter())
+    a = render_sample_layers(scene, n_layers=2, n_radiance_only=0, seed=7, counter=NonFiniteCounter())
+    b = render_sample_layers(scene, n_layers=2, n_radiance_only=0, seed=7, counter=NonFiniteCounter())
     for name in a:
         np.testing.assert_array_equal(a[name], b[name])
     assert not np.array_equal(a["radiance"][0], a["radiance"][1])
