@@ -103,8 +103,8 @@ def _resolve_params(params: Any, scene_dir: pathlib.Path, mi: Any) -> Any:
         out = {k: _resolve_params(v, scene_dir, mi) for k, v in params.items()}
         if out.get("type") == "bitmap":
             out["filename"] = str((scene_dir / params["filename"]).resolve())
-            if "to_uv" in params:
-                out["to_uv"] = mi.ScalarTransform4f(np.asarray(params["to_uv"], dtype=np.float64))
+        if isinstance(params.get("to_uv"), list):
+            out["to_uv"] = mi.ScalarTransform4f(np.asarray(params["to_uv"], dtype=np.float64))
         return out
     if isinstance(params, list):
         return [_resolve_params(v, scene_dir, mi) for v in params]

@@ -6,9 +6,10 @@ camera of frame t-1 to q; the motion vector is q - c, so ``prev_pixel = centre +
 
 A vector is valid (Isik et al. 2021, Sec. 4.1: "test whether the normal and world position in the
 current and previous frame agree after warping") when q lands on screen and in front of the
-previous camera, and the previous frame's G-buffer at the pixel containing q shows the same shape,
-with a normal within ``normal_cos_min`` of the warped normal and a position on the warped point's
-tangent plane (distance along the normal below ``plane_tolerance`` times the depth). Newly visible
+previous camera, and at each of the four previous-frame pixels a bilinear lookup at q reads, the
+G-buffer shows the same shape, a normal within ``NORMAL_COS_MIN`` of the warped normal and a
+position on the warped point's tangent plane (distance along the normal below
+``PLANE_TOLERANCE`` times the depth). Newly visible
 (disoccluded) surfaces fail one of these tests. Frame 0 and the frame after a camera cut have no
 valid history.
 """
@@ -67,18 +68,23 @@ def motion_vectors(gbuffer: dict[str, np.ndarray], gbuffer_prev: dict[str, np.nd
     on_screen = (in_front & np.all(np.isfinite(pixel_prev), axis=1)
                  & (pixel_prev[:, 0] >= 0) & (pixel_prev[:, 0] < width)
                  & (pixel_prev[:, 1] >= 0) & (pixel_prev[:, 1] < height))
-    xi = np.clip(np.floor(np.nan_to_num(pixel_prev[:, 0])).astype(np.int64), 0, width - 1)
-    yi = np.clip(np.floor(np.nan_to_num(pixel_prev[:, 1])).astype(np.int64), 0, height - 1)
-    prev_object = np.rint(gbuffer_prev["object"][0, yi, xi]).astype(np.int64)
-    prev_position = gbuffer_prev["position"][:, yi, xi].T.astype(np.float64)
-    prev_normal = gbuffer_prev["normal"][:, yi, xi].T.astype(np.float64)
-    prev_depth = gbuffer_prev["depth"][0, yi, xi].astype(np.float64)
-
-    same_shape = prev_object == shape_index
-    normal_agrees = np.sum(prev_normal * normal_prev, axis=1) >= NORMAL_COS_MIN
-    plane_distance = np.abs(np.sum((prev_position - position_prev) * normal_prev, axis=1))
-    on_plane = plane_distance <= PLANE_TOLERANCE * np.maximum(prev_depth, 1e-6)
-    ok = hit & on_screen & same_shape & normal_agrees & on_plane
+    # Test every tap the bilinear warp reads (the 2x2 pixel centres around q): a vector is only
+    # valid when all of them show the warped surface, so no occluder's colour leaks in.
+    ok = hit & on_screen
+    base_x = np.floor(np.nan_to_num(pixel_prev[:, 0]) - 0.5).astype(np.int64)
+    base_y = np.floor(np.nan_to_num(pixel_prev[:, 1]) - 0.5).astype(np.int64)
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        xi = np.clip(base_x + dx, 0, width - 1)
+        yi = np.clip(base_y + dy, 0, height - 1)
+        prev_object = np.rint(gbuffer_prev["object"][0, yi, xi]).astype(np.int64)
+        prev_position = gbuffer_prev["position"][:, yi, xi].T.astype(np.float64)
+        prev_normal = gbuffer_prev["normal"][:, yi, xi].T.astype(np.float64)
+        prev_depth = gbuffer_prev["depth"][0, yi, xi].astype(np.float64)
+        same_shape = prev_object == shape_index
+        normal_agrees = np.sum(prev_normal * normal_prev, axis=1) >= NORMAL_COS_MIN
+        plane_distance = np.abs(np.sum((prev_position - position_prev) * normal_prev, axis=1))
+        on_plane = plane_distance <= PLANE_TOLERANCE * np.maximum(prev_depth, 1e-6)
+        ok &= same_shape & normal_agrees & on_plane
     valid = ok.reshape(1, height, width)
     return motion, valid
 

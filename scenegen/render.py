@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenegen.mitsuba_env import init_mitsuba
 from scenegen.seeds import derive_seed
 
 # Buffer name -> channel count of the per-sample arrays this module returns.
@@ -88,6 +89,7 @@ def _attach_face_attributes(mesh, shape: dict, material: dict | None) -> None:
 def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: RenderSettings,
                      *, mode: str = "samples"):
     """Load the Mitsuba scene of ``frame`` with the feature integrator and per-face attributes."""
+    init_mitsuba(settings.variant)
     import mitsuba as mi
 
     import scenegen.integrator  # noqa: F401 -- registers "mcdn_features"
@@ -139,6 +141,7 @@ def _render(scene, *, spp: int, seed: int, sensor=None) -> np.ndarray:
 def render_gbuffer(manifest: dict, scene_dir: Path, frame: int, settings: RenderSettings,
                    scene=None) -> dict[str, np.ndarray]:
     """Primary-hit G-buffer through pixel centres: position (3,H,W), normal (3,H,W), depth (1,H,W), object (1,H,W)."""
+    init_mitsuba(settings.variant)
     import mitsuba as mi
 
     from scenegen.integrator import GBUFFER_AOVS
