@@ -18,6 +18,7 @@ from typing import Iterator
 import numpy as np
 from tqdm import tqdm
 
+from scenegen.config import CUSTOM_PREFIX, extra_scene
 from scenegen.mitsuba_env import init_mitsuba
 from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_frame_seed,
                              psnr_between_halves, reference_batch_seeds,
@@ -74,6 +75,13 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
     from scenegen.mitsuba_scene import preview_mean_luminance
 
     init_mitsuba(cfg["render"]["variant"])
+    if scene_id.startswith(CUSTOM_PREFIX):
+        from scenegen.custom import import_custom_scene
+
+        with atomic_directory(out_dir) as tmp_dir:
+            manifest = import_custom_scene(extra_scene(cfg, scene_id), scene_id, tmp_dir)
+        log.info("custom scene %s from %s: %d shapes", scene_id, manifest["xml"], len(manifest["shapes"]))
+        return manifest
     seed = scene_seed(cfg["seed"], scene_id)
     with atomic_directory(out_dir) as tmp_dir:
         manifest = generate_scene(cfg["scenes"], seed, scene_id, tmp_dir, n_frames=cfg["scenes"]["frames"],

@@ -120,6 +120,22 @@ def _spot_up(direction: np.ndarray) -> list[float]:
     return [0.0, 0.0, 1.0] if abs(direction[1]) > 0.99 * np.linalg.norm(direction) else [0.0, 1.0, 0.0]
 
 
+def sensor_dict(manifest: dict, frame: int, *, width: int, height: int, sampler: dict | None = None) -> dict:
+    """Pinhole sensor of `frame` (box-filtered HDR film) as a Mitsuba dict."""
+    import mitsuba as mi
+
+    cam = _frame_camera(manifest, frame)
+    return {
+        "type": "perspective",
+        "fov": float(cam.get("fov_x_deg", manifest["camera"]["fov_x_deg"])),
+        "fov_axis": "x",
+        "to_world": mi.ScalarTransform4f().look_at(origin=cam["origin"], target=cam["target"], up=cam["up"]),
+        "film": {"type": "hdrfilm", "width": int(width), "height": int(height),
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        "sampler": copy.deepcopy(sampler) if sampler is not None else dict(DEFAULT_SAMPLER),
+    }
+
+
 def build_scene_dict(manifest: dict, scene_dir: pathlib.Path, frame: int, *, width: int, height: int,
                      integrator: dict | None = None, sampler: dict | None = None) -> dict:
     """Plain Mitsuba scene dict for one frame (camera, object transforms, light positions of that frame).
@@ -131,20 +147,10 @@ def build_scene_dict(manifest: dict, scene_dir: pathlib.Path, frame: int, *, wid
     import mitsuba as mi
 
     scene_dir = pathlib.Path(scene_dir)
-    cam = _frame_camera(manifest, frame)
-    fov_x = float(cam.get("fov_x_deg", manifest["camera"]["fov_x_deg"]))
     scene: dict[str, Any] = {
         "type": "scene",
         "integrator": copy.deepcopy(integrator) if integrator is not None else dict(DEFAULT_INTEGRATOR),
-        "sensor": {
-            "type": "perspective",
-            "fov": fov_x,
-            "fov_axis": "x",
-            "to_world": mi.ScalarTransform4f().look_at(origin=cam["origin"], target=cam["target"], up=cam["up"]),
-            "film": {"type": "hdrfilm", "width": int(width), "height": int(height),
-                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-            "sampler": copy.deepcopy(sampler) if sampler is not None else dict(DEFAULT_SAMPLER),
-        },
+        "sensor": sensor_dict(manifest, frame, width=width, height=height, sampler=sampler),
     }
     to_worlds = object_to_world(manifest, frame)
     materials = manifest["materials"]

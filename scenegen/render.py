@@ -97,6 +97,11 @@ def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: Rend
 
     integrator = {"type": "mcdn_features", "max_depth": settings.max_depth,
                   "rr_depth": settings.rr_depth, "mode": mode}
+    if manifest.get("kind") == "custom":
+        from scenegen.custom import load_custom_frame_scene
+
+        return load_custom_frame_scene(manifest, frame, width=settings.width, height=settings.height,
+                                       integrator=integrator)
     scene_dict = build_scene_dict(manifest, Path(scene_dir), frame, width=settings.width,
                                   height=settings.height, integrator=integrator)
     for shape in manifest["shapes"]:
@@ -108,16 +113,15 @@ def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: Rend
     return mi.load_dict(scene_dict)
 
 
-def _gbuffer_sensor(manifest: dict, scene_dir: Path, frame: int, settings: RenderSettings):
+def _gbuffer_sensor(manifest: dict, frame: int, settings: RenderSettings):
     """The frame's sensor with a non-jittered 1-spp stratified sampler: rays through pixel centres."""
     import mitsuba as mi
 
-    from scenegen.mitsuba_scene import build_scene_dict
+    from scenegen.mitsuba_scene import sensor_dict
 
     sampler = {"type": "stratified", "sample_count": 1, "jitter": False}
-    sensor_dict = build_scene_dict(manifest, Path(scene_dir), frame, width=settings.width,
-                                   height=settings.height, sampler=sampler)["sensor"]
-    return mi.load_dict(sensor_dict)
+    return mi.load_dict(sensor_dict(manifest, frame, width=settings.width, height=settings.height,
+                                    sampler=sampler))
 
 
 def _split_channels(image: np.ndarray, sizes: list[tuple[str, int]]) -> dict[str, np.ndarray]:
@@ -148,7 +152,7 @@ def render_gbuffer(manifest: dict, scene_dir: Path, frame: int, settings: Render
 
     if scene is None:
         scene = load_frame_scene(manifest, scene_dir, frame, settings)
-    sensor = _gbuffer_sensor(manifest, scene_dir, frame, settings)
+    sensor = _gbuffer_sensor(manifest, frame, settings)
     integrator = mi.load_dict({"type": "mcdn_features", "mode": "gbuffer"})
     image = np.array(mi.render(scene, spp=1, seed=0, sensor=sensor, integrator=integrator), np.float32)
     return _split_channels(image, [("rgb", 3), *GBUFFER_AOVS])

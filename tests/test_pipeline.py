@@ -1,0 +1,181 @@
+"""End-to-end run of the smoke configuration through Snakemake with the real renderer.
+
+One copy of the workflow (Snakefile, workflow/, config/) in a temporary directory is run twice:
+first the stage target `scenes` alone, then the default target. That checks the stage target on a
+fresh tree, that the full run reuses the scenes, and the complete dataset, in a single ~20 s DAG.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scenegen.config import chunk_count, chunk_frames, load_config, scene_ids
+from scenegen.dataset import REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SNAKEMAKE = Path(sys.executable).parent / "snakemake"
+SMOKE_CONFIG = "config/smoke.yaml"
+JOB_RULES = ("generate_scene", "render_noisy", "render_reference")
+MAX_RESULTS_BYTES = 50 * 1024**2
+# Generous: the machine may be shared; a hung job should fail the test rather than block forever.
+SNAKEMAKE_TIMEOUT_S = 900
+
+
+def _snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
+    """Run the venv's snakemake in ``workdir`` with the venv first on PATH (the rules call `python`)."""
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    # conftest's init_mitsuba may have set DRJIT_LIBLLVM_PATH in this process; dict(os.environ) passes it on.
+    return subprocess.run([str(SNAKEMAKE), "--cores", "2", "--configfile", SMOKE_CONFIG, *args],
+                          cwd=workdir, env=env, capture_output=True, text=True, timeout=SNAKEMAKE_TIMEOUT_S)
+
+
+def _check_ok(result: subprocess.CompletedProcess, what: str, workdir: Path) -> None:
+    if result.returncode != 0:
+        logs = "\n".join(f"--- {log}\n{log.read_text()[-3000:]}"
+                         for log in sorted((workdir / "results" / "logs").rglob("*.log")))
+        pytest.fail(f"{what} exited with {result.returncode}\n{result.stdout[-5000:]}\n"
+                    f"{result.stderr[-5000:]}\n{logs}")
+
+
+def _tree(root: Path) -> dict[str, int]:
+    """{relative path: mtime_ns} of every file below ``root``."""
+    return {str(p.relative_to(root)): p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()}
+
+
+@dataclass
+class PipelineRun:
+    workdir: Path
+    cfg: dict
+    after_scenes: dict[str, int]      # results/ tree after `snakemake scenes`
+    full: subprocess.CompletedProcess
+    dry_rerun: subprocess.CompletedProcess
+
+    @property
+    def results(self) -> Path:
+        return self.workdir / "results"
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory) -> PipelineRun:
+    workdir = tmp_path_factory.mktemp("pipeline")
+    shutil.copy2(REPO_ROOT / "Snakefile", workdir / "Snakefile")
+    for folder in ("workflow", "config"):
+        shutil.copytree(REPO_ROOT / folder, workdir / folder)
+
+    scenes_run = _snakemake(workdir, "scenes")
+    _check_ok(scenes_run, "snakemake scenes", workdir)
+    after_scenes = _tree(workdir / "results")
+    assert not (workdir / "results" / "renders").exists(), "stage target `scenes` rendered frames"
+
+    full = _snakemake(workdir)
+    _check_ok(full, "snakemake (default target)", workdir)
+    dry_rerun = _snakemake(workdir, "-n")
+    return PipelineRun(workdir, load_config(workdir / SMOKE_CONFIG), after_scenes, full, dry_rerun)
+
+
+def test_scenes_stage_target_produces_only_scenes(pipeline: PipelineRun) -> None:
+    scenes = scene_ids(pipeline.cfg)
+    assert len(scenes) == 2
+    produced = {Path(path).parts[0] for path in pipeline.after_scenes}
+    # Besides scenes, a stage run may only leave bookkeeping (resolved config, logs, benchmarks).
+    assert "scenes" in produced and "renders" not in produced
+    assert produced <= {"scenes", ".config", "logs", "benchmarks"}, produced
+    for scene in scenes:
+        assert f"scenes/{scene}/manifest.json" in pipeline.after_scenes
+    assert not any(path.startswith("benchmarks/render") for path in pipeline.after_scenes)
+
+
+def test_full_run_reuses_the_scenes(pipeline: PipelineRun) -> None:
+    scene_files = {path: mtime for path, mtime in _tree(pipeline.results).items() if path.startswith("scenes/")}
+    before = {path: mtime for path, mtime in pipeline.after_scenes.items() if path.startswith("scenes/")}
+    assert scene_files == before, "the full run regenerated scenes that were already up to date"
+
+
+def test_every_scene_has_manifest_and_all_chunks(pipeline: PipelineRun) -> None:
+    cfg = pipeline.cfg
+    for scene in scene_ids(cfg):
+        manifest_path = pipeline.results / "scenes" / scene / "manifest.json"
+        manifest = json.loads(manifest_path.read_text())
+        assert manifest["n_frames"] == cfg["scenes"]["frames"]
+        assert list((manifest_path.parent / "meshes").glob("*.ply")), f"{scene}: no meshes"
+        for kind in ("noisy", "reference"):
+            kind_dir = pipeline.results / "renders" / scene / kind
+            expected_chunks = {f"chunk_{c:03d}" for c in range(chunk_count(cfg, scene))}
+            assert {p.name for p in kind_dir.iterdir()} == expected_chunks
+            for chunk in range(chunk_count(cfg, scene)):
+                chunk_dir = kind_dir / f"chunk_{chunk:03d}"
+                expected = {f"frame_{t:04d}.{ext}" for t in chunk_frames(cfg, scene, chunk) for ext in ("exr", "json")}
+                # Exact equality: also rejects leftover partial files inside a finished chunk.
+                assert {p.name for p in chunk_dir.iterdir()} == expected, chunk_dir
+
+
+def test_clips_load_with_configured_shapes_and_sane_metadata(pipeline: PipelineRun) -> None:
+    render = pipeline.cfg["render"]
+    n_frames, spp = pipeline.cfg["scenes"]["frames"], render["spp"]
+    height, width = render["height"], render["width"]
+    for scene in scene_ids(pipeline.cfg):
+        clip = load_clip(pipeline.results / "renders" / scene)  # also rejects non-finite values
+        assert clip.scene == scene
+        assert clip.frames == list(range(n_frames))
+        assert set(clip.samples) == set(SAMPLE_BUFFERS)
+        for buffer, array in clip.samples.items():
+            layers = spp + render["extra_radiance_spp"] if buffer == "radiance" else spp
+            assert array.shape == (n_frames, layers, len(SAMPLE_BUFFERS[buffer]), height, width), buffer
+            assert np.isfinite(array).all(), buffer
+        assert clip.motion.shape == (n_frames, 2, height, width)
+        assert set(clip.reference) == set(REFERENCE_BUFFERS)
+        for buffer, array in clip.reference.items():
+            assert array.shape == (n_frames, len(REFERENCE_BUFFERS[buffer]), height, width), buffer
+            assert np.isfinite(array).all(), buffer
+        assert clip.reference["radiance"].shape == (n_frames, 3, height, width)
+        # Not a black clip: the generator redraws scenes whose preview is too dark.
+        assert clip.reference["radiance"].mean() > 0
+
+        n_values = n_frames * spp * height * width
+        for t, meta in enumerate(clip.meta):
+            assert (meta["scene"], meta["frame"], meta["width"], meta["height"]) == (scene, t, width, height)
+            assert isinstance(meta["nonfinite_total"], int)
+            assert meta["nonfinite_total"] == sum(meta["nonfinite"].values())
+            assert meta["nonfinite_total"] < 1e-3 * n_values  # replaced NaN/inf must stay rare
+            assert np.isfinite(meta["samples_per_s"]) and meta["samples_per_s"] > 0
+        for t, meta in enumerate(clip.reference_meta):
+            assert meta["frame"] == t and meta["spp"] == render["reference_spp"]
+            assert np.isfinite(meta["psnr_halves"]), meta["psnr_halves"]
+            assert isinstance(meta["nonfinite_total"], int)
+
+
+def test_benchmarks_exist_for_every_job(pipeline: PipelineRun) -> None:
+    bench = pipeline.results / "benchmarks"
+    expected = []
+    for scene in scene_ids(pipeline.cfg):
+        expected.append(bench / "generate_scene" / f"{scene}.tsv")
+        for chunk in range(chunk_count(pipeline.cfg, scene)):
+            expected += [bench / rule / scene / f"chunk_{chunk:03d}.tsv" for rule in JOB_RULES[1:]]
+    for path in expected:
+        assert path.is_file(), f"missing benchmark {path}"
+        header, *rows = path.read_text().strip().splitlines()
+        assert header.split("\t")[0] == "s" and len(rows) >= 1, path
+        assert float(rows[0].split("\t")[0]) > 0, path
+
+
+def test_results_are_small_and_leave_no_temporaries(pipeline: PipelineRun) -> None:
+    total = sum(p.stat().st_size for p in pipeline.results.rglob("*") if p.is_file())
+    assert total < MAX_RESULTS_BYTES, f"results/ holds {total / 1024**2:.1f} MB"
+    for stage in ("renders", "scenes"):
+        leftovers = [p for p in (pipeline.results / stage).rglob("*") if p.name.startswith(".") and "tmp" in p.name]
+        assert not leftovers, f"temporary files left behind: {leftovers}"
+
+
+def test_second_run_has_nothing_to_do(pipeline: PipelineRun) -> None:
+    assert pipeline.dry_rerun.returncode == 0, pipeline.dry_rerun.stderr
+    output = pipeline.dry_rerun.stdout + pipeline.dry_rerun.stderr
+    assert "Nothing to be done" in output, output[-3000:]
