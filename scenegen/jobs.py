@@ -130,6 +130,7 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
     n_layers = settings.spp + settings.extra_radiance_spp
     samples_per_frame = n_layers * settings.width * settings.height
 
+    rates: list[float] = []
     gbuffer_prev = (render_gbuffer(manifest, scene_dir, frames[0] - 1, settings) if frames[0] > 0 else None)
     with atomic_directory(out_dir) as tmp_dir, \
             tqdm(total=len(frames) * n_layers, desc=f"noisy {scene_id} chunk {chunk}", unit="layer") as bar:
@@ -164,6 +165,8 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
             _write_json_atomic(tmp_dir / f"frame_{frame:04d}.json", meta)
             bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")
             gbuffer_prev = gbuffer
+            rates.append(meta["samples_per_s"])
+    log.info("noisy %s chunk %d: %d frames, mean %.3g samples/s", scene_id, chunk, len(frames), np.mean(rates))
 
 
 def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
@@ -176,6 +179,7 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
     manifest = _load_manifest(scene_dir)
     frames = chunk_frames(manifest["n_frames"], cfg["scenes"]["frames_per_chunk"], chunk)
     half_spp = settings.reference_spp // 2
+    rates: list[float] = []
     n_batches = math.ceil(half_spp / settings.reference_batch_spp)
     with atomic_directory(out_dir) as tmp_dir, \
             tqdm(total=len(frames) * 2 * half_spp, desc=f"reference {scene_id} chunk {chunk}", unit="spp") as bar:
@@ -201,3 +205,6 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
                       attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
             _write_json_atomic(tmp_dir / f"frame_{frame:04d}.json", meta)
             bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")
+            rates.append(meta["samples_per_s"])
+    log.info("reference %s chunk %d: %d frames, mean %.3g samples/s", scene_id, chunk, len(frames),
+             np.mean(rates))

@@ -21,11 +21,11 @@ rule render_noisy:
         "../envs/harness.yaml"
     threads: 2
     resources:
-        mem_mb=8000,
+        mem_mb=4000,
         runtime=60,
     shell:
         "python -m scenegen render-noisy --config {params.config_file} --scene {wildcards.scene}"
-        " --chunk {params.chunk} --scene-dir {input.scene_dir} --out {output.chunk_dir} > {log} 2>&1"
+        " --chunk {params.chunk} --scene-dir {input.scene_dir} --out {output.chunk_dir} --threads {threads} > {log} 2>&1"
 
 
 rule render_reference:
@@ -45,8 +45,8 @@ rule render_reference:
         "../envs/harness.yaml"
     threads: 2
     resources:
-        mem_mb=8000,
+        mem_mb=4000,
         runtime=240,
     shell:
         "python -m scenegen render-reference --config {params.config_file} --scene {wildcards.scene}"
-        " --chunk {params.chunk} --scene-dir {input.scene_dir} --out {output.chunk_dir} > {log} 2>&1"
+        " --chunk {params.chunk} --scene-dir {input.scene_dir} --out {output.chunk_dir} --threads {threads} > {log} 2>&1"
