@@ -1,0 +1,47 @@
+"""Summarise a finished workflow run from Snakemake's ``benchmark:`` files and the render sidecars.
+
+Prints, per rule, the number of jobs, total and longest wall time, and the peak resident memory
+(max_rss, MB) of any job; then the rendering throughput recorded in the frame sidecars and the size
+of the dataset on disk. Usage: python benchmarks/run_summary.py [results]
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+
+def main() -> None:
+    results = Path(sys.argv[1] if len(sys.argv) > 1 else "results")
+    rows = []
+    for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
+        rule = tsv.relative_to(results / "benchmarks").parts[0]
+        table = pd.read_csv(tsv, sep="\t")
+        rows.append({"rule": rule, "seconds": float(table["s"].iloc[-1]),
+                     "max_rss_mb": float(pd.to_numeric(table["max_rss"], errors="coerce").iloc[-1])})
+    if not rows:
+        sys.exit(f"no benchmark files under {results / 'benchmarks'}")
+    jobs = pd.DataFrame(rows)
+    summary = jobs.groupby("rule").agg(jobs=("seconds", "size"), total_s=("seconds", "sum"),
+                                       longest_s=("seconds", "max"), peak_rss_mb=("max_rss_mb", "max"))
+    print(summary.to_string(float_format=lambda v: f"{v:.1f}"))
+    render_rules = [r for r in summary.index if r.startswith("render_")]
+    print(f"\nrendering wall time (sum over render jobs): {summary.loc[render_rules, 'total_s'].sum() / 60:.1f} min")
+    print(f"all jobs (sum): {summary['total_s'].sum() / 60:.1f} min; peak RSS of any job: "
+          f"{summary['peak_rss_mb'].max():.0f} MB")
+
+    for kind in ("noisy", "reference"):
+        rates = [json.loads(p.read_text())["samples_per_s"]
+                 for p in (results / "renders").glob(f"*/{kind}/chunk_*/frame_*.json")]
+        if rates:
+            print(f"{kind}: {len(rates)} frames, median {pd.Series(rates).median() / 1e6:.2f} M samples/s")
+    renders = results / "renders"
+    if renders.exists():
+        size = sum(p.stat().st_size for p in renders.rglob("*") if p.is_file())
+        print(f"dataset on disk (results/renders): {size / 1e9:.2f} GB")
+
+
+if __name__ == "__main__":
+    main()
