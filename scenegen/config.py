@@ -160,7 +160,8 @@ def config_problems(cfg: Any) -> list[str]:
     """Validate `cfg` in place (filling defaults) and return readable problems; empty when valid."""
     validator = _DefaultFillingValidator(load_schema())
     errors = sorted(validator.iter_errors(cfg), key=lambda err: [str(part) for part in err.absolute_path])
-    problems = [message for error in errors for message in _describe_error(error)]
+    # dict.fromkeys: jsonschema reports one error per missing key, each describing all of them.
+    problems = list(dict.fromkeys(message for error in errors for message in _describe_error(error)))
     if not problems:
         problems = list(_cross_key_problems(cfg))
     return problems

@@ -250,8 +250,8 @@ def render_reference_frame(scene, *, spp: int, batch_spp: int, seeds_half: tuple
             for name in ("radiance", "diffuse", "albedo", "normal", "depth"):
                 value = counter.sanitise(name, parts[name]).astype(np.float64) * batch_count
                 sums[name] = sums.get(name, 0.0) + value
-            rad = counter.sanitise("radiance", parts["radiance"]).astype(np.float64) * batch_count
-            acc = rad if acc is None else acc + rad
+                if name == "radiance":
+                    acc = value if acc is None else acc + value
             if progress is not None:
                 progress.update(batch_count)
         half_radiance.append(acc / half_spp)
