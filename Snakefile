@@ -1,6 +1,8 @@
 # Monte Carlo denoising reference harness: seeded procedural scenes -> Mitsuba 3 noisy per-sample
-# renders and high-spp references (OpenEXR). Rules live in workflow/rules/, the config schema in
-# workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`.
+# renders and high-spp references (OpenEXR) -> denoised test clips, per-frame metrics and a
+# generated report. Rules live in workflow/rules/, the config schema in
+# workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
+# `snakemake denoise`, `snakemake evaluate`, `snakemake report`.
 
 from snakemake.utils import min_version
 
@@ -16,12 +18,16 @@ report: "workflow/report/workflow.rst"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/scenes.smk"
 include: "workflow/rules/render.smk"
+include: "workflow/rules/evaluate.smk"
 
 
 localrules:
     all,
     scenes,
     renders,
+    denoise,
+    evaluate,
+    report,
 
 
 rule scenes:
@@ -35,9 +41,27 @@ rule renders:
         chunk_dirs("reference"),
 
 
+# The evaluation targets take input functions: the (method, spp) pairs are planned (importing
+# torch and every method) only when one of these targets is part of the DAG.
+rule denoise:
+    input:
+        denoised_dirs,
+
+
+rule evaluate:
+    input:
+        evaluate_targets,
+
+
+rule report:
+    input:
+        rules.build_report.output,
+
+
 # Everything implemented so far; the default target.
 rule all:
     default_target: True
     input:
         rules.scenes.input,
         rules.renders.input,
+        rules.build_report.output,

@@ -3,15 +3,16 @@ from __future__ import annotations
 
 import torch
 
+from denoisers.filters import sanitize
 from denoisers.registry import Denoiser, Frame, register
 
 
 @register("noisy", inputs=("radiance",), description="the box-filtered noisy input (no denoising)")
 class NoisyInput(Denoiser):
-    """Mean of the frame's samples: what every denoiser starts from."""
+    """Mean of the frame's samples (non-finite samples count as 0): what every denoiser starts from."""
 
     def denoise(self, frame: Frame) -> torch.Tensor:
-        return frame.mean("radiance")
+        return sanitize(frame.samples["radiance"]).mean(dim=0)
 
 
 @register("path_tracing", inputs=("radiance",),
@@ -27,4 +28,4 @@ class PathTracing(Denoiser):
         self.samples_factor = int(factor)
 
     def denoise(self, frame: Frame) -> torch.Tensor:
-        return frame.mean("radiance")
+        return sanitize(frame.samples["radiance"]).mean(dim=0)

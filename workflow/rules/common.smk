@@ -16,6 +16,9 @@ from scenegen.config import (
     scene_frame_count,
     scene_ids,
 )
+# Light modules: torch and the methods are only imported when the evaluation runs are planned.
+from denoisers.evaluate import evaluation_problems, method_spec, robustness_dir, test_scene_ids
+from denoisers.report import report_outputs
 
 
 # ---------------------------------------------------------------------------------------------
@@ -29,6 +32,8 @@ try:
 except Exception as err:  # WorkflowError, or AttributeError when a section is not a mapping
     schema_error = err
 config_errors = config_problems(config) or ([str(schema_error)] if schema_error else [])
+if not config_errors:
+    config_errors = evaluation_problems(config)
 if config_errors:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
 
@@ -36,6 +41,8 @@ if config_errors:
 wildcard_constraints:
     scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+",
     chunk=r"\d{3}",
+    method=r"[a-z0-9_]+",
+    spp=r"\d+",
 
 
 SCENES = scene_ids(config)
@@ -137,3 +144,100 @@ def render_digest(kind: str):
         return config_digest(settings)
 
     return digest
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation (workflow/rules/evaluate.smk): which (method, test scene, spp) jobs exist.
+#
+# Only test_* scenes are evaluated. A (method, spp) pair that needs more sample layers than were
+# rendered (e.g. path tracing at 2 x 4 spp with 4 layers) is left out of the DAG; the report lists
+# it as "not run" with the reason. Planning builds every configured method (importing torch), so
+# it happens on first use, i.e. only when an evaluation target is part of the DAG.
+# ---------------------------------------------------------------------------------------------
+TEST_SCENES = test_scene_ids(config)
+REPORT_OUTPUTS = report_outputs(config)
+_planned_runs = {}
+
+
+def planned_runs(kind: str = "evaluation") -> list:
+    """Runnable denoisers.evaluate.Run objects of the evaluation ('evaluation') or the spike scenario ('robustness')."""
+    if kind not in _planned_runs:
+        from denoisers.evaluate import plan_runs, robustness_runs
+
+        runs = plan_runs(config) if kind == "evaluation" else robustness_runs(config)
+        _planned_runs[kind] = [run for run in runs if run.runnable]
+    return _planned_runs[kind]
+
+
+def denoised_dirs(wildcards=None) -> list[str]:
+    """Every denoised output directory (stage target `denoise`)."""
+    return [
+        f"results/denoised/{run.spec.id}/{scene}/spp{run.spp}" for run in planned_runs() for scene in TEST_SCENES
+    ]
+
+
+def metrics_files(wildcards=None) -> list[str]:
+    """Every per-frame metrics CSV."""
+    return [f"results/metrics/{run.spec.id}/{scene}/spp{run.spp}.csv" for run in planned_runs() for scene in TEST_SCENES]
+
+
+def robustness_dirs(wildcards=None) -> list[str]:
+    """Every output directory of the spike/NaN scenario."""
+    return [
+        str(robustness_dir("results", run.spec.id, scene, run.spp))
+        for run in planned_runs("robustness")
+        for scene in TEST_SCENES
+    ]
+
+
+def evaluate_targets(wildcards=None) -> list[str]:
+    """Stage target `evaluate`: metrics CSVs and the robustness scenario."""
+    return metrics_files() + robustness_dirs()
+
+
+def scene_chunk_dirs(kind: str):
+    """Input function: the noisy or reference chunk directories of the job's scene."""
+
+    def chunk_dirs_of_scene(wildcards) -> list[str]:
+        count = chunk_count(config, wildcards.scene)
+        return [f"results/renders/{wildcards.scene}/{kind}/chunk_{chunk:03d}" for chunk in range(count)]
+
+    return chunk_dirs_of_scene
+
+
+def render_dir(wildcards) -> str:
+    """Param: the scene's render directory (parent of its chunk directories)."""
+    return f"results/renders/{wildcards.scene}"
+
+
+def report_input(wildcards) -> dict[str, list[str]]:
+    """Named inputs of build_report: every metrics CSV, denoised directory (timing, grid images),
+    robustness output and the test scenes' references (grids)."""
+    reference = [f"results/renders/{scene}/reference/chunk_{c:03d}" for scene in TEST_SCENES
+                 for c in range(chunk_count(config, scene))]
+    return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
+            "reference": reference}
+
+
+def _method_settings(wildcards) -> dict:
+    spec = method_spec(config, wildcards.method)
+    return {"method": spec.method, "params": spec.params}
+
+
+def denoise_digest(wildcards) -> str:
+    """Param: digest of what a denoised clip depends on besides its input files (rerun trigger)."""
+    return config_digest({**_method_settings(wildcards), "threads": config["evaluation"]["threads"]})
+
+
+def evaluate_digest(wildcards) -> str:
+    return config_digest({"warmup_frames": config["evaluation"]["warmup_frames"]})
+
+
+def robustness_digest(wildcards) -> str:
+    settings = {key: config["evaluation"][key] for key in ("robustness", "warmup_frames", "threads")}
+    return config_digest({**_method_settings(wildcards), **settings, "seed": config["seed"]})
+
+
+def report_digest(wildcards) -> str:
+    """The report states the whole configuration (split, render settings, evaluation)."""
+    return config_digest(config)

@@ -1,0 +1,5 @@
+import sys
+
+from denoisers.cli import main
+
+sys.exit(main())

@@ -1,0 +1,116 @@
+"""Command line of the evaluation stages (``python -m denoisers <command>``); the workflow's rules call it.
+
+  denoise     one configured method on one test clip at one spp  -> results/denoised/{method}/{scene}/spp{spp}/
+  evaluate    per-frame metrics of a denoised clip               -> results/metrics/{method}/{scene}/spp{spp}.csv
+  robustness  one method on a clip with injected spikes/NaN/Inf  -> results/robustness/{method}/{scene}/spp{spp}/
+  report      tables, figures, claims and REPORT.md              -> results/tables/, results/figures/, results/REPORT.md
+  methods     list the registered methods
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger("denoisers")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m denoisers", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    denoise = sub.add_parser("denoise", help="run one method on one clip")
+    robustness = sub.add_parser("robustness", help="run one method on a clip with injected spikes and NaN/Inf")
+    for cmd in (denoise, robustness):
+        cmd.add_argument("--config", type=Path, required=True, help="resolved config YAML")
+        cmd.add_argument("--method-id", required=True, help="row id in evaluation.methods")
+        cmd.add_argument("--scene", required=True, help="scene id, e.g. test_000")
+        cmd.add_argument("--render-dir", type=Path, required=True, help="results/renders/{scene}")
+        cmd.add_argument("--out", type=Path, required=True, help="output directory (written atomically)")
+        cmd.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+        cmd.add_argument("--spp", type=int, required=True, help="evaluated samples per pixel")
+
+    evaluate = sub.add_parser("evaluate", help="per-frame metrics of a denoised clip against its reference")
+    evaluate.add_argument("--config", type=Path, required=True)
+    evaluate.add_argument("--denoised", type=Path, required=True, help="results/denoised/{method}/{scene}/spp{spp}")
+    evaluate.add_argument("--render-dir", type=Path, required=True, help="results/renders/{scene}")
+    evaluate.add_argument("--out", type=Path, required=True, help="CSV file")
+
+    report = sub.add_parser("report", help="aggregate every metrics CSV into tables, figures and REPORT.md")
+    report.add_argument("--config", type=Path, required=True)
+    report.add_argument("--results", type=Path, default=Path("results"), help="results root to read")
+    report.add_argument("--out", type=Path, default=None, help="where to write (default: --results)")
+
+    sub.add_parser("methods", help="list the registered methods")
+    return parser
+
+
+def load_evaluation_config(path: Path) -> dict:
+    """Load and validate a config, including the cross-key checks of the evaluation section."""
+    from denoisers.evaluate import evaluation_problems
+    from scenegen.config import ConfigError, load_config
+
+    cfg = load_config(path)
+    problems = evaluation_problems(cfg)
+    if problems:
+        raise ConfigError(f"{path}: invalid configuration:\n  - " + "\n  - ".join(problems))
+    return cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
+                        stream=sys.stderr)
+    from denoisers.evaluate import EvaluationError
+    from denoisers.registry import MissingInputError
+    from scenegen.config import ConfigError
+    from scenegen.dataset import DatasetError
+
+    try:
+        return _run(args)
+    except (MissingInputError, EvaluationError, DatasetError, ConfigError) as error:
+        # Expected failures get one clear line (the workflow prints the job's log), not a traceback.
+        log.error("%s", error)
+        return 1
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.command == "methods":
+        from denoisers import registry
+
+        for name in registry.available():
+            info = registry.get(name).info
+            print(f"{name:16s} inputs={','.join(info.inputs)} pixel={','.join(info.pixel_inputs) or '-'} "
+                  f"temporal={info.temporal} trainable={info.trainable}  {info.description}")
+        return 0
+
+    cfg = load_evaluation_config(args.config)
+    from denoisers import evaluate
+
+    if args.command == "denoise":
+        record = evaluate.denoise_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
+                                       threads=args.threads)
+        log.info("%s %s spp %d: %.2f ms/frame (%.3g Mpix/s), +%.0f MB peak RSS, %d non-finite inputs, "
+                 "%d non-finite outputs", record["method_id"], args.scene, args.spp, record["mean_seconds"] * 1e3,
+                 record["mpix_per_s"], record["peak_memory_mb"], record["nonfinite_inputs"],
+                 record["nonfinite_outputs"])
+    elif args.command == "evaluate":
+        table = evaluate.evaluate_clip(cfg, args.denoised, args.render_dir, args.out)
+        log.info("%s: %d frames, mean PSNR %.2f dB", args.denoised, len(table), table["psnr"].mean())
+    elif args.command == "robustness":
+        summary = evaluate.robustness_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
+                                           threads=args.threads)
+        log.info("robustness %s %s: injected %s, %d non-finite outputs, mean PSNR %.2f dB", args.method_id,
+                 args.scene, summary["injected"], summary["nonfinite_outputs"], summary["mean_psnr"])
+    elif args.command == "report":
+        from denoisers.report import build_report
+
+        written = build_report(cfg, args.results, args.out)
+        log.info("report: wrote %d files, summary in %s", len(written), (args.out or args.results) / "REPORT.md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

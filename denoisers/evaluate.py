@@ -1,0 +1,567 @@
+"""Running methods on the test clips and scoring them: the jobs behind the workflow's evaluation rules.
+
+* ``denoise_clip``    (rule denoise_clip):    one method on one test scene at one spp -> EXR + PNG + timing.json
+* ``evaluate_clip``   (rule evaluate_clip):   per-frame metrics of a denoised clip against the reference -> CSV
+* ``robustness_clip`` (rule robustness_clip): one method on a clip with injected spikes and NaN/Inf -> CSV
+
+The config-level helpers at the top (method list, test scenes, which (method, spp) pairs can run)
+import nothing heavy: the Snakefile calls them while it is parsed, and importing torch there would
+slow down every ``snakemake`` invocation. torch, the registry and the metrics are imported by the
+functions that run jobs.
+"""
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Self
+
+import numpy as np
+
+from scenegen.config import SCENE_SPLITS, scene_ids
+
+TEST_PREFIX = f"{SCENE_SPLITS[1]}_"
+#: Per-frame metrics of the CSVs, in column order (names of denoisers.metrics.frame_metrics).
+FRAME_METRICS: tuple[str, ...] = ("psnr", "ssim", "rmse", "relmse", "smape", "flip")
+#: Temporal metrics (denoisers.metrics.temporal_metrics); NaN during warm-up and after camera cuts.
+TEMPORAL_METRICS: tuple[str, ...] = ("tpsnr", "trmae")
+ALL_METRICS: tuple[str, ...] = FRAME_METRICS + TEMPORAL_METRICS
+#: Methods that do not denoise: the noisy input and plain path tracing at more spp.
+REFERENCE_METHODS: frozenset[str] = frozenset({"noisy", "path_tracing"})
+FRAME_EXR = "frame_{:04d}.exr"
+FRAME_PNG = "frame_{:04d}.png"
+TIMING_FILE = "timing.json"
+ROBUSTNESS_CSV = "metrics.csv"
+ROBUSTNESS_SUMMARY = "summary.json"
+ROBUSTNESS_LAST_EXR = "last_frame.exr"
+RADIANCE_CHANNELS = ("radiance.R", "radiance.G", "radiance.B")
+
+
+class EvaluationError(ValueError):
+    """Denoised output and reference do not match (frame count, resolution) or a run is impossible."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# Config-level helpers (no torch)
+# ---------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """One row of ``evaluation.methods``: row name, registry name, constructor parameters."""
+
+    id: str
+    method: str
+    params: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+
+    @property
+    def label(self) -> str:
+        """Name used in messages: the row id, plus the registry name when they differ."""
+        return self.id if self.id == self.method else f"{self.id} ({self.method})"
+
+
+def method_specs(cfg: dict) -> list[MethodSpec]:
+    """The evaluated methods in table order."""
+    return [MethodSpec(entry["id"], entry["method"], dict(entry.get("params") or {}))
+            for entry in cfg["evaluation"]["methods"]]
+
+
+def method_spec(cfg: dict, method_id: str) -> MethodSpec:
+    """The spec of row ``method_id``; KeyError listing the configured ids otherwise."""
+    for spec in method_specs(cfg):
+        if spec.id == method_id:
+            return spec
+    known = ", ".join(spec.id for spec in method_specs(cfg))
+    raise KeyError(f"no evaluation method with id {method_id!r}; configured ids: {known}")
+
+
+def test_scene_ids(cfg: dict) -> list[str]:
+    """Scenes that are evaluated: the held-out ``test_*`` ids (training scenes never are)."""
+    return [scene for scene in scene_ids(cfg) if scene.startswith(TEST_PREFIX)]
+
+
+def rendered_layers(cfg: dict) -> dict[str, int]:
+    """Sample layers on disk per buffer: radiance has spp + extra_radiance_spp, every other buffer spp."""
+    from scenegen.dataset import RADIANCE_BUFFER, SAMPLE_BUFFERS
+
+    render = cfg["render"]
+    return {buffer: render["spp"] + (render["extra_radiance_spp"] if buffer == RADIANCE_BUFFER else 0)
+            for buffer in SAMPLE_BUFFERS}
+
+
+def evaluation_problems(cfg: dict) -> list[str]:
+    """Constraints of the ``evaluation`` section the JSON schema cannot express (schema-valid cfg)."""
+    evaluation, render = cfg["evaluation"], cfg["render"]
+    problems = []
+    layers = render["spp"] + render["extra_radiance_spp"]
+    too_many = [spp for spp in evaluation["spp"] if spp > layers]
+    if too_many:
+        problems.append(f"config key 'evaluation.spp' = {evaluation['spp']!r} has values {too_many} above the "
+                        f"rendered sample layers; allowed: each <= render.spp + render.extra_radiance_spp = {layers}")
+    ids = [entry["id"] for entry in evaluation["methods"]]
+    for method_id in sorted({i for i in ids if ids.count(i) > 1}):
+        problems.append(f"config key 'evaluation.methods' has the id {method_id!r} more than once; allowed: unique ids")
+    robustness = evaluation["robustness"]
+    if robustness["enabled"] and robustness["spp"] not in evaluation["spp"]:
+        problems.append(f"config key 'evaluation.robustness.spp' = {robustness['spp']} is not one of "
+                        f"'evaluation.spp' = {evaluation['spp']!r}; allowed: one of the evaluated spp")
+    return problems
+
+
+@dataclass(frozen=True)
+class Run:
+    """One (method row, spp) combination; ``not_run`` says why it cannot run ('' when it can)."""
+
+    spec: MethodSpec
+    spp: int
+    samples_factor: int
+    not_run: str = ""
+
+    @property
+    def runnable(self) -> bool:
+        return not self.not_run
+
+    @property
+    def layers(self) -> int:
+        """Sample layers the method reads: spp x samples_factor."""
+        return self.spp * self.samples_factor
+
+
+def plan_runs(cfg: dict, spps: Sequence[int] | None = None) -> list[Run]:
+    """Every (method, spp) of the config, in table order, marked not runnable when it needs more
+    sample layers than were rendered (e.g. path tracing at k x spp). Builds each method once to
+    read its declared inputs and samples_factor (constructors must be cheap)."""
+    from denoisers import registry
+
+    available = rendered_layers(cfg)
+    runs = []
+    for spec in method_specs(cfg):
+        method = registry.build(spec.method, spec.params)
+        for spp in spps if spps is not None else cfg["evaluation"]["spp"]:
+            layers = spp * method.samples_factor
+            short = [buffer for buffer in method.info.inputs if available[buffer] < layers]
+            reason = ""
+            if short:
+                reason = (f"not run (needs {layers} layers of {short[0]!r}, {available[short[0]]} rendered; "
+                          "raise render.spp or render.extra_radiance_spp)")
+            runs.append(Run(spec, spp, method.samples_factor, reason))
+    return runs
+
+
+def robustness_runs(cfg: dict) -> list[Run]:
+    """The runs of the spike/NaN scenario: every method at ``evaluation.robustness.spp`` (none if disabled)."""
+    robustness = cfg["evaluation"]["robustness"]
+    return plan_runs(cfg, [robustness["spp"]]) if robustness["enabled"] else []
+
+
+def denoised_dir(results: Path, method_id: str, scene: str, spp: int) -> Path:
+    return Path(results) / "denoised" / method_id / scene / f"spp{spp}"
+
+
+def metrics_csv(results: Path, method_id: str, scene: str, spp: int) -> Path:
+    return Path(results) / "metrics" / method_id / scene / f"spp{spp}.csv"
+
+
+def robustness_dir(results: Path, method_id: str, scene: str, spp: int) -> Path:
+    return Path(results) / "robustness" / method_id / scene / f"spp{spp}"
+
+
+# ---------------------------------------------------------------------------------------------------
+# File helpers
+# ---------------------------------------------------------------------------------------------------
+
+@contextmanager
+def atomic_output_dir(out_dir: Path) -> Iterator[Path]:
+    """Yield a hidden temporary sibling of ``out_dir`` that is renamed to ``out_dir`` only on success."""
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
+        yield staging
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(staging, out_dir)
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    staging.write_text(text, encoding="utf-8")
+    os.replace(staging, path)
+
+
+def write_radiance_exr(path: Path, radiance: np.ndarray, meta: dict | None = None) -> None:
+    """(3, H, W) linear radiance -> EXR with FLOAT channels radiance.R/G/B."""
+    from scenegen.exr import write_exr
+
+    attributes = {"mcdn_meta": json.dumps(meta, sort_keys=True)} if meta else None
+    write_exr(path, dict(zip(RADIANCE_CHANNELS, np.asarray(radiance, dtype=np.float32))), attributes=attributes)
+
+
+def read_radiance_exr(path: Path) -> np.ndarray:
+    """EXR with channels radiance.R/G/B -> (3, H, W) float32."""
+    from scenegen.exr import read_exr
+
+    planes, _ = read_exr(path, RADIANCE_CHANNELS)
+    return np.stack([planes[name] for name in RADIANCE_CHANNELS])
+
+
+def preview_rgb8(radiance: np.ndarray) -> np.ndarray:
+    """(3, H, W) linear radiance -> (H, W, 3) uint8 with the metrics' tonemap (non-finite shown black)."""
+    from denoisers.metrics import tonemap
+
+    mapped = np.asarray(tonemap(np.nan_to_num(np.asarray(radiance, np.float32), nan=0.0, posinf=0.0, neginf=0.0)))
+    return (np.clip(mapped, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8).transpose(1, 2, 0)
+
+
+def write_preview_png(path: Path, radiance: np.ndarray) -> None:
+    from PIL import Image
+
+    Image.fromarray(preview_rgb8(radiance)).save(path)
+
+
+def read_frame_files(directory: Path) -> dict[int, Path]:
+    """frame index -> path of ``frame_TTTT.exr`` in a denoised directory."""
+    frames = {}
+    for path in sorted(Path(directory).glob("frame_*.exr")):
+        frames[int(path.stem.split("_")[1])] = path
+    return frames
+
+
+# ---------------------------------------------------------------------------------------------------
+# Running a method
+# ---------------------------------------------------------------------------------------------------
+
+class PeakRSS:
+    """Peak resident set size while the ``with`` block runs, by sampling this process's RSS with psutil
+    from a background thread every ``interval_s`` (tracemalloc does not see torch's or OIDN's native
+    allocations). ``extra_mb`` = peak minus the RSS at entry; allocations shorter than the interval
+    can be missed, so it is a lower bound."""
+
+    def __init__(self, interval_s: float = 0.005) -> None:
+        import psutil
+
+        self._process = psutil.Process()
+        self._interval_s = interval_s
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.baseline_bytes = 0
+        self.peak_bytes = 0
+
+    def _sample(self) -> None:
+        self.peak_bytes = max(self.peak_bytes, self._process.memory_info().rss)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self._interval_s):
+            self._sample()
+
+    def __enter__(self) -> Self:
+        self.baseline_bytes = self.peak_bytes = self._process.memory_info().rss
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self._sample()
+
+    @property
+    def extra_mb(self) -> float:
+        return (self.peak_bytes - self.baseline_bytes) / 2**20
+
+    @property
+    def peak_mb(self) -> float:
+        return self.peak_bytes / 2**20
+
+
+@dataclass
+class MethodOutput:
+    """What running a method over a clip produced."""
+
+    radiance: np.ndarray            # (T, 3, H, W) float32 as returned (non-finite values kept)
+    seconds: list[float]            # in-process time of each denoise() call
+    nonfinite_inputs: list[int]     # per frame: non-finite values in the inputs handed to the method
+    nonfinite_outputs: list[int]    # per frame: non-finite values in the output
+    peak_rss_extra_mb: float
+    peak_rss_mb: float
+    maxrss_delta_mb: float
+
+
+def _load_method_clip(render_dir: Path, spec: MethodSpec, method, layers: int, reference: bool):
+    """Load exactly the buffers the method declares with ``layers`` sample layers; a buffer that was
+    not rendered (or has too few layers) raises MissingInputError naming the buffer and the method."""
+    from denoisers.registry import MissingInputError
+    from scenegen.dataset import MissingBufferError, NotEnoughSamplesError, load_clip
+
+    try:
+        return load_clip(render_dir, buffers=method.info.inputs, spp=layers, reference=reference)
+    except MissingBufferError as error:
+        raise MissingInputError(spec.label, error.buffer, str(error)) from error
+    except NotEnoughSamplesError as error:
+        buffer = next((b for b in method.info.inputs if f"{b!r}" in str(error)), method.info.inputs[0])
+        raise MissingInputError(spec.label, buffer, f"{layers} sample layers needed: {error}") from error
+
+
+def run_method(method, frames: Sequence, threads: int) -> MethodOutput:
+    """reset(), then denoise() every frame in order, timing each call (frames are built beforehand, so
+    no I/O or data preparation is timed)."""
+    import torch
+
+    torch.set_num_threads(max(1, int(threads)))
+    outputs, seconds, inputs_bad, outputs_bad = [], [], [], []
+    maxrss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    method.reset()
+    with torch.no_grad(), PeakRSS() as memory:
+        for frame in frames:
+            inputs_bad.append(int(sum((~torch.isfinite(t)).sum().item()
+                                      for t in (*frame.samples.values(), *frame.pixel.values()))))
+            start = time.perf_counter()
+            result = method.denoise(frame)
+            seconds.append(time.perf_counter() - start)
+            result = torch.as_tensor(result).detach().to(torch.float32).cpu()
+            expected = (3, frame.height, frame.width)
+            if tuple(result.shape) != expected:
+                raise EvaluationError(f"method {method.info.name!r} returned shape {tuple(result.shape)} "
+                                      f"for frame {frame.index}; expected {expected} (3, H, W)")
+            outputs_bad.append(int((~torch.isfinite(result)).sum().item()))
+            outputs.append(result.numpy())
+    maxrss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return MethodOutput(np.stack(outputs), seconds, inputs_bad, outputs_bad, memory.extra_mb, memory.peak_mb,
+                        (maxrss_after - maxrss_before) / 1024.0)  # ru_maxrss is in KiB on Linux
+
+
+def timing_summary(seconds: Sequence[float], width: int, height: int) -> dict[str, Any]:
+    """Mean/median seconds per frame and Mpix/s, the first frame excluded as warm-up (kept if it is the only one)."""
+    timed = list(seconds[1:]) if len(seconds) > 1 else list(seconds)
+    mean = float(np.mean(timed))
+    return {
+        "seconds_per_frame": [float(s) for s in seconds],
+        "warmup_frames_excluded": 1 if len(seconds) > 1 else 0,
+        "mean_seconds": mean,
+        "median_seconds": float(np.median(timed)),
+        "mpix_per_s": width * height / mean / 1e6 if mean > 0 else float("inf"),
+    }
+
+
+def _prepare(cfg: dict, method_id: str, spp: int):
+    from denoisers import registry
+
+    spec = method_spec(cfg, method_id)
+    method = registry.build(spec.method, spec.params)
+    return spec, method, spp * method.samples_factor
+
+
+def _frames(clip, method, layers: int) -> list:
+    from denoisers.registry import clip_frames
+
+    return list(clip_frames(clip, method.info, layers))
+
+
+def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Path, out_dir: Path,
+                 threads: int = 1) -> dict[str, Any]:
+    """Run one configured method on one clip at ``spp`` and write ``out_dir`` atomically:
+    frame_TTTT.exr (radiance.R/G/B, linear HDR), frame_TTTT.png (tonemapped preview), timing.json.
+    Returns the timing record."""
+    spec, method, layers = _prepare(cfg, method_id, spp)
+    clip = _load_method_clip(Path(render_dir), spec, method, layers, reference=False)
+    frames = _frames(clip, method, layers)
+    result = run_method(method, frames, threads)
+    height, width = result.radiance.shape[-2:]
+    render_rates = [m["samples_per_s"] for m in clip.meta if "samples_per_s" in m]
+    record = {
+        "method_id": spec.id, "method": spec.method, "params": spec.params, "scene": scene, "spp": spp,
+        "samples_factor": method.samples_factor, "sample_layers": layers, "threads": int(threads),
+        "width": int(width), "height": int(height), "frames": [int(t) for t in clip.frames],
+        **timing_summary(result.seconds, width, height),
+        "peak_memory_mb": result.peak_rss_extra_mb,
+        "peak_rss_mb": result.peak_rss_mb,
+        "maxrss_delta_mb": result.maxrss_delta_mb,
+        "memory_method": "psutil RSS sampled every 5 ms during the denoise loop, minus the RSS before it "
+                         "(peak_memory_mb); maxrss_delta_mb = growth of getrusage ru_maxrss over the loop",
+        "nonfinite_inputs": int(sum(result.nonfinite_inputs)),
+        "nonfinite_outputs": int(sum(result.nonfinite_outputs)),
+        "nonfinite_outputs_per_frame": result.nonfinite_outputs,
+        # Cost of rendering one sample with every buffer (for the equal-time view of the report).
+        "render_samples_per_s": float(np.mean(render_rates)) if render_rates else None,
+    }
+    with atomic_output_dir(out_dir) as staging:
+        for t, radiance in zip(clip.frames, result.radiance):
+            write_radiance_exr(staging / FRAME_EXR.format(t), radiance,
+                               {"method_id": spec.id, "scene": scene, "spp": spp, "frame": int(t)})
+            write_preview_png(staging / FRAME_PNG.format(t), radiance)
+        (staging / TIMING_FILE).write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+    return record
+
+
+# ---------------------------------------------------------------------------------------------------
+# Metrics
+# ---------------------------------------------------------------------------------------------------
+
+def load_references(render_dir: Path) -> tuple[list[int], list[Path], np.ndarray, list[dict]]:
+    """Reference radiance of a clip: (frame indices, paths, (T, 3, H, W), reference sidecars)."""
+    from scenegen.dataset import find_frames, load_reference_frame
+
+    found = find_frames(Path(render_dir) / "reference")
+    if not found:
+        raise EvaluationError(f"{Path(render_dir) / 'reference'}: no reference frames found")
+    frames = sorted(found)
+    images, metas = [], []
+    for t in frames:
+        data, meta = load_reference_frame(found[t], ["radiance"])
+        images.append(data["radiance"])
+        metas.append(meta)
+    return frames, [found[t] for t in frames], np.stack(images), metas
+
+
+def _check_match(denoised: dict[int, Path], denoised_dir_: Path, ref_frames: list[int], render_dir: Path) -> None:
+    if sorted(denoised) != ref_frames:
+        raise EvaluationError(
+            f"frame count mismatch: {denoised_dir_} holds {len(denoised)} denoised frames {sorted(denoised)}, "
+            f"but {Path(render_dir) / 'reference'} holds {len(ref_frames)} reference frames {ref_frames}")
+
+
+def _temporal_mask(n_frames: int, cuts: Sequence[bool], warmup: int) -> np.ndarray:
+    """True where temporal metrics are defined: at least ``warmup`` frames (and >= 1) since the clip
+    start or the last camera cut, so the predecessor belongs to the same shot."""
+    mask = np.zeros(n_frames, dtype=bool)
+    since = 0
+    for t in range(n_frames):
+        since = 0 if (t == 0 or cuts[t]) else since + 1
+        mask[t] = since >= max(1, warmup)
+    return mask
+
+
+def score_sequence(pred: np.ndarray, ref: np.ndarray, cuts: Sequence[bool], warmup: int) -> dict[str, np.ndarray]:
+    """Per-frame metrics of (T, 3, H, W) predictions against references. Non-finite predicted values are
+    set to 0 before scoring (they are counted separately); temporal metrics are NaN during the first
+    ``warmup`` frames and the first ``warmup`` frames after a camera cut."""
+    from denoisers import metrics
+
+    pred = np.nan_to_num(np.asarray(pred, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    ref = np.asarray(ref, np.float32)
+    per_frame = [metrics.frame_metrics(p, r) for p, r in zip(pred, ref)]
+    scores = {name: np.array([float(row[name]) for row in per_frame]) for name in FRAME_METRICS}
+    temporal = metrics.temporal_metrics(pred, ref, warmup)
+    mask = _temporal_mask(len(pred), cuts, warmup)
+    for name in TEMPORAL_METRICS:
+        values = np.asarray(temporal[name], dtype=np.float64).copy()
+        values[~mask] = np.nan
+        scores[name] = values
+    return scores
+
+
+def evaluate_clip(cfg: dict, denoised_path: Path, render_dir: Path, out_csv: Path):
+    """Per-frame metrics of one denoised clip against clip.reference radiance -> CSV with columns
+    frame, psnr, ssim, rmse, relmse, smape, flip, tpsnr, trmae, camera_cut, nonfinite_output,
+    reference_psnr_halves. Raises EvaluationError when frame counts or resolutions differ."""
+    import pandas as pd
+
+    denoised_path, render_dir = Path(denoised_path), Path(render_dir)
+    denoised = read_frame_files(denoised_path)
+    if not denoised:
+        raise EvaluationError(f"{denoised_path}: no denoised frames (frame_TTTT.exr)")
+    ref_frames, ref_paths, reference, ref_meta = load_references(render_dir)
+    _check_match(denoised, denoised_path, ref_frames, render_dir)
+    pred = []
+    for t, ref_path, ref_image in zip(ref_frames, ref_paths, reference):
+        image = read_radiance_exr(denoised[t])
+        if image.shape != ref_image.shape:
+            raise EvaluationError(f"resolution mismatch: {denoised[t]} is {image.shape[1]}x{image.shape[2]} (HxW), "
+                                  f"reference {ref_path} is {ref_image.shape[1]}x{ref_image.shape[2]}")
+        pred.append(image)
+    pred = np.stack(pred)
+    cuts = [bool(m.get("camera_cut", False)) for m in ref_meta]
+    scores = score_sequence(pred, reference, cuts, cfg["evaluation"]["warmup_frames"])
+    table = pd.DataFrame({"frame": ref_frames, **scores, "camera_cut": cuts,
+                          "nonfinite_output": (~np.isfinite(pred)).sum(axis=(1, 2, 3)),
+                          "reference_psnr_halves": [m.get("psnr_halves", np.nan) for m in ref_meta]})
+    write_text_atomic(out_csv, table.to_csv(index=False))
+    return table
+
+
+# ---------------------------------------------------------------------------------------------------
+# Robustness: spikes and NaN/Inf injected into the noisy samples
+# ---------------------------------------------------------------------------------------------------
+
+def inject_corruption(samples: dict[str, np.ndarray], *, seed: int, scene: str, spike_fraction: float,
+                      spike_max_factor: float, nonfinite_fraction: float, frames: Sequence[int]) -> dict[str, int]:
+    """Corrupt per-sample buffers {buffer: (T, S, C, H, W)} in place and return the counts.
+
+    Per frame: in ``radiance``, ``max(1, round(spike_fraction * S*H*W))`` random samples get
+    ``m * mean`` added to every channel, m ~ U(0, spike_max_factor) and mean = the frame's mean
+    radiance (Isik et al. 2021, Fig. 3: perturbations up to 500x the image mean). In every buffer,
+    ``max(1, round(nonfinite_fraction * S*H*W))`` random samples have all channels set to NaN, +Inf or
+    -Inf in turn (the cycle starts one step later in every frame). Positions depend only on (seed, scene, buffer, frame), so every method sees the same
+    corruption of the buffers it reads.
+    """
+    from scenegen.seeds import derive_seed
+
+    counts = {"spikes": 0, "nan_values": 0, "inf_values": 0}
+    for buffer, stack in samples.items():
+        _, n_samples, n_channels, height, width = stack.shape
+        positions = n_samples * height * width
+        for i, t in enumerate(frames):
+            rng = np.random.default_rng(derive_seed(seed, "robustness", scene, buffer, int(t)))
+            # (S, C, H, W) -> (C, S*H*W) copy so that one index picks one sample of one pixel.
+            flat = np.moveaxis(stack[i], 1, 0).reshape(n_channels, positions)
+            if buffer == "radiance":
+                n_spikes = max(1, round(spike_fraction * positions))
+                where = rng.choice(positions, n_spikes, replace=False)
+                frame_mean = float(flat.mean())
+                flat[:, where] += rng.uniform(0.0, spike_max_factor, n_spikes)[None, :] * frame_mean
+                counts["spikes"] += n_spikes
+            n_bad = max(1, round(nonfinite_fraction * positions))
+            where = rng.choice(positions, n_bad, replace=False)
+            # Cycle NaN, +Inf, -Inf, starting one further each frame so that every kind occurs even
+            # when a frame gets a single bad sample.
+            values = np.array([np.nan, np.inf, -np.inf], np.float32)[(np.arange(n_bad) + i) % 3]
+            flat[:, where] = values[None, :]
+            counts["nan_values"] += int(np.isnan(values).sum()) * n_channels
+            counts["inf_values"] += int(np.isinf(values).sum()) * n_channels
+            stack[i] = np.moveaxis(flat.reshape(n_channels, n_samples, height, width), 0, 1)
+    return counts
+
+
+def robustness_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Path, out_dir: Path,
+                    threads: int = 1) -> dict[str, Any]:
+    """Run one method at ``spp`` on a clip whose noisy samples carry injected spikes and NaN/Inf (settings
+    in ``evaluation.robustness``) and score it against the reference. Writes ``out_dir`` atomically:
+    metrics.csv (per frame), summary.json (counts), last_frame.exr (the output of the last frame)."""
+    import pandas as pd
+
+    settings = cfg["evaluation"]["robustness"]
+    spec, method, layers = _prepare(cfg, method_id, spp)
+    clip = _load_method_clip(Path(render_dir), spec, method, layers, reference=True)
+    injected = inject_corruption(clip.samples, seed=cfg["seed"], scene=scene, frames=clip.frames,
+                                 spike_fraction=settings["spike_fraction"],
+                                 spike_max_factor=settings["spike_max_factor"],
+                                 nonfinite_fraction=settings["nonfinite_fraction"])
+    result = run_method(method, _frames(clip, method, layers), threads)
+    cuts = [bool(m.get("camera_cut", False)) for m in clip.meta]
+    scores = score_sequence(result.radiance, clip.reference["radiance"], cuts, cfg["evaluation"]["warmup_frames"])
+    table = pd.DataFrame({"frame": clip.frames, **scores, "camera_cut": cuts,
+                          "nonfinite_input": result.nonfinite_inputs, "nonfinite_output": result.nonfinite_outputs})
+    summary = {"method_id": spec.id, "method": spec.method, "scene": scene, "spp": spp,
+               "settings": dict(settings), "injected": injected,
+               "nonfinite_inputs": int(sum(result.nonfinite_inputs)),
+               "nonfinite_outputs": int(sum(result.nonfinite_outputs)),
+               "mean_psnr": float(np.nanmean(scores["psnr"]))}
+    with atomic_output_dir(out_dir) as staging:
+        (staging / ROBUSTNESS_CSV).write_text(table.to_csv(index=False), encoding="utf-8")
+        (staging / ROBUSTNESS_SUMMARY).write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
+        write_radiance_exr(staging / ROBUSTNESS_LAST_EXR, result.radiance[-1])
+    return summary

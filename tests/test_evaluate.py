@@ -1,0 +1,304 @@
+"""Tests for the evaluation jobs (denoisers/evaluate.py): denoise, per-frame metrics, robustness.
+
+Every test runs on a tiny synthetic clip written in the on-disk data format (no rendering): a static
+smooth image with multiplicative noise per sample layer and constant auxiliary buffers.
+"""
+from __future__ import annotations
+
+import copy
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+import yaml
+
+from denoisers import evaluate, metrics, registry
+from denoisers.registry import Denoiser, Frame, MissingInputError
+from scenegen.config import validate_config
+from scenegen.dataset import noisy_channels, pixel_channels, reference_channels, write_frame
+from scenegen.exr import read_exr
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+HEIGHT, WIDTH, FRAMES, LAYERS = 12, 16, 4, 4
+
+
+def synthetic_reference(height: int = HEIGHT, width: int = WIDTH) -> np.ndarray:
+    """(3, H, W) smooth positive radiance: a diagonal ramp with a brighter disc."""
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    ramp = 0.2 + 0.6 * (x + y) / (height + width)
+    disc = ((x - width / 2) ** 2 + (y - height / 2) ** 2 < (min(height, width) / 4) ** 2) * 1.5
+    return np.stack([ramp + disc, 0.8 * ramp + disc, 0.6 * ramp + disc]).astype(np.float32)
+
+
+def write_synthetic_scene(render_dir: Path, *, scene: str = "test_000", frames: int = FRAMES, layers: int = LAYERS,
+                          height: int = HEIGHT, width: int = WIDTH, omit: tuple[str, ...] = (),
+                          reference_size: tuple[int, int] | None = None, seed: int = 0,
+                          camera_cut: int | None = None) -> np.ndarray:
+    """Write noisy and reference frames of a static clip under ``render_dir`` (= results/renders/{scene});
+    returns the (3, H, W) reference. ``omit`` leaves per-sample buffers out of the noisy files."""
+    rng = np.random.default_rng(seed)
+    reference = synthetic_reference(height, width)
+    noisy_dir, reference_dir = render_dir / "noisy" / "chunk_000", render_dir / "reference" / "chunk_000"
+    noisy_dir.mkdir(parents=True, exist_ok=True)
+    reference_dir.mkdir(parents=True, exist_ok=True)
+    ones = np.ones((1, height, width), np.float32)
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    position = np.stack([x, y, np.zeros_like(x)])
+    normal = np.concatenate([0 * ones, 0 * ones, ones])
+    for t in range(frames):
+        radiance = reference[None] * rng.uniform(0.0, 2.0, (layers, 1, height, width)).astype(np.float32)
+        samples = {
+            "radiance": radiance, "diffuse": radiance, "specular": np.zeros_like(radiance),
+            "albedo": np.full((layers, 3, height, width), 0.5, np.float32),
+            "normal": np.repeat(normal[None], layers, 0), "depth": np.repeat(ones[None], layers, 0),
+            "roughness": np.repeat(ones[None], layers, 0), "flags": np.zeros((layers, 4, height, width), np.float32),
+            "position": np.repeat(position[None], layers, 0),
+        }
+        samples = {b: a for b, a in samples.items() if b not in omit}
+        channels, half = noisy_channels(samples)
+        gbuffer = {"position": position, "normal": normal, "depth": ones, "object": ones}
+        pixel, pixel_half = pixel_channels(np.zeros((2, height, width), np.float32),
+                                           np.full((1, height, width), t > 0), gbuffer)
+        channels.update(pixel)
+        cut = camera_cut is not None and t == camera_cut
+        meta = {"scene": scene, "frame": t, "width": width, "height": height, "spp": layers, "extra_radiance_spp": 0,
+                "camera_cut": cut, "samples_per_s": 2.0e6, "nonfinite_total": 0}
+        write_frame(noisy_dir / f"frame_{t:04d}.exr", channels, meta, half=half | pixel_half)
+        ref_h, ref_w = reference_size or (height, width)
+        ref = synthetic_reference(ref_h, ref_w)
+        ref_buffers = {"radiance": ref, "radiance_half0": ref, "radiance_half1": ref, "diffuse": ref,
+                       "specular": np.zeros_like(ref), "albedo": np.full_like(ref, 0.5),
+                       "normal": np.zeros_like(ref), "depth": np.ones((1, ref_h, ref_w), np.float32)}
+        write_frame(reference_dir / f"frame_{t:04d}.exr", reference_channels(ref_buffers),
+                    {"scene": scene, "frame": t, "spp": 64, "psnr_halves": 40.0 + t, "camera_cut": cut}, half=set())
+    return reference
+
+
+def smoke_config(**evaluation) -> dict:
+    """The smoke config with the given evaluation keys replaced, validated (defaults filled)."""
+    cfg = yaml.safe_load((REPO_ROOT / "config" / "smoke.yaml").read_text())
+    cfg["render"]["spp"] = LAYERS
+    cfg["evaluation"].update(evaluation)
+    return validate_config(cfg)
+
+
+BASIC_METHODS = [{"id": "noisy", "method": "noisy"}, {"id": "path_x2", "method": "path_tracing", "params": {"factor": 2}}]
+
+
+class Box3(Denoiser):
+    """Sanitises non-finite samples to 0, then averages the 3x3 neighbourhood of the sample mean."""
+
+    def denoise(self, frame: Frame) -> torch.Tensor:
+        mean = torch.nan_to_num(frame.samples["radiance"], nan=0.0, posinf=0.0, neginf=0.0).mean(0)
+        return torch.nn.functional.avg_pool2d(mean[None], 3, stride=1, padding=1, count_include_pad=False)[0]
+
+
+@pytest.fixture
+def box_method() -> Iterator[str]:
+    """Registers Box3 as 'test_box3' (reads radiance and albedo) for one test only, so that tests of
+    other modules that iterate over the registry never see it."""
+    registry.register("test_box3", inputs=("radiance", "albedo"), description="test only: 3x3 box filter")(Box3)
+    yield "test_box3"
+    registry._REGISTRY.pop("test_box3", None)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    render_dir = tmp_path_factory.mktemp("renders") / "test_000"
+    write_synthetic_scene(render_dir)
+    return render_dir
+
+
+def test_plan_marks_runs_that_need_more_layers_than_rendered() -> None:
+    cfg = smoke_config(methods=BASIC_METHODS, spp=[1, 2, 4])
+    runs = {(run.spec.id, run.spp): run for run in evaluate.plan_runs(cfg)}
+    assert all(runs[("noisy", s)].runnable for s in (1, 2, 4))
+    assert runs[("path_x2", 2)].runnable and runs[("path_x2", 2)].layers == 4
+    assert runs[("path_x2", 4)].not_run == ("not run (needs 8 layers of 'radiance', 4 rendered; raise render.spp "
+                                            "or render.extra_radiance_spp)")
+
+
+def test_evaluation_problems_name_the_keys() -> None:
+    cfg = smoke_config(methods=BASIC_METHODS + [{"id": "noisy", "method": "noisy"}], spp=[1, 8])
+    cfg["evaluation"]["robustness"]["spp"] = 3
+    problems = "\n".join(evaluate.evaluation_problems(cfg))
+    assert "'evaluation.spp'" in problems and "[8]" in problems
+    assert "id 'noisy' more than once" in problems
+    assert "'evaluation.robustness.spp' = 3" in problems
+
+
+def test_test_scenes_exclude_training_scenes() -> None:
+    cfg = smoke_config()
+    cfg["scenes"]["n_train"], cfg["scenes"]["n_test"] = 3, 2
+    assert evaluate.test_scene_ids(cfg) == ["test_000", "test_001"]
+
+
+def test_denoise_writes_exr_png_and_timing(scene_dir: Path, tmp_path: Path) -> None:
+    cfg = smoke_config(methods=BASIC_METHODS)
+    out = tmp_path / "denoised" / "path_x2" / "test_000" / "spp2"
+    record = evaluate.denoise_clip(cfg, "path_x2", "test_000", 2, scene_dir, out, threads=1)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted([f"frame_{t:04d}.{ext}" for t in range(FRAMES) for ext in ("exr", "png")]
+                           + ["timing.json"])
+    assert not list(out.parent.glob(".*tmp*")), "staging directory left behind"
+    # The path-tracing row averages factor x spp = 4 layers: compare with the mean of the stored layers.
+    from scenegen.dataset import load_clip
+
+    clip = load_clip(scene_dir, buffers=("radiance",), spp=4, reference=False)
+    planes, _ = read_exr(out / "frame_0002.exr")
+    image = np.stack([planes[f"radiance.{c}"] for c in "RGB"])
+    np.testing.assert_allclose(image, clip.samples["radiance"][2].mean(0), rtol=1e-6)
+    from PIL import Image
+
+    png = np.asarray(Image.open(out / "frame_0002.png"))
+    assert png.shape == (HEIGHT, WIDTH, 3) and png.dtype == np.uint8
+    expected = np.clip(np.asarray(metrics.tonemap(image)), 0, 1).transpose(1, 2, 0) * 255
+    assert np.abs(png.astype(float) - expected).max() <= 1.0
+
+    timing = json.loads((out / "timing.json").read_text())
+    assert timing == record
+    assert timing["samples_factor"] == 2 and timing["sample_layers"] == 4 and timing["threads"] == 1
+    assert len(timing["seconds_per_frame"]) == FRAMES and timing["warmup_frames_excluded"] == 1
+    assert timing["mean_seconds"] == pytest.approx(np.mean(timing["seconds_per_frame"][1:]))
+    assert timing["mpix_per_s"] == pytest.approx(HEIGHT * WIDTH / timing["mean_seconds"] / 1e6)
+    assert timing["peak_memory_mb"] >= 0 and timing["nonfinite_inputs"] == timing["nonfinite_outputs"] == 0
+    assert timing["render_samples_per_s"] == pytest.approx(2.0e6)
+
+
+def test_evaluate_writes_per_frame_metrics(scene_dir: Path, tmp_path: Path) -> None:
+    cfg = smoke_config(methods=BASIC_METHODS, warmup_frames=2)
+    denoised = tmp_path / "denoised"
+    evaluate.denoise_clip(cfg, "noisy", "test_000", 4, scene_dir, denoised)
+    table = evaluate.evaluate_clip(cfg, denoised, scene_dir, tmp_path / "m.csv")
+    on_disk = pd.read_csv(tmp_path / "m.csv")
+    assert list(on_disk.columns) == ["frame", *evaluate.ALL_METRICS, "camera_cut", "nonfinite_output",
+                                     "reference_psnr_halves"]
+    assert len(on_disk) == FRAMES and on_disk["frame"].tolist() == list(range(FRAMES))
+    pred = np.stack([evaluate.read_radiance_exr(denoised / f"frame_{t:04d}.exr") for t in range(FRAMES)])
+    reference = synthetic_reference()
+    for t in range(FRAMES):
+        assert on_disk.loc[t, "psnr"] == pytest.approx(metrics.psnr(pred[t], reference), rel=1e-9)
+        assert on_disk.loc[t, "ssim"] == pytest.approx(metrics.ssim(pred[t], reference), rel=1e-9)
+    expected_tpsnr = metrics.temporal_metrics(pred, np.stack([reference] * FRAMES), 2)["tpsnr"]
+    np.testing.assert_allclose(on_disk["tpsnr"], expected_tpsnr, equal_nan=True)
+    assert on_disk["tpsnr"].isna().tolist() == [True, True, False, False]
+    assert on_disk["reference_psnr_halves"].tolist() == [40.0, 41.0, 42.0, 43.0]
+    pd.testing.assert_frame_equal(table.reset_index(drop=True), on_disk, check_dtype=False)
+
+
+def test_temporal_metrics_restart_after_a_camera_cut(tmp_path: Path) -> None:
+    render_dir = tmp_path / "test_000"
+    write_synthetic_scene(render_dir, frames=5, camera_cut=3)
+    cfg = smoke_config(methods=BASIC_METHODS, warmup_frames=1)
+    evaluate.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, tmp_path / "d")
+    table = evaluate.evaluate_clip(cfg, tmp_path / "d", render_dir, tmp_path / "m.csv")
+    # Frame 3 follows the cut: its "temporal difference" spans two shots and is not scored.
+    assert table["tpsnr"].isna().tolist() == [True, False, False, True, False]
+    assert table["camera_cut"].tolist() == [False, False, False, True, False]
+
+
+def test_missing_buffer_names_buffer_and_method(tmp_path: Path, box_method: str) -> None:
+    render_dir = tmp_path / "test_000"
+    write_synthetic_scene(render_dir, omit=("albedo",))
+    cfg = smoke_config(methods=[{"id": "box", "method": "test_box3"}])
+    with pytest.raises(MissingInputError) as excinfo:
+        evaluate.denoise_clip(cfg, "box", "test_000", 1, render_dir, tmp_path / "out")
+    assert excinfo.value.buffer == "albedo"
+    assert "'albedo'" in str(excinfo.value) and "box (test_box3)" in str(excinfo.value)
+    assert not (tmp_path / "out").exists()
+
+
+def test_too_few_layers_is_a_missing_input_error(scene_dir: Path, tmp_path: Path) -> None:
+    cfg = smoke_config(methods=BASIC_METHODS)
+    with pytest.raises(MissingInputError, match=r"path_x2 \(path_tracing\).*'radiance'.*8 sample layers needed"):
+        evaluate.denoise_clip(cfg, "path_x2", "test_000", 4, scene_dir, tmp_path / "out")
+
+
+def test_resolution_mismatch_names_both_files(tmp_path: Path) -> None:
+    render_dir = tmp_path / "test_000"
+    write_synthetic_scene(render_dir, reference_size=(HEIGHT, WIDTH - 2))
+    cfg = smoke_config(methods=BASIC_METHODS)
+    evaluate.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, tmp_path / "d")
+    # The loader compares noisy and reference sizes as well; evaluate reads the files directly.
+    with pytest.raises(evaluate.EvaluationError, match=r"resolution mismatch: .*frame_0000\.exr is 12x16.*"
+                                                       r"reference .*frame_0000\.exr is 12x14"):
+        evaluate.evaluate_clip(cfg, tmp_path / "d", render_dir, tmp_path / "m.csv")
+    assert not (tmp_path / "m.csv").exists()
+
+
+def test_frame_count_mismatch_names_both_directories(scene_dir: Path, tmp_path: Path) -> None:
+    cfg = smoke_config(methods=BASIC_METHODS)
+    denoised = tmp_path / "d"
+    evaluate.denoise_clip(cfg, "noisy", "test_000", 1, scene_dir, denoised)
+    (denoised / "frame_0003.exr").unlink()
+    with pytest.raises(evaluate.EvaluationError, match=r"frame count mismatch: .*d holds 3 denoised frames.*"
+                                                       r"reference holds 4 reference frames"):
+        evaluate.evaluate_clip(cfg, denoised, scene_dir, tmp_path / "m.csv")
+
+
+def test_corruption_counts_and_is_seeded() -> None:
+    rng = np.random.default_rng(1)
+    clean = {"radiance": rng.uniform(0.5, 1.5, (2, 4, 3, 20, 25)).astype(np.float32),
+             "normal": rng.uniform(-1, 1, (2, 4, 3, 20, 25)).astype(np.float32)}
+    settings = {"seed": 7, "scene": "test_000", "spike_fraction": 0.01, "spike_max_factor": 500.0,
+                "nonfinite_fraction": 0.003, "frames": [0, 1]}
+    first, second = copy.deepcopy(clean), copy.deepcopy(clean)
+    counts = evaluate.inject_corruption(first, **settings)
+    evaluate.inject_corruption(second, **settings)
+    np.testing.assert_array_equal(first["radiance"], second["radiance"])  # same seed, same corruption
+    positions = 4 * 20 * 25
+    n_spikes, n_bad = round(0.01 * positions), round(0.003 * positions)  # 20 and 6 per frame
+    assert counts["spikes"] == 2 * n_spikes
+    # Per buffer and frame, n_bad samples x 3 channels cycle through NaN, +Inf, -Inf.
+    assert counts["nan_values"] == 2 * 2 * 3 * 2 and counts["inf_values"] == 2 * 2 * 3 * 4
+    for buffer in clean:
+        assert (~np.isfinite(first[buffer])).sum() == 2 * n_bad * 3
+    finite = np.isfinite(first["radiance"])
+    raised = (first["radiance"] - clean["radiance"])[finite]
+    frame_mean = clean["radiance"].mean()
+    assert raised.min() >= 0 and raised.max() <= 500 * frame_mean * 1.1
+    assert (raised > 0).sum() >= 2 * (n_spikes - n_bad) * 3 - 6  # spikes hit all channels of their sample
+    untouched = np.isfinite(first["normal"])
+    np.testing.assert_array_equal(first["normal"][untouched], clean["normal"][untouched])  # no spikes in features
+
+
+def test_robustness_reports_counts_and_finite_outputs(scene_dir: Path, tmp_path: Path, box_method: str) -> None:
+    cfg = smoke_config(methods=[{"id": "box", "method": "test_box3"}, *BASIC_METHODS])
+    out = tmp_path / "robust"
+    summary = evaluate.robustness_clip(cfg, "box", "test_000", 2, scene_dir, out, threads=1)
+    positions = 2 * HEIGHT * WIDTH
+    assert summary["injected"]["spikes"] == FRAMES * max(1, round(0.001 * positions))
+    # radiance and albedo each get at least one non-finite sample (3 channels) per frame.
+    assert summary["injected"]["nan_values"] + summary["injected"]["inf_values"] == FRAMES * 2 * 3
+    assert summary["nonfinite_inputs"] == FRAMES * 2 * 3
+    assert summary["nonfinite_outputs"] == 0
+    table = pd.read_csv(out / evaluate.ROBUSTNESS_CSV)
+    assert len(table) == FRAMES and np.isfinite(table["psnr"]).all()
+    assert (table["nonfinite_output"] == 0).all() and (table["nonfinite_input"] == 6).all()
+    assert np.isfinite(evaluate.read_radiance_exr(out / evaluate.ROBUSTNESS_LAST_EXR)).all()
+
+    # A method that does not sanitise passes NaN through: counted, and scored as if it were 0.
+    noisy = evaluate.robustness_clip(cfg, "noisy", "test_000", 2, scene_dir, tmp_path / "noisy", threads=1)
+    table = pd.read_csv(tmp_path / "noisy" / evaluate.ROBUSTNESS_CSV)
+    if noisy["nonfinite_outputs"]:
+        assert table["nonfinite_output"].sum() == noisy["nonfinite_outputs"]
+    assert np.isfinite(table["psnr"]).all()
+
+
+def test_cli_prints_one_line_for_missing_inputs(tmp_path: Path, caplog: pytest.LogCaptureFixture,
+                                                box_method: str) -> None:
+    from denoisers.cli import main
+
+    render_dir = tmp_path / "test_000"
+    write_synthetic_scene(render_dir, omit=("albedo",))
+    cfg = smoke_config(methods=[{"id": "box", "method": "test_box3"}])
+    config_file = tmp_path / "cfg.yaml"
+    config_file.write_text(yaml.safe_dump(cfg))
+    code = main(["denoise", "--config", str(config_file), "--method-id", "box", "--scene", "test_000", "--spp", "1",
+                 "--render-dir", str(render_dir), "--out", str(tmp_path / "out")])
+    assert code == 1
+    assert "method 'box (test_box3)' needs buffer 'albedo'" in caplog.text

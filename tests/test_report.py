@@ -1,0 +1,268 @@
+"""Tests for the generated report (denoisers/report.py).
+
+Most tests build a results tree by hand: per-frame metric CSVs with known numbers, timing.json,
+robustness outputs and tiny EXRs for the image grids, so that means, confidence intervals and claim
+verdicts can be checked against values computed here (scipy.stats.t for the intervals). One test
+runs the real evaluation jobs on a synthetic clip and builds the report from their outputs.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from denoisers import evaluate, report
+from tests.test_evaluate import smoke_config, synthetic_reference, write_synthetic_scene
+
+SCENES = ("test_000", "test_001", "test_002")
+FRAMES = 4
+SIZE = (8, 10)
+# Small symmetric per-frame wiggle: the frame mean of every metric is exactly its per-scene value.
+WIGGLE = np.array([0.1, -0.1, 0.2, -0.2])
+SCENE_OFFSET = {"test_000": 0.0, "test_001": 1.0, "test_002": -0.5}
+METHODS = [{"id": "noisy", "method": "noisy"}, {"id": "path_x2", "method": "path_tracing", "params": {"factor": 2}},
+           {"id": "svgf", "method": "svgf"}, {"id": "rls", "method": "rls"}, {"id": "wrls", "method": "wrls"}]
+# Per-method PSNR at 1 spp (dB; + 3 dB per doubling of spp), TRMAE, ms/frame.
+PSNR = {"noisy": 20.0, "path_x2": 22.0, "svgf": 27.0, "rls": 26.0, "wrls": 28.0}
+TRMAE = {"noisy": 0.9, "path_x2": 0.7, "svgf": 0.30, "rls": 0.35, "wrls": 0.20}
+MS = {"noisy": 0.1, "path_x2": 0.1, "svgf": 5.0, "rls": 8.0, "wrls": 4.0}
+SPIKED_PSNR = {"noisy": 10.0, "path_x2": 12.0, "svgf": 18.0, "rls": 15.0, "wrls": 24.0}
+
+
+def psnr_of(method: str, scene: str, spp: int) -> float:
+    return PSNR[method] + 3.0 * math.log2(spp) + SCENE_OFFSET[scene]
+
+
+def metric_frame(psnr: float, trmae: float, cut_at: int | None = None) -> pd.DataFrame:
+    """Per-frame CSV content whose frame means are ``psnr`` and (over frames 1..) ``trmae``."""
+    frames = np.arange(FRAMES)
+    return pd.DataFrame({
+        "frame": frames, "psnr": psnr + WIGGLE, "ssim": 0.8 + WIGGLE / 10, "rmse": 0.05 + WIGGLE / 100,
+        "relmse": 0.02 + WIGGLE / 100, "smape": 0.1 + WIGGLE / 10, "flip": 0.1 + WIGGLE / 10,
+        "tpsnr": np.r_[np.nan, [psnr + 5.0] * (FRAMES - 1)], "trmae": np.r_[np.nan, [trmae] * (FRAMES - 1)],
+        "camera_cut": frames == cut_at, "nonfinite_output": 0, "reference_psnr_halves": 45.0,
+    })
+
+
+def write_results(root: Path, cfg: dict, *, psnr: dict | None = None, trmae: dict | None = None,
+                  spiked: dict | None = None) -> None:
+    """A complete hand-made results tree for ``cfg`` (every runnable (method, spp) on SCENES)."""
+    psnr, trmae, spiked = psnr or PSNR, trmae or TRMAE, spiked or SPIKED_PSNR
+    layers = cfg["render"]["spp"]
+    for scene in SCENES:
+        write_synthetic_scene(root / "renders" / scene, scene=scene, frames=FRAMES, layers=layers, height=SIZE[0],
+                              width=SIZE[1])
+        image = synthetic_reference(*SIZE)
+        for spec in cfg["evaluation"]["methods"]:
+            method_id = spec["id"]
+            factor = spec.get("params", {}).get("factor", 1)
+            for spp in cfg["evaluation"]["spp"]:
+                if spp * factor > layers:
+                    continue
+                value = psnr[method_id] + 3.0 * math.log2(spp) + SCENE_OFFSET[scene]
+                csv = evaluate.metrics_csv(root, method_id, scene, spp)
+                csv.parent.mkdir(parents=True, exist_ok=True)
+                metric_frame(value, trmae[method_id], cut_at=2).to_csv(csv, index=False)
+                folder = evaluate.denoised_dir(root, method_id, scene, spp)
+                folder.mkdir(parents=True, exist_ok=True)
+                for t in range(FRAMES):
+                    evaluate.write_radiance_exr(folder / f"frame_{t:04d}.exr", image * (1 + 0.01 * t))
+                seconds = MS[method_id] / 1e3
+                timing = {"mean_seconds": seconds, "mpix_per_s": SIZE[0] * SIZE[1] / seconds / 1e6,
+                          "peak_memory_mb": 10.0, "nonfinite_inputs": 0, "nonfinite_outputs": 0,
+                          "samples_factor": factor, "render_samples_per_s": 1.0e6, "width": SIZE[1],
+                          "height": SIZE[0]}
+                (folder / evaluate.TIMING_FILE).write_text(json.dumps(timing))
+            robust = evaluate.robustness_dir(root, method_id, scene, cfg["evaluation"]["robustness"]["spp"])
+            robust.mkdir(parents=True, exist_ok=True)
+            metric_frame(spiked[method_id] + SCENE_OFFSET[scene], trmae[method_id]).assign(
+                nonfinite_input=6, nonfinite_output=0).to_csv(robust / evaluate.ROBUSTNESS_CSV, index=False)
+            (robust / evaluate.ROBUSTNESS_SUMMARY).write_text(json.dumps({
+                "injected": {"spikes": 4, "nan_values": 6, "inf_values": 12}, "nonfinite_inputs": 24,
+                "nonfinite_outputs": 0}))
+            evaluate.write_radiance_exr(robust / evaluate.ROBUSTNESS_LAST_EXR, image)
+
+
+def report_config() -> dict:
+    cfg = smoke_config(methods=METHODS, spp=[1, 2], warmup_frames=1)
+    cfg["scenes"]["n_test"], cfg["scenes"]["n_train"] = len(SCENES), 2
+    cfg["render"]["spp"] = 2   # path_x2 at 2 spp needs 4 layers: not run
+    cfg["render"]["width"], cfg["render"]["height"] = SIZE[1], SIZE[0]
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    root = tmp_path_factory.mktemp("results")
+    cfg = report_config()
+    write_results(root, cfg)
+    report.build_report(cfg, root)
+    return root, cfg
+
+
+def claims_of(root: Path) -> dict[str, str]:
+    table = pd.read_csv(root / "tables" / "claims.csv")
+    return dict(zip(table["claim"], table["verdict"]))
+
+
+def test_summary_means_and_t_intervals(built: tuple[Path, dict]) -> None:
+    root, _ = built
+    summary = pd.read_csv(root / "tables" / "summary.csv")
+    for method in ("noisy", "svgf", "wrls"):
+        for spp in (1, 2):
+            row = summary[(summary.method_id == method) & (summary.spp == spp) & (summary.metric == "psnr")].iloc[0]
+            per_scene = [psnr_of(method, scene, spp) for scene in SCENES]
+            low, high = stats.t.interval(0.95, len(per_scene) - 1, loc=np.mean(per_scene), scale=stats.sem(per_scene))
+            assert row["mean"] == pytest.approx(np.mean(per_scene))
+            assert (row["ci_low"], row["ci_high"]) == (pytest.approx(low), pytest.approx(high))
+            assert row["n_scenes"] == 3
+    trmae = summary[(summary.method_id == "rls") & (summary.metric == "trmae")]
+    assert trmae["mean"].tolist() == pytest.approx([TRMAE["rls"]] * 2)
+    assert trmae["ci_high"].tolist() == pytest.approx([TRMAE["rls"]] * 2)  # identical scenes: zero width
+    speed = summary[(summary.method_id == "wrls") & (summary.metric == "mpix_per_s")].iloc[0]
+    assert speed["mean"] == pytest.approx(SIZE[0] * SIZE[1] / (MS["wrls"] / 1e3) / 1e6)
+
+
+def test_mean_ci_matches_scipy_and_handles_one_value() -> None:
+    values = [1.0, 2.5, 2.0, 4.0]
+    mean, low, high, n = report.mean_ci(values + [float("nan")])
+    assert n == 4 and mean == pytest.approx(2.375)
+    assert (low, high) == pytest.approx(stats.t.interval(0.95, 3, loc=2.375, scale=stats.sem(values)))
+    mean, low, high, n = report.mean_ci([3.0])
+    assert (mean, n) == (3.0, 1) and math.isnan(low) and math.isnan(high)
+
+
+def test_not_run_rows_are_listed_with_the_reason(built: tuple[Path, dict]) -> None:
+    root, _ = built
+    runs = pd.read_csv(root / "tables" / "runs.csv")
+    row = runs[(runs.id == "path_x2") & (runs.spp == 2)].iloc[0]
+    assert row["status"] == "not run" and "needs 4 layers of 'radiance', 2 rendered" in row["reason"]
+    assert (runs[runs.id != "path_x2"]["status"] == "ran").all()
+    text = (root / "REPORT.md").read_text()
+    assert "## Not run" in text and "needs 4 layers" in text
+
+
+def test_psnr_pivot_and_markdown_summary(built: tuple[Path, dict]) -> None:
+    root, _ = built
+    pivot = pd.read_csv(root / "tables" / "psnr_by_spp.csv").set_index("method")
+    assert pivot.loc["path_x2", "PSNR (dB) @ 2 spp"] == "not run"
+    mean = np.mean([psnr_of("wrls", s, 2) for s in SCENES])
+    assert pivot.loc["wrls", "PSNR (dB) @ 2 spp"].startswith(f"{mean:.2f} ± ")
+    markdown = (root / "tables" / "summary.md").read_text()
+    assert "### 1 spp (3 test scenes)" in markdown and "| wrls |" in markdown
+
+
+def test_claims_follow_the_numbers(built: tuple[Path, dict]) -> None:
+    root, _ = built
+    verdicts = claims_of(root)
+    assert verdicts["C4.1"] == "reproduced"      # at 2 spp wrls 31 dB > svgf 30 dB and TRMAE 0.20 < 0.30
+    assert verdicts["C4.2"] == "reproduced"      # spiked 24 dB > 15 dB, drop 7 dB < 14 dB
+    assert verdicts["C4.3"] == "reproduced"      # wrls above noisy at 1 and 2 spp
+    for claim in ("C1.1", "C2.1", "C3.1", "C4.4"):
+        assert verdicts[claim] == "not run"
+    table = pd.read_csv(root / "tables" / "claims.csv").set_index("claim")
+    assert "rae" in table.loc["C1.1", "note"] and "rae" in table.loc["C4.4", "note"]
+    assert "PSNR (dB) @ 2 spp: wrls 31.17 vs svgf 30.17" in table.loc["C4.1", "measured"]
+    assert "wrls−svgf 1.00 [1.00, 1.00] (n=3)" in table.loc["C4.1", "ci_95"]
+
+
+@pytest.mark.parametrize("change, claim", [
+    ({"psnr": {**PSNR, "wrls": 26.5}}, "C4.1"),          # wrls below svgf in PSNR
+    ({"trmae": {**TRMAE, "wrls": 0.5}}, "C4.1"),         # wrls flickers more than svgf
+    ({"spiked": {**SPIKED_PSNR, "wrls": 14.0}}, "C4.2"),  # wrls worse than rls under spikes
+    ({"psnr": {**PSNR, "wrls": 19.0}}, "C4.3"),          # wrls below its noisy input at 1 spp
+])
+def test_flipping_the_numbers_flips_the_verdict(tmp_path: Path, change: dict, claim: str) -> None:
+    cfg = report_config()
+    write_results(tmp_path, cfg, **change)
+    res = report.collect(cfg, tmp_path)
+    verdicts = dict(zip(*report.claims_table(res)[["claim", "verdict"]].T.values))
+    assert verdicts[claim] == "not reproduced"
+
+
+def test_missing_method_makes_claims_not_run(tmp_path: Path) -> None:
+    cfg = report_config()
+    cfg["evaluation"]["methods"] = [m for m in METHODS if m["id"] != "svgf"]
+    write_results(tmp_path, cfg)
+    table = report.claims_table(report.collect(cfg, tmp_path)).set_index("claim")
+    assert table.loc["C4.1", "verdict"] == "not run" and "svgf" in table.loc["C4.1", "note"]
+    assert table.loc["C4.3", "verdict"] == "reproduced"
+
+
+def test_equal_time_view_picks_the_nearest_path_tracing_row(built: tuple[Path, dict]) -> None:
+    root, _ = built
+    table = pd.read_csv(root / "tables" / "equal_time.csv").set_index(["method_id", "spp"])
+    # svgf at 1 spp: 5 ms x 1e6 samples/s / 80 px = 62.5 extra spp -> 63.5 spp equal time; the nearest
+    # rendered plain path tracing has 2 spp in total: noisy at 2 spp (path_x2 at 1 spp ties; the first wins).
+    row = table.loc[("svgf", 1)]
+    assert row["equal_time_spp"] == pytest.approx(1 + 5e-3 * 1e6 / 80)
+    assert row["path_tracing_row"] == "noisy @ 2 spp" and row["path_tracing_spp"] == 2
+    assert row["psnr_diff_mean"] == pytest.approx(psnr_of("svgf", "test_000", 1) - psnr_of("noisy", "test_000", 2))
+    assert row["better"].startswith("svgf (nearest rendered PT has 2 spp")
+
+
+def test_noise_floor_and_split(built: tuple[Path, dict]) -> None:
+    root, _ = built
+    floor = pd.read_csv(root / "tables" / "noise_floor.csv").set_index("scene")
+    assert floor.loc["test_001", "reference_noise_floor_psnr"] == pytest.approx(45.0 + 10 * math.log10(4))
+    assert floor.loc["test_001", "best_method"] == "wrls"
+    split = pd.read_csv(root / "tables" / "split.csv")
+    assert split[split.evaluated]["scene"].tolist() == list(SCENES)
+    assert split[~split.evaluated]["scene"].tolist() == ["train_000", "train_001"]
+
+
+def test_robustness_table(built: tuple[Path, dict]) -> None:
+    root, _ = built
+    table = pd.read_csv(root / "tables" / "robustness.csv").set_index("method_id")
+    assert table.loc["wrls", "psnr_spiked_mean"] == pytest.approx(SPIKED_PSNR["wrls"] + np.mean(list(SCENE_OFFSET.values())))
+    assert table.loc["wrls", "psnr_drop_mean"] == pytest.approx(PSNR["wrls"] + 3.0 - SPIKED_PSNR["wrls"])
+    assert table.loc["rls", "nonfinite_inputs"] == 3 * 24 and table.loc["rls", "spikes"] == 3 * 4
+
+
+def test_every_output_and_link_exists(built: tuple[Path, dict]) -> None:
+    root, cfg = built
+    for group in report.report_outputs(cfg, root=str(root)).values():
+        for path in group:
+            assert Path(path).is_file() and Path(path).stat().st_size > 0, path
+    text = (root / "REPORT.md").read_text()
+    links = re.findall(r"\]\(([^)]+)\)", text)
+    assert "figures/quality_vs_speed.png" in links and "tables/claims.csv" in links
+    assert "figures/grid_test_002.png" in links and "figures/frame_curves_test_000.png" in links
+    for link in links:
+        assert (root / link).is_file(), link
+    assert "| C4.1 |" in text and "reproduced" in text
+
+
+def test_report_from_real_evaluation_outputs(tmp_path: Path) -> None:
+    """denoise + evaluate + robustness jobs on a synthetic clip, then the report, end to end in-process."""
+    cfg = smoke_config(methods=METHODS[:2], spp=[1, 2], warmup_frames=1)
+    cfg["scenes"]["n_test"] = 1
+    write_synthetic_scene(tmp_path / "renders" / "test_000")
+    for run in evaluate.plan_runs(cfg):
+        if run.runnable:
+            out = evaluate.denoised_dir(tmp_path, run.spec.id, "test_000", run.spp)
+            evaluate.denoise_clip(cfg, run.spec.id, "test_000", run.spp, tmp_path / "renders" / "test_000", out)
+            evaluate.evaluate_clip(cfg, out, tmp_path / "renders" / "test_000",
+                                   evaluate.metrics_csv(tmp_path, run.spec.id, "test_000", run.spp))
+    for run in evaluate.robustness_runs(cfg):
+        evaluate.robustness_clip(cfg, run.spec.id, "test_000", run.spp, tmp_path / "renders" / "test_000",
+                                 evaluate.robustness_dir(tmp_path, run.spec.id, "test_000", run.spp))
+    written = report.build_report(cfg, tmp_path)
+    assert all(p.is_file() for p in written)
+    summary = pd.read_csv(tmp_path / "tables" / "summary.csv")
+    psnr = summary[summary.metric == "psnr"].set_index(["method_id", "spp"])["mean"]
+    assert psnr[("path_x2", 1)] > psnr[("noisy", 1)]  # twice the samples of the same clip
+    assert pd.read_csv(tmp_path / "tables" / "claims.csv").set_index("claim").loc["C4.1", "verdict"] == "not run"
+
+
+def test_metric_directions_agree_with_the_metrics_module() -> None:
+    from denoisers import metrics
+
+    for name in evaluate.ALL_METRICS:
+        assert report.HIGHER_IS_BETTER[name] == metrics.METRICS[name].higher_is_better, name

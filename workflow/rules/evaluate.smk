@@ -1,0 +1,112 @@
+# Stage 3: denoising and evaluation of the test scenes, and the generated report.
+#   denoise_clip:    results/denoised/{method}/{scene}/spp{spp}/frame_{t:04d}.exr + .png, timing.json
+#   evaluate_clip:   results/metrics/{method}/{scene}/spp{spp}.csv (per-frame metrics)
+#   robustness_clip: results/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected)
+#   build_report:    results/tables/, results/figures/, results/REPORT.md
+# {method} is a row id of evaluation.methods; only test_* scenes are requested by the targets.
+
+
+rule denoise_clip:
+    input:
+        noisy=scene_chunk_dirs("noisy"),
+    output:
+        out_dir=directory("results/denoised/{method}/{scene}/spp{spp}"),
+    params:
+        config_file=resolved_config_file,
+        config_digest=denoise_digest,
+        render_dir=render_dir,
+    log:
+        "results/logs/denoise/{method}/{scene}/spp{spp}.log",
+    benchmark:
+        "results/benchmarks/denoise/{method}/{scene}/spp{spp}.tsv"
+    conda:
+        "../envs/harness.yaml"
+    # Timings are recorded in-process with this many torch threads; with 2 on a 2-core machine the
+    # jobs run one at a time, so they do not disturb each other's timings.
+    threads: config["evaluation"]["threads"]
+    resources:
+        mem_mb=4000,
+        runtime=60,
+    shell:
+        "python -m denoisers denoise --config {params.config_file} --method-id {wildcards.method}"
+        " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
+        " --out {output.out_dir} --threads {threads} > {log} 2>&1"
+
+
+rule evaluate_clip:
+    input:
+        denoised="results/denoised/{method}/{scene}/spp{spp}",
+        reference=scene_chunk_dirs("reference"),
+    output:
+        csv="results/metrics/{method}/{scene}/spp{spp}.csv",
+    params:
+        config_file=resolved_config_file,
+        config_digest=evaluate_digest,
+        render_dir=render_dir,
+    log:
+        "results/logs/evaluate/{method}/{scene}/spp{spp}.log",
+    benchmark:
+        "results/benchmarks/evaluate/{method}/{scene}/spp{spp}.tsv"
+    conda:
+        "../envs/harness.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    shell:
+        "OMP_NUM_THREADS={threads} python -m denoisers evaluate --config {params.config_file}"
+        " --denoised {input.denoised} --render-dir {params.render_dir} --out {output.csv} > {log} 2>&1"
+
+
+rule robustness_clip:
+    input:
+        noisy=scene_chunk_dirs("noisy"),
+        reference=scene_chunk_dirs("reference"),
+    output:
+        out_dir=directory("results/robustness/{method}/{scene}/spp{spp}"),
+    params:
+        config_file=resolved_config_file,
+        config_digest=robustness_digest,
+        render_dir=render_dir,
+    log:
+        "results/logs/robustness/{method}/{scene}/spp{spp}.log",
+    benchmark:
+        "results/benchmarks/robustness/{method}/{scene}/spp{spp}.tsv"
+    conda:
+        "../envs/harness.yaml"
+    threads: config["evaluation"]["threads"]
+    resources:
+        mem_mb=4000,
+        runtime=60,
+    shell:
+        "python -m denoisers robustness --config {params.config_file} --method-id {wildcards.method}"
+        " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
+        " --out {output.out_dir} --threads {threads} > {log} 2>&1"
+
+
+rule build_report:
+    input:
+        unpack(report_input),
+    output:
+        tables=report(REPORT_OUTPUTS["tables"], caption="../report/tables.rst", category="Tables"),
+        tables_md=REPORT_OUTPUTS["tables_md"],
+        quality=report(REPORT_OUTPUTS["quality"], caption="../report/quality_vs_speed.rst", category="Figures"),
+        curves=report(REPORT_OUTPUTS["curves"], caption="../report/frame_curves.rst", category="Figures"),
+        grids=report(REPORT_OUTPUTS["grids"], caption="../report/grids.rst", category="Figures"),
+        summary=report(REPORT_OUTPUTS["markdown"], caption="../report/summary.rst", category="Summary"),
+    params:
+        config_file=resolved_config_file,
+        config_digest=report_digest,
+    log:
+        "results/logs/build_report.log",
+    benchmark:
+        "results/benchmarks/build_report.tsv"
+    conda:
+        "../envs/harness.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    shell:
+        "OMP_NUM_THREADS={threads} python -m denoisers report --config {params.config_file} --results results"
+        " > {log} 2>&1"
