@@ -12,19 +12,17 @@ functions that run jobs.
 from __future__ import annotations
 
 import json
-import os
 import resource
-import shutil
 import threading
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
 
 import numpy as np
 
+from scenegen.atomic import atomic_directory, write_text_atomic
 from scenegen.config import SCENE_SPLITS, scene_ids
 
 TEST_PREFIX = f"{SCENE_SPLITS[1]}_"
@@ -175,32 +173,6 @@ def robustness_dir(results: Path, method_id: str, scene: str, spp: int) -> Path:
 # ---------------------------------------------------------------------------------------------------
 # File helpers
 # ---------------------------------------------------------------------------------------------------
-
-@contextmanager
-def atomic_output_dir(out_dir: Path) -> Iterator[Path]:
-    """Yield a hidden temporary sibling of ``out_dir`` that is renamed to ``out_dir`` only on success."""
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir()
-    try:
-        yield staging
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    os.replace(staging, out_dir)
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    staging = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    staging.write_text(text, encoding="utf-8")
-    os.replace(staging, path)
-
 
 def write_radiance_exr(path: Path, radiance: np.ndarray, meta: dict | None = None) -> None:
     """(3, H, W) linear radiance -> EXR with FLOAT channels radiance.R/G/B."""
@@ -398,7 +370,7 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
         # Cost of rendering one sample with every buffer (for the equal-time view of the report).
         "render_samples_per_s": float(np.mean(render_rates)) if render_rates else None,
     }
-    with atomic_output_dir(out_dir) as staging:
+    with atomic_directory(out_dir) as staging:
         for t, radiance in zip(clip.frames, result.radiance):
             write_radiance_exr(staging / FRAME_EXR.format(t), radiance,
                                {"method_id": spec.id, "scene": scene, "spp": spp, "frame": int(t)})
@@ -560,7 +532,7 @@ def robustness_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir:
                "nonfinite_inputs": int(sum(result.nonfinite_inputs)),
                "nonfinite_outputs": int(sum(result.nonfinite_outputs)),
                "mean_psnr": float(np.nanmean(scores["psnr"]))}
-    with atomic_output_dir(out_dir) as staging:
+    with atomic_directory(out_dir) as staging:
         (staging / ROBUSTNESS_CSV).write_text(table.to_csv(index=False), encoding="utf-8")
         (staging / ROBUSTNESS_SUMMARY).write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
         write_radiance_exr(staging / ROBUSTNESS_LAST_EXR, result.radiance[-1])

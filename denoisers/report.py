@@ -36,8 +36,8 @@ from denoisers.evaluate import (
     read_radiance_exr,
     robustness_dir,
     test_scene_ids,
-    write_text_atomic,
 )
+from scenegen.atomic import write_text_atomic
 from scenegen.config import SCENE_SPLITS, scene_ids
 
 if TYPE_CHECKING:

@@ -8,16 +8,13 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
-import shutil
 import time
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 from tqdm import tqdm
 
+from scenegen.atomic import atomic_directory, write_text_atomic
 from scenegen.config import CUSTOM_PREFIX, extra_scene
 from scenegen.mitsuba_env import init_mitsuba
 from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_frame_seed,
@@ -26,31 +23,6 @@ from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene,
 from scenegen.seeds import scene_seed
 
 log = logging.getLogger("scenegen")
-
-
-@contextmanager
-def atomic_directory(out_dir: Path) -> Iterator[Path]:
-    """Yield a temporary directory that replaces ``out_dir`` only if the block completes."""
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
-    if tmp_dir.exists():
-        shutil.rmtree(tmp_dir)
-    tmp_dir.mkdir()
-    try:
-        yield tmp_dir
-    except BaseException:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
-        raise
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    os.replace(tmp_dir, out_dir)
-
-
-def _write_json_atomic(path: Path, payload: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(payload, indent=1, sort_keys=True))
-    os.replace(tmp, path)
 
 
 def chunk_frames(n_frames: int, frames_per_chunk: int, chunk: int) -> list[int]:
@@ -162,7 +134,7 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
             channels.update(pixel)
             write_exr(tmp_dir / f"frame_{frame:04d}.exr", channels, half=half | pixel_half,
                       attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
-            _write_json_atomic(tmp_dir / f"frame_{frame:04d}.json", meta)
+            write_text_atomic(tmp_dir / f"frame_{frame:04d}.json", json.dumps(meta, indent=1, sort_keys=True))
             bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")
             gbuffer_prev = gbuffer
             rates.append(meta["samples_per_s"])
@@ -203,7 +175,7 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
             })
             write_exr(tmp_dir / f"frame_{frame:04d}.exr", reference_channels(reference),
                       attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
-            _write_json_atomic(tmp_dir / f"frame_{frame:04d}.json", meta)
+            write_text_atomic(tmp_dir / f"frame_{frame:04d}.json", json.dumps(meta, indent=1, sort_keys=True))
             bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")
             rates.append(meta["samples_per_s"])
     log.info("reference %s chunk %d: %d frames, mean %.3g samples/s", scene_id, chunk, len(frames),
