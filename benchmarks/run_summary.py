@@ -17,7 +17,8 @@ def main() -> None:
     results = Path(sys.argv[1] if len(sys.argv) > 1 else "results")
     rows = []
     for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
-        rule = tsv.relative_to(results / "benchmarks").parts[0]
+        parts = tsv.relative_to(results / "benchmarks").parts
+        rule = parts[0] if len(parts) > 1 else tsv.stem  # one-job rules write benchmarks/<rule>.tsv
         table = pd.read_csv(tsv, sep="\t")
         rows.append({"rule": rule, "seconds": float(table["s"].iloc[-1]),
                      "max_rss_mb": float(pd.to_numeric(table["max_rss"], errors="coerce").iloc[-1])})

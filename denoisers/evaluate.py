@@ -79,7 +79,7 @@ def method_spec(cfg: dict, method_id: str) -> MethodSpec:
     raise KeyError(f"no evaluation method with id {method_id!r}; configured ids: {known}")
 
 
-def test_scene_ids(cfg: dict) -> list[str]:
+def evaluated_scene_ids(cfg: dict) -> list[str]:
     """Scenes that are evaluated: the held-out ``test_*`` ids (training scenes never are)."""
     return [scene for scene in scene_ids(cfg) if scene.startswith(TEST_PREFIX)]
 

@@ -35,7 +35,7 @@ from denoisers.evaluate import (
     read_frame_files,
     read_radiance_exr,
     robustness_dir,
-    test_scene_ids,
+    evaluated_scene_ids,
 )
 from scenegen.atomic import write_text_atomic
 from scenegen.config import SCENE_SPLITS, scene_ids
@@ -70,7 +70,7 @@ REPRODUCED, NOT_REPRODUCED, NOT_RUN = "reproduced", "not reproduced", "not run"
 def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
     """Files the report writes, grouped: 'tables' (CSV), 'tables_md', 'quality' (chart PNG + SVG),
     'curves' (per-frame error per test scene), 'grids' (image grid per test scene + robustness), 'markdown'."""
-    scenes = test_scene_ids(cfg)
+    scenes = evaluated_scene_ids(cfg)
     return {"tables": [f"{root}/tables/{t}.csv" for t in TABLES],
             "tables_md": [f"{root}/tables/{t}.md" for t in TABLES],
             "quality": [f"{root}/figures/quality_vs_speed.png", f"{root}/figures/quality_vs_speed.svg"],
@@ -192,7 +192,7 @@ def collect(cfg: dict, results_dir: Path) -> Results:
     import pandas as pd
 
     results_dir = Path(results_dir)
-    specs, scenes = method_specs(cfg), test_scene_ids(cfg)
+    specs, scenes = method_specs(cfg), evaluated_scene_ids(cfg)
     plan = None
     runs, frame_tables, timing_rows = [], [], []
     for spec in specs:

@@ -134,7 +134,7 @@ def test_evaluation_problems_name_the_keys() -> None:
 def test_test_scenes_exclude_training_scenes() -> None:
     cfg = smoke_config()
     cfg["scenes"]["n_train"], cfg["scenes"]["n_test"] = 3, 2
-    assert evaluate.test_scene_ids(cfg) == ["test_000", "test_001"]
+    assert evaluate.evaluated_scene_ids(cfg) == ["test_000", "test_001"]
 
 
 def test_denoise_writes_exr_png_and_timing(scene_dir: Path, tmp_path: Path) -> None:

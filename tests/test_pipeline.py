@@ -1,14 +1,17 @@
-"""End-to-end run of the smoke configuration through Snakemake with the real renderer.
+"""End-to-end run of the smoke configuration through Snakemake with the real renderer and denoisers.
 
 One copy of the workflow (Snakefile, workflow/, config/) in a temporary directory is run twice:
-first the stage target `scenes` alone, then the default target. That checks the stage target on a
-fresh tree, that the full run reuses the scenes, and the complete dataset, in a single ~20 s DAG.
+first the stage target `scenes` alone, then the default target (renders, every configured method on
+the test scene, metrics, the robustness scenario and the report). That checks the stage target on a
+fresh tree, that the full run reuses the scenes, the complete dataset and the evaluation outputs in
+a single DAG.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -16,8 +19,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
+from PIL import Image
 
+from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_SUMMARY, TIMING_FILE, denoised_dir, metrics_csv, plan_runs,
+                                robustness_dir, robustness_runs)
+# Aliased: pytest would collect a module-level name starting with `test_` as a test.
+from denoisers.evaluate import evaluated_scene_ids
+from denoisers.report import CLAIMS, NOT_REPRODUCED, NOT_RUN, REPRODUCED, report_outputs
 from scenegen.config import chunk_count, chunk_frames, load_config, scene_ids
 from scenegen.dataset import REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
 
@@ -25,6 +35,8 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 SMOKE_CONFIG = "config/smoke.yaml"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference")
+# results/benchmarks/{folder}/{method}/{scene}/spp{spp}.tsv of the evaluation rules: folder -> which runs.
+EVALUATION_BENCHMARKS = {"denoise": "evaluation", "evaluate": "evaluation", "robustness": "robustness"}
 MAX_RESULTS_BYTES = 50 * 1024**2
 # Snakemake marks every directory() output with this file; it is not part of the data.
 SNAKEMAKE_MARKER = ".snakemake_timestamp"
@@ -65,6 +77,11 @@ class PipelineRun:
     @property
     def results(self) -> Path:
         return self.workdir / "results"
+
+    def runs(self, kind: str = "evaluation") -> list:
+        """Runnable (method, spp) runs of the evaluation or of the robustness scenario."""
+        runs = plan_runs(self.cfg) if kind == "evaluation" else robustness_runs(self.cfg)
+        return [run for run in runs if run.runnable]
 
 
 @pytest.fixture(scope="module")
@@ -163,6 +180,10 @@ def test_benchmarks_exist_for_every_job(pipeline: PipelineRun) -> None:
         expected.append(bench / "generate_scene" / f"{scene}.tsv")
         for chunk in range(chunk_count(pipeline.cfg, scene)):
             expected += [bench / rule / scene / f"chunk_{chunk:03d}.tsv" for rule in JOB_RULES[1:]]
+    for scene in evaluated_scene_ids(pipeline.cfg):
+        for folder, kind in EVALUATION_BENCHMARKS.items():
+            expected += [bench / folder / run.spec.id / scene / f"spp{run.spp}.tsv" for run in pipeline.runs(kind)]
+    expected.append(bench / "build_report.tsv")
     for path in expected:
         assert path.is_file(), f"missing benchmark {path}"
         header, *rows = path.read_text().strip().splitlines()
@@ -173,7 +194,7 @@ def test_benchmarks_exist_for_every_job(pipeline: PipelineRun) -> None:
 def test_results_are_small_and_leave_no_temporaries(pipeline: PipelineRun) -> None:
     total = sum(p.stat().st_size for p in pipeline.results.rglob("*") if p.is_file())
     assert total < MAX_RESULTS_BYTES, f"results/ holds {total / 1024**2:.1f} MB"
-    for stage in ("renders", "scenes"):
+    for stage in ("renders", "scenes", "denoised", "metrics", "robustness", "tables", "figures"):
         leftovers = [p for p in (pipeline.results / stage).rglob("*") if p.name.startswith(".") and "tmp" in p.name]
         assert not leftovers, f"temporary files left behind: {leftovers}"
 
@@ -182,3 +203,71 @@ def test_second_run_has_nothing_to_do(pipeline: PipelineRun) -> None:
     assert pipeline.dry_rerun.returncode == 0, pipeline.dry_rerun.stderr
     output = pipeline.dry_rerun.stdout + pipeline.dry_rerun.stderr
     assert "Nothing to be done" in output, output[-3000:]
+
+
+def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun) -> None:
+    frames = list(range(pipeline.cfg["scenes"]["frames"]))
+    runs = pipeline.runs()
+    # The smoke config renders enough layers for every configured (method, spp).
+    assert len(runs) == len(pipeline.cfg["evaluation"]["methods"]) * len(pipeline.cfg["evaluation"]["spp"])
+    for scene in evaluated_scene_ids(pipeline.cfg):
+        for run in runs:
+            folder = denoised_dir(pipeline.results, run.spec.id, scene, run.spp)
+            expected = {f"frame_{t:04d}.{ext}" for t in frames for ext in ("exr", "png")} | {TIMING_FILE}
+            assert {p.name for p in folder.iterdir()} - {SNAKEMAKE_MARKER} == expected, folder
+            timing = json.loads((folder / TIMING_FILE).read_text())
+            assert timing["spp"] == run.spp and timing["threads"] == pipeline.cfg["evaluation"]["threads"]
+            assert timing["mean_seconds"] > 0 and timing["nonfinite_outputs"] == 0, (folder, timing)
+            table = pd.read_csv(metrics_csv(pipeline.results, run.spec.id, scene, run.spp))
+            assert list(table["frame"]) == frames
+            assert set(ALL_METRICS) <= set(table.columns)
+            assert np.isfinite(table["psnr"]).all() and (table["psnr"] > 0).all(), (run, table)
+    assert not list((pipeline.results / "denoised").glob("*/train_*")), "a training scene was denoised"
+
+
+def test_robustness_outputs_stay_finite(pipeline: PipelineRun) -> None:
+    for scene in evaluated_scene_ids(pipeline.cfg):
+        for run in pipeline.runs("robustness"):
+            summary = json.loads((robustness_dir(pipeline.results, run.spec.id, scene, run.spp)
+                                  / ROBUSTNESS_SUMMARY).read_text())
+            assert summary["injected"]["spikes"] > 0 and summary["nonfinite_inputs"] > 0, summary
+            assert summary["nonfinite_outputs"] == 0, f"{run.spec.id} produced non-finite output under spikes"
+
+
+def test_report_has_tables_figures_and_claims(pipeline: PipelineRun) -> None:
+    outputs = report_outputs(pipeline.cfg, root=str(pipeline.results))
+    for path in (path for group in outputs.values() for path in group):
+        assert Path(path).is_file() and Path(path).stat().st_size > 0, path
+    assert list((pipeline.results / "tables").glob("*.csv"))
+    with Image.open(pipeline.results / "figures" / "quality_vs_speed.png") as chart:
+        assert chart.width > 100 and chart.height > 100
+
+    claims = pd.read_csv(pipeline.results / "tables" / "claims.csv")
+    assert list(claims["claim"]) == [claim.id for claim in CLAIMS]
+    assert set(claims["verdict"]) <= {REPRODUCED, NOT_REPRODUCED, NOT_RUN}
+    # A claim whose methods are all configured and that has a decision rule must be decided.
+    configured = {method["method"] for method in pipeline.cfg["evaluation"]["methods"]}
+    decidable = {claim.id for claim in CLAIMS if claim.decide is not None and set(claim.needs) <= configured}
+    assert decidable, "no claim can be decided with the smoke config's methods"
+    verdicts = dict(zip(claims["claim"], claims["verdict"]))
+    assert all(verdicts[claim] in (REPRODUCED, NOT_REPRODUCED) for claim in decidable), verdicts
+
+    report = (pipeline.results / "REPORT.md").read_text()
+    assert "## Claims" in report and "figures/quality_vs_speed.png" in report
+
+
+def test_every_configured_baseline_is_in_the_main_table(pipeline: PipelineRun) -> None:
+    summary = pd.read_csv(pipeline.results / "tables" / "summary.csv")
+    psnr = summary[summary["metric"] == "psnr"]
+    expected = {(run.spec.id, run.spp) for run in pipeline.runs()}
+    assert set(zip(psnr["method_id"], psnr["spp"])) == expected
+    assert set(psnr["method_id"]) == {method["id"] for method in pipeline.cfg["evaluation"]["methods"]}
+    assert np.isfinite(psnr["mean"]).all()
+    assert (psnr["n_scenes"] == len(evaluated_scene_ids(pipeline.cfg))).all()
+    # The Markdown summary (also embedded in REPORT.md) has one row per method at every spp.
+    summary_md = (pipeline.results / "tables" / "summary.md").read_text()
+    report = (pipeline.results / "REPORT.md").read_text()
+    for method in pipeline.cfg["evaluation"]["methods"]:
+        rows = re.findall(rf"^\| {re.escape(method['id'])} \|", summary_md, flags=re.MULTILINE)
+        assert len(rows) == len(pipeline.cfg["evaluation"]["spp"]), method["id"]
+        assert re.search(rf"^\| {re.escape(method['id'])} \|", report, flags=re.MULTILINE), method["id"]

@@ -1,7 +1,9 @@
 """Tests for the Snakemake workflow: lint, dry-run DAG shape, config errors, rerun triggers, profiles.
 
-None of these runs the real renderer: dry runs only, plus one real run in a temporary copy of the
-workflow where `python -m scenegen` is a stub that just creates the output directories.
+None of these runs the real renderer or a denoiser: dry runs only, plus one real run of the `renders`
+target in a temporary copy of the workflow where `python -m scenegen` is a stub that just creates the
+output directories. Every snakemake call runs in a temporary copy of Snakefile, workflow/ and config/:
+parsing writes results/.config/, and the repository's own results/ and .snakemake/ stay untouched.
 """
 
 from __future__ import annotations
@@ -17,16 +19,22 @@ from pathlib import Path
 import pytest
 import yaml
 
+from denoisers.evaluate import plan_runs, robustness_runs
+# Aliased: pytest would collect a module-level name starting with `test_` as a test.
+from denoisers.evaluate import evaluated_scene_ids
 from scenegen.config import chunk_count, load_config, scene_ids
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
-JOB_RULES = ("generate_scene", "render_noisy", "render_reference")
+JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
+             "robustness_clip", "build_report")
+STAGE_TARGETS = ("scenes", "renders", "denoise", "evaluate", "report")
+WORKFLOW_FILES = ("Snakefile", "workflow", "config")
 JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
 
 
-def run_snakemake(*args: str, cwd: Path = REPO_ROOT, check: bool = True) -> subprocess.CompletedProcess:
-    """Run the venv's snakemake with `python` (used by the rules) resolving to this interpreter."""
+def run_snakemake(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
+    """Run the venv's snakemake in ``cwd`` with `python` (used by the rules) resolving to this interpreter."""
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     result = subprocess.run(
         [str(SNAKEMAKE), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=120
@@ -54,68 +62,150 @@ def job_counts(output: str) -> dict[str, int]:
     return counts
 
 
-def dry_run(*args: str, cwd: Path = REPO_ROOT) -> dict[str, int]:
+def dry_run(*args: str, cwd: Path) -> dict[str, int]:
     result = run_snakemake("-n", *args, cwd=cwd)
     return job_counts(result.stdout + result.stderr)
 
 
-def expected_counts(config_path: Path) -> dict[str, int]:
-    cfg = load_config(config_path)
-    chunks = sum(chunk_count(cfg, scene) for scene in scene_ids(cfg))
-    return {"generate_scene": len(scene_ids(cfg)), "render_noisy": chunks, "render_reference": chunks}
+def copy_workflow(destination: Path) -> Path:
+    """Copy Snakefile, workflow/ and config/ to ``destination``; the rules' CLIs stay the installed ones."""
+    for name in WORKFLOW_FILES:
+        source = REPO_ROOT / name
+        if source.is_dir():
+            shutil.copytree(source, destination / name)
+        else:
+            shutil.copy(source, destination / name)
+    return destination
 
 
-def test_lint_is_clean() -> None:
-    result = run_snakemake("--lint")
+@pytest.fixture(scope="module")
+def workflow_copy(tmp_path_factory) -> Path:
+    """A fresh copy of the workflow without results, for dry runs."""
+    return copy_workflow(tmp_path_factory.mktemp("workflow"))
+
+
+def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
+    """{rule: job count} of a --forceall dry run of ``target``, derived from the config.
+
+    Renders cover every scene; the evaluation only the test scenes, with one denoise and one evaluate
+    job per (test scene, runnable (method, spp) pair) and one robustness job per (test scene, runnable
+    method at evaluation.robustness.spp). Which pairs are runnable (those needing no more sample layers
+    than were rendered) is decided by the workflow's own planning, denoisers.evaluate.plan_runs.
+    """
+    scenes, test_scenes = scene_ids(cfg), evaluated_scene_ids(cfg)
+    evaluated = len(test_scenes) * sum(run.runnable for run in plan_runs(cfg))
+    robustness = len(test_scenes) * sum(run.runnable for run in robustness_runs(cfg))
+
+    def renders(ids: list[str], kinds: tuple[str, ...] = ("noisy", "reference")) -> dict[str, int]:
+        chunks = sum(chunk_count(cfg, scene) for scene in ids)
+        return {"generate_scene": len(ids), **{f"render_{kind}": chunks for kind in kinds}}
+
+    evaluation = {"denoise_clip": evaluated, "evaluate_clip": evaluated, "robustness_clip": robustness}
+    jobs = {
+        "scenes": {"generate_scene": len(scenes)},
+        "renders": renders(scenes),
+        "denoise": {**renders(test_scenes, ("noisy",)), "denoise_clip": evaluated},
+        "evaluate": {**renders(test_scenes), **evaluation},
+        "report": {**renders(test_scenes), **evaluation, "build_report": 1},
+        "all": {**renders(scenes), **evaluation, "build_report": 1},
+    }[target]
+    return {rule: count for rule, count in {**jobs, target: 1}.items() if count}
+
+
+def test_lint_is_clean(workflow_copy: Path) -> None:
+    result = run_snakemake("--lint", cwd=workflow_copy)
     assert "Lints for" not in result.stdout + result.stderr
 
 
-def test_smoke_dry_run_has_the_expected_jobs() -> None:
-    # --forceall: list every job even if an earlier real run already produced some outputs.
-    counts = dry_run("--forceall", "--configfile", "config/smoke.yaml")
-    assert counts == {"generate_scene": 2, "render_noisy": 4, "render_reference": 4, "all": 1}
-    assert {rule: counts[rule] for rule in JOB_RULES} == expected_counts(REPO_ROOT / "config/smoke.yaml")
+def test_smoke_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
+    # --forceall: list every job even if outputs exist.
+    counts = dry_run("--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
+    assert counts == expected_jobs(load_config(workflow_copy / "config/smoke.yaml"))
+    assert set(counts) == {*JOB_RULES, "all"}
 
 
-def test_default_dry_run_has_the_expected_jobs() -> None:
-    counts = dry_run("--forceall")
-    assert counts == {"generate_scene": 12, "render_noisy": 24, "render_reference": 24, "all": 1}
-    assert {rule: counts[rule] for rule in JOB_RULES} == expected_counts(REPO_ROOT / "config/config.yaml")
+def test_default_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
+    counts = dry_run("--forceall", cwd=workflow_copy)
+    assert counts == expected_jobs(load_config(workflow_copy / "config/config.yaml"))
+    assert set(counts) == {*JOB_RULES, "all"}
 
 
-def test_stage_targets_select_their_jobs() -> None:
-    counts = dry_run("scenes", "--forceall", "--configfile", "config/smoke.yaml")
-    assert counts == {"generate_scene": 2, "scenes": 1}
-    counts = dry_run("renders", "--forceall", "--configfile", "config/smoke.yaml")
-    assert counts == {"generate_scene": 2, "render_noisy": 4, "render_reference": 4, "renders": 1}
+def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_copy: Path) -> None:
+    cfg = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
+    cfg["scenes"]["n_test"] = 2
+    cfg["render"].update(spp=4, extra_radiance_spp=0)
+    cfg["evaluation"].update(spp=[1, 2, 4], methods=[
+        {"id": "noisy", "method": "noisy"},
+        {"id": "path_x2", "method": "path_tracing", "params": {"factor": 2}},
+        {"id": "path_x4", "method": "path_tracing", "params": {"factor": 4}},
+    ])
+    cfg["evaluation"]["robustness"].update(enabled=True, spp=2)
+    (workflow_copy / "layers.yaml").write_text(yaml.safe_dump(cfg))
+    counts = dry_run("--forceall", "--configfile", "layers.yaml", cwd=workflow_copy)
+    # Hand count with 4 rendered layers: noisy runs at 1, 2, 4 spp; path_x2 needs 2, 4, 8 layers (runs
+    # at 1, 2); path_x4 needs 4, 8, 16 (runs at 1): 6 pairs x 2 test scenes. Robustness at 2 spp:
+    # noisy and path_x2 (4 layers), not path_x4 (8 layers): 2 x 2 test scenes.
+    assert {rule: counts.get(rule) for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
+        "denoise_clip": 12, "evaluate_clip": 12, "robustness_clip": 4}
+    assert counts == expected_jobs(load_config(workflow_copy / "layers.yaml"))
 
 
-def test_dry_run_passes_the_resolved_config_to_the_cli() -> None:
-    result = run_snakemake("-n", "-p", "--forceall", "--configfile", "config/smoke.yaml")
-    commands = [line for line in result.stdout.splitlines() if "python -m scenegen" in line]
-    assert len(commands) == 10
-    config_files = {re.search(r"--config (\S+)", command).group(1) for command in commands}
+@pytest.mark.parametrize("target", STAGE_TARGETS)
+def test_stage_targets_select_their_jobs(workflow_copy: Path, target: str) -> None:
+    counts = dry_run(target, "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
+    assert counts == expected_jobs(load_config(workflow_copy / "config/smoke.yaml"), target)
+
+
+def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> None:
+    result = run_snakemake("-n", "-p", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
+    cfg = load_config(workflow_copy / "config/smoke.yaml")
+    jobs = expected_jobs(cfg)
+    lines = result.stdout.splitlines()
+    scenegen = [line for line in lines if "python -m scenegen" in line]
+    denoisers = [line for line in lines if "python -m denoisers" in line]
+    assert len(scenegen) == jobs["generate_scene"] + jobs["render_noisy"] + jobs["render_reference"]
+    assert len(denoisers) == sum(jobs[rule] for rule in JOB_RULES[3:])
+    config_files = {re.search(r"--config (\S+)", command).group(1) for command in scenegen + denoisers}
     assert len(config_files) == 1
-    resolved = load_config(REPO_ROOT / config_files.pop())
+    resolved = load_config(workflow_copy / config_files.pop())
     assert resolved["render"]["width"] == 48 and resolved["scenes"]["n_train"] == 1
-    assert any("render-noisy" in command and "--chunk 1 " in command for command in commands)
+    assert resolved["evaluation"] == cfg["evaluation"]
+    assert any("render-noisy" in command and "--chunk 1 " in command for command in scenegen)
+
+    denoise = [line for line in denoisers if "python -m denoisers denoise " in line]
+    planned = {(run.spec.id, run.spp) for run in plan_runs(cfg) if run.runnable}
+    ran = {(re.search(r"--method-id (\S+)", c).group(1), int(re.search(r"--spp (\d+)", c).group(1))) for c in denoise}
+    assert ran == planned
+    assert all(f"--threads {cfg['evaluation']['threads']} " in command for command in denoise)
+    assert all(re.search(r"--scene test_\d{3} ", command) for command in denoise), "a training scene is evaluated"
 
 
-def test_invalid_config_fails_the_dry_run_naming_the_key(tmp_path: Path) -> None:
+def test_invalid_config_fails_the_dry_run_naming_the_key(workflow_copy: Path, tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
     cfg["render"]["varient"] = cfg["render"].pop("variant")
     cfg["scenes"]["camera_paths"] = ["orbit", "crane"]
     bad_config = tmp_path / "bad.yaml"
     bad_config.write_text(yaml.safe_dump(cfg))
-    result = run_snakemake("-n", "--configfile", str(bad_config), check=False)
+    result = run_snakemake("-n", "--configfile", str(bad_config), cwd=workflow_copy, check=False)
     output = result.stdout + result.stderr
     assert result.returncode != 0
     assert "render.varient" in output and "did you mean 'variant'" in output
     assert "scenes.camera_paths[1]" in output and "dolly, orbit, pan, spline" in output
 
 
-STUB_CLI = '''\
-"""Stand-in for the real CLI: validates the resolved config and creates the output directory."""
+def test_evaluated_spp_above_the_rendered_layers_fails_the_dry_run(workflow_copy: Path, tmp_path: Path) -> None:
+    cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
+    cfg["evaluation"]["spp"] = [1, 2, 8]  # smoke renders 4 layers
+    bad_config = tmp_path / "bad_spp.yaml"
+    bad_config.write_text(yaml.safe_dump(cfg))
+    result = run_snakemake("-n", "--configfile", str(bad_config), cwd=workflow_copy, check=False)
+    output = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert "evaluation.spp" in output and "[8]" in output
+
+
+STUB_CLI = """\
+\"\"\"Stand-in for the real CLI: validates the resolved config and creates the output directory.\"\"\"
 import argparse
 import pathlib
 
@@ -126,29 +216,29 @@ parser.add_argument("command", choices=["generate", "render-noisy", "render-refe
 for option in ("--config", "--scene", "--scene-dir", "--out"):
     parser.add_argument(option)
 parser.add_argument("--chunk", type=int)
+parser.add_argument("--threads", type=int)
 args = parser.parse_args()
 load_config(args.config)
 out = pathlib.Path(args.out)
 out.mkdir(parents=True)
 (out / "stub.txt").write_text(f"{args.command} {args.scene} {args.chunk}\\n")
-'''
+"""
+# The stub package shadows the real `scenegen` in the workflow copy (Snakemake and `python -m` put the
+# working directory first on sys.path): its __main__ replaces the CLI, every other module (the
+# Snakefile imports scenegen.config and, through denoisers, scenegen.atomic) comes from the real package.
+STUB_INIT = f"__path__.append({str(REPO_ROOT / 'scenegen')!r})\n"
 
 
 @pytest.fixture
 def stub_workflow(tmp_path: Path) -> Path:
-    """A copy of the workflow whose `python -m scenegen` is a fast stub, run once on the smoke config."""
-    for name in ("Snakefile", "workflow", "config"):
-        source = REPO_ROOT / name
-        if source.is_dir():
-            shutil.copytree(source, tmp_path / name)
-        else:
-            shutil.copy(source, tmp_path / name)
+    """A copy of the workflow whose `python -m scenegen` is a fast stub, with the `renders` target of the
+    smoke config run once (a stub render cannot be denoised, so the evaluation stage is left out)."""
+    copy_workflow(tmp_path)
     package = tmp_path / "scenegen"
     package.mkdir()
-    (package / "__init__.py").write_text("")
-    shutil.copy(REPO_ROOT / "scenegen" / "config.py", package / "config.py")
+    (package / "__init__.py").write_text(STUB_INIT)
     (package / "__main__.py").write_text(STUB_CLI)
-    run_snakemake("--cores", "2", "--configfile", "config/smoke.yaml", cwd=tmp_path)
+    run_snakemake("renders", "--cores", "2", "--configfile", "config/smoke.yaml", cwd=tmp_path)
     return tmp_path
 
 
@@ -163,19 +253,19 @@ def smoke_variant(workdir: Path, section: str, key: str, value: object) -> str:
 def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> None:
     work = stub_workflow
     assert (work / "results/renders/test_000/reference/chunk_001/stub.txt").is_file()
-    assert dry_run("--configfile", "config/smoke.yaml", cwd=work) == {}
+    assert dry_run("renders", "--configfile", "config/smoke.yaml", cwd=work) == {}
 
-    noisy_only = dry_run("--configfile", smoke_variant(work, "render", "spp", 2), cwd=work)
-    assert noisy_only == {"render_noisy": 4, "all": 1}
+    noisy_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "spp", 2), cwd=work)
+    assert noisy_only == {"render_noisy": 4, "renders": 1}
 
-    reference_only = dry_run("--configfile", smoke_variant(work, "render", "reference_spp", 32), cwd=work)
-    assert reference_only == {"render_reference": 4, "all": 1}
+    reference_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "reference_spp", 32), cwd=work)
+    assert reference_only == {"render_reference": 4, "renders": 1}
 
-    one_more_scene = dry_run("--configfile", smoke_variant(work, "scenes", "n_train", 2), cwd=work)
-    assert one_more_scene == {"generate_scene": 1, "render_noisy": 2, "render_reference": 2, "all": 1}
+    one_more_scene = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "n_train", 2), cwd=work)
+    assert one_more_scene == {"generate_scene": 1, "render_noisy": 2, "render_reference": 2, "renders": 1}
 
-    everything = dry_run("--configfile", smoke_variant(work, "scenes", "objects", [3, 7]), cwd=work)
-    assert everything == {"generate_scene": 2, "render_noisy": 4, "render_reference": 4, "all": 1}
+    everything = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "objects", [3, 7]), cwd=work)
+    assert everything == {"generate_scene": 2, "render_noisy": 4, "render_reference": 4, "renders": 1}
 
 
 def rule_names() -> set[str]:
@@ -192,6 +282,9 @@ def test_slurm_profile_sets_resources_for_every_rule() -> None:
     assert set(profile["set-resources"]) == rule_names() == set(JOB_RULES)
     for rule, resources in profile["set-resources"].items():
         assert {"mem_mb", "runtime", "cpus_per_task"} <= set(resources), rule
+    # A job never gets more threads than the CPUs SLURM allocates to it.
+    for rule, threads in profile.get("set-threads", {}).items():
+        assert rule in rule_names() and threads <= profile["set-resources"][rule]["cpus_per_task"], rule
 
 
 def test_local_profile_runs_on_two_cores() -> None:

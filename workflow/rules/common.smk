@@ -17,7 +17,7 @@ from scenegen.config import (
     scene_ids,
 )
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
-from denoisers.evaluate import evaluation_problems, method_spec, robustness_dir, test_scene_ids
+from denoisers.evaluate import evaluation_problems, method_spec, robustness_dir, evaluated_scene_ids
 from denoisers.report import report_outputs
 
 
@@ -154,7 +154,7 @@ def render_digest(kind: str):
 # it as "not run" with the reason. Planning builds every configured method (importing torch), so
 # it happens on first use, i.e. only when an evaluation target is part of the DAG.
 # ---------------------------------------------------------------------------------------------
-TEST_SCENES = test_scene_ids(config)
+TEST_SCENES = evaluated_scene_ids(config)
 REPORT_OUTPUTS = report_outputs(config)
 _planned_runs = {}
 
