@@ -343,6 +343,14 @@ def _frames(clip, method, layers: int) -> list:
     return list(clip_frames(clip, method.info, layers))
 
 
+def _reference_render_rates(render_dir: Path) -> list[float]:
+    """samples/s of every reference frame of a clip, from the sidecar JSONs."""
+    from scenegen.dataset import find_frames
+
+    sidecars = [path.with_suffix(".json") for path in find_frames(render_dir / "reference").values()]
+    return [json.loads(p.read_text())["samples_per_s"] for p in sidecars if p.is_file()]
+
+
 def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Path, out_dir: Path,
                  threads: int = 1) -> dict[str, Any]:
     """Run one configured method on one clip at ``spp`` and write ``out_dir`` atomically:
@@ -353,7 +361,9 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
     frames = _frames(clip, method, layers)
     result = run_method(method, frames, threads)
     height, width = result.radiance.shape[-2:]
-    render_rates = [m["samples_per_s"] for m in clip.meta if "samples_per_s" in m]
+    # Steady-state cost of one path sample with every feature buffer: the reference renders' rate
+    # (large batches); the noisy frames' rate also carries per-frame scene loading.
+    render_rates = _reference_render_rates(Path(render_dir))
     record = {
         "method_id": spec.id, "method": spec.method, "params": spec.params, "scene": scene, "spp": spp,
         "samples_factor": method.samples_factor, "sample_layers": layers, "threads": int(threads),

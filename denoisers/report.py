@@ -890,7 +890,7 @@ def _report_markdown(res: Results, outputs: dict[str, str], summary_md: str, cla
         "## Equal-time view",
         "",
         "Plain path tracing gets the samples it could render in the time of denoising (renderer speed "
-        "measured during the noisy renders, all feature buffers included); the nearest rendered row is compared.",
+        "measured during the reference renders: large batches, all feature buffers included); the nearest rendered row is compared.",
         "",
         equal_time_md,
         "",
