@@ -348,7 +348,8 @@ def _reference_render_rates(render_dir: Path) -> list[float]:
     from scenegen.dataset import find_frames
 
     sidecars = [path.with_suffix(".json") for path in find_frames(render_dir / "reference").values()]
-    return [json.loads(p.read_text())["samples_per_s"] for p in sidecars if p.is_file()]
+    rates = [json.loads(p.read_text()).get("samples_per_s") for p in sidecars if p.is_file()]
+    return [float(rate) for rate in rates if rate]
 
 
 def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Path, out_dir: Path,
