@@ -66,7 +66,7 @@ def write_synthetic_scene(render_dir: Path, *, scene: str = "test_000", frames: 
         channels.update(pixel)
         cut = camera_cut is not None and t == camera_cut
         meta = {"scene": scene, "frame": t, "width": width, "height": height, "spp": layers, "extra_radiance_spp": 0,
-                "camera_cut": cut, "samples_per_s": 2.0e6, "nonfinite_total": 0}
+                "camera_cut": cut, "nonfinite_total": 0}
         write_frame(noisy_dir / f"frame_{t:04d}.exr", channels, meta, half=half | pixel_half)
         ref_h, ref_w = reference_size or (height, width)
         ref = synthetic_reference(ref_h, ref_w)
@@ -74,7 +74,8 @@ def write_synthetic_scene(render_dir: Path, *, scene: str = "test_000", frames: 
                        "specular": np.zeros_like(ref), "albedo": np.full_like(ref, 0.5),
                        "normal": np.zeros_like(ref), "depth": np.ones((1, ref_h, ref_w), np.float32)}
         write_frame(reference_dir / f"frame_{t:04d}.exr", reference_channels(ref_buffers),
-                    {"scene": scene, "frame": t, "spp": 64, "psnr_halves": 40.0 + t, "camera_cut": cut}, half=set())
+                    {"scene": scene, "frame": t, "spp": 64, "psnr_halves": 40.0 + t, "camera_cut": cut,
+                     "samples_per_s": 2.0e6}, half=set())
     return reference
 
 
