@@ -1,0 +1,88 @@
+"""The recurrent denoising autoencoder (Chaitanya et al. 2017) as an evaluation method: a trained network
+(``denoisers.nets.rae``) streamed frame by frame with its recurrent state carried between frames."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from denoisers.filters import check_sizes
+from denoisers.nets.rae import INPUT_BUFFERS, RecurrentAutoencoder, State, decode_color, prepare_inputs, world_to_view
+from denoisers.registry import Denoiser, Frame, register
+
+
+@register("rae", inputs=INPUT_BUFFERS, trainable=True, temporal=True,
+          description="recurrent denoising autoencoder (Chaitanya et al. 2017), trained")
+class RecurrentAutoencoderDenoiser(Denoiser):
+    """A trained RAE applied to a stream of frames.
+
+    Parameters:
+
+    - ``checkpoint`` (required): path of a model or training checkpoint written by
+      ``denoisers.training.loop`` (``best.pt``); the architecture and input encoding are read from it.
+      The file is read at the first frame, so building the method (e.g. to plan an evaluation before
+      the model is trained) only checks that a path is given.
+    - ``reset_state_every_frame`` (False): start every frame from a zero recurrent state (the C1.5
+      ablation: the same weights without temporal memory).
+
+    Per frame: per-pixel means over the frame's samples of radiance, albedo, normal, depth and
+    roughness; normals are rotated into view space with the frame's camera (``frame.meta['camera']
+    ['to_world']``, written by the renderer into every frame's sidecar); colour is divided by
+    max(albedo, floor) and raised to the power 0.2; the network output is raised to the power 5 and
+    multiplied by the same divisor. The state is also dropped at a camera cut (training sequences never
+    cross one).
+    """
+
+    def __init__(self, checkpoint: str | None = None, reset_state_every_frame: bool = False) -> None:
+        super().__init__()
+        if not checkpoint:
+            raise ValueError("method 'rae' needs params.checkpoint: the path of a trained RAE model "
+                             "(best.pt written by the trainer); no checkpoint was given")
+        self.checkpoint = Path(checkpoint)
+        self.reset_state_every_frame = bool(reset_state_every_frame)
+        self._model: RecurrentAutoencoder | None = None
+        self._state: State | None = None
+
+    @classmethod
+    def from_model(cls, model: RecurrentAutoencoder, reset_state_every_frame: bool = False
+                   ) -> "RecurrentAutoencoderDenoiser":
+        """The method around an in-memory network (tests, benchmarks) instead of a checkpoint file."""
+        method = cls.__new__(cls)
+        Denoiser.__init__(method)
+        method.checkpoint = None
+        method.reset_state_every_frame = bool(reset_state_every_frame)
+        method._model = model.eval()
+        method._state = None
+        return method
+
+    @property
+    def model(self) -> RecurrentAutoencoder:
+        if self._model is None:
+            from denoisers.training.loop import load_model
+
+            model = load_model(self.checkpoint)
+            if not isinstance(model, RecurrentAutoencoder):
+                raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not an RAE")
+            self._model = model
+        return self._model
+
+    def reset(self) -> None:
+        self._state = None
+
+    def denoise(self, frame: Frame) -> torch.Tensor:
+        check_sizes(self.info.name, frame.samples)
+        camera = frame.meta.get("camera") or {}
+        if "to_world" not in camera:
+            raise ValueError(f"method 'rae' needs the camera (frame.meta['camera']['to_world']) to express "
+                             f"normals in view space; frame {frame.index} has none")
+        model = self.model
+        if self.reset_state_every_frame or frame.camera_cut:
+            self._state = None
+        means = {buffer: frame.mean(buffer) for buffer in INPUT_BUFFERS}
+        x, divisor = prepare_inputs(model.config, means["radiance"], means["albedo"], means["normal"],
+                                    means["depth"], means["roughness"], world_to_view(camera["to_world"]))
+        with torch.inference_mode():
+            out, state = model.step(x[None], self._state)
+        self._state = state
+        return torch.nan_to_num(decode_color(out[0], divisor, model.config.exponent), nan=0.0, posinf=0.0,
+                                neginf=0.0)

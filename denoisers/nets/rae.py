@@ -1,0 +1,400 @@
+"""The recurrent denoising autoencoder (RAE) of Chaitanya et al. 2017, its inputs and its training task.
+
+Architecture (§4.1-4.2, Fig. 2, and the highlighted "AE" column of Fig. 4a), all convolutions 3 x 3 with
+"same" padding, leaky ReLU (slope 0.1) after every convolution except the linear output layer (§5.3):
+
+* encoder stage k = 0 .. L-1 (L = ``levels`` = 5) at resolution 1/2^k: convolution(s) to F_k features
+  (two at stage 0: Fig. 4's "conv-32,32"), a recurrent block of F_k features, 2 x 2 max pooling.
+  F_k = round(32 (4/3)^k) = 32, 43, 57, 76, 101 ("32 features in the first stage, multiplied by 4/3
+  after every subsampling", §5.1).
+* bottleneck at 1/2^L: one convolution to F_{L-1} (= 101, Fig. 4: the count does not grow here) and a
+  recurrent block; L + 1 = 6 recurrent blocks in total.
+* decoder stage at resolution 1/2^k, k = L-1 .. 0: 2 x 2 nearest-neighbour upsampling, concatenation
+  with the encoder's recurrent-block output at that resolution (the skip connection), two
+  convolutions to F_{k-1} features (76, 57, 43, 32), and at full resolution to 128 and 64 features
+  (Fig. 4's "conv-128,64").
+* output: one linear convolution to 3 channels.
+
+That is 7 encoder + 10 decoder + 1 output convolutions and 3 in each of the 6 recurrent blocks, the 36
+layers counted in §5.1. A recurrent block (§4.2) computes h_i = O_i = C(C(C(I_i) ^ h_{i-1})): a
+convolution of the stage's input, concatenation with the previous hidden state, two more
+convolutions; the result is both the block's output and the new hidden state (zeros at the start).
+
+Inputs (§3.2): noisy radiance demodulated by the albedo (3), view-space shading normal x, y (2), depth
+(1), roughness (1) = 7 channels. Colour is raised to the power 0.2 before it enters the network and
+the training target likewise (§4.4, "raises both the input and target images into power 0.2 as a
+preprocess"); the network's output is in that space, so the final image is
+max(output, 0)^(1/0.2), re-modulated by the albedo.
+
+Parameter count: the architecture above has 1,951,935 parameters at full size; §5.2 states 3.2 million.
+No reading of Fig. 4 that keeps the 36 layers of §5.1 gives 3.2 million (Fig. 4's "AE large" column
+with six pooling stages gives 3,429,947), so the figure's layer list is followed.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from denoisers.filters import sanitize
+from denoisers.losses import RAE_LOSS_WEIGHTS, rae_loss
+
+#: §5.2: "Our network has a total of 3.2 million trainable parameters".
+PAPER_PARAMETER_COUNT = 3_200_000
+#: Auxiliary features the network can take, in channel order, with their channel counts.
+AUX_FEATURES: dict[str, int] = {"normal": 2, "depth": 1, "roughness": 1}
+#: Mitsuba's camera frame has +x to the image's left and +z forward; view space here is x right, y up,
+#: z towards the viewer (OpenGL convention): view = diag(-1, 1, -1) @ camera.
+MITSUBA_CAMERA_TO_VIEW = np.diag([-1.0, 1.0, -1.0])
+
+State = list[torch.Tensor]
+
+
+@dataclass(frozen=True)
+class RAEConfig:
+    """Architecture and input encoding of an RAE (defaults: the paper's network).
+
+    width: multiplies every hidden feature count (1 = the paper's; < 1 for CPU budgets);
+    levels: pooling stages (5 in the paper; 4 and 6 are Fig. 4's "AE small" and "AE large");
+    demodulate: divide colour by max(albedo, albedo_floor) and multiply the output back (§3.2);
+    features: auxiliary inputs, a subset of normal / depth / roughness (Fig. 3's ablation);
+    exponent: the power applied to colour inputs and targets (0.2, §4.4).
+    """
+
+    width: float = 1.0
+    levels: int = 5
+    base_features: int = 32
+    growth: float = 4.0 / 3.0
+    final_features: tuple[int, int] = (128, 64)
+    negative_slope: float = 0.1
+    demodulate: bool = True
+    features: tuple[str, ...] = ("normal", "depth", "roughness")
+    exponent: float = 0.2
+    albedo_floor: float = 0.01
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "features", tuple(self.features))
+        object.__setattr__(self, "final_features", tuple(int(f) for f in self.final_features))
+        unknown = [f for f in self.features if f not in AUX_FEATURES]
+        if unknown or len(set(self.features)) != len(self.features):
+            raise ValueError(f"rae: features must be distinct names among {list(AUX_FEATURES)}, got {list(self.features)}")
+        if not self.width > 0 or self.levels < 1 or not 0 < self.exponent <= 1 or not self.albedo_floor > 0:
+            raise ValueError(f"rae: need width > 0, levels >= 1, 0 < exponent <= 1, albedo_floor > 0; got {self}")
+        if len(self.final_features) != 2:
+            raise ValueError(f"rae: final_features needs two counts, got {self.final_features}")
+
+    @property
+    def in_channels(self) -> int:
+        return 3 + sum(AUX_FEATURES[f] for f in self.features)
+
+    def scaled(self, count: float) -> int:
+        return max(1, int(round(count * self.width)))
+
+    @property
+    def encoder_features(self) -> list[int]:
+        """F_k of encoder stages k = 0 .. levels-1."""
+        return [self.scaled(self.base_features * self.growth**k) for k in range(self.levels)]
+
+    @property
+    def decoder_features(self) -> list[tuple[int, int]]:
+        """(first, second) convolution outputs of decoder stages at resolutions 1/2^k, k = levels-1 .. 0."""
+        enc = self.encoder_features
+        stages = [(enc[k - 1], enc[k - 1]) for k in range(self.levels - 1, 0, -1)]
+        return stages + [(self.scaled(self.final_features[0]), self.scaled(self.final_features[1]))]
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["features"] = list(self.features)
+        data["final_features"] = list(self.final_features)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "RAEConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise TypeError(f"rae: unknown configuration keys {sorted(unknown)}; known: {sorted(known)}")
+        return cls(**dict(data))
+
+
+def _conv(in_channels: int, out_channels: int) -> nn.Conv2d:
+    return nn.Conv2d(in_channels, out_channels, kernel_size=3, padding=1)
+
+
+class RecurrentBlock(nn.Module):
+    """h_i = C(C(C(x_i) ^ h_{i-1})) with leaky ReLU after each convolution (§4.2). (N, C, H, W) -> (N, C, H, W)."""
+
+    def __init__(self, channels: int, negative_slope: float) -> None:
+        super().__init__()
+        self.channels = channels
+        self.negative_slope = negative_slope
+        self.input_conv = _conv(channels, channels)
+        self.mix_conv = _conv(2 * channels, channels)
+        self.output_conv = _conv(channels, channels)
+
+    def forward(self, x: torch.Tensor, hidden: torch.Tensor | None) -> torch.Tensor:
+        act = lambda t: F.leaky_relu(t, self.negative_slope)  # noqa: E731
+        if hidden is None:
+            hidden = x.new_zeros(x.shape[0], self.channels, *x.shape[-2:])
+        y = act(self.input_conv(x))
+        y = act(self.mix_conv(torch.cat([y, hidden], dim=1)))
+        return act(self.output_conv(y))
+
+
+class RecurrentAutoencoder(nn.Module):
+    """The RAE network on prepared inputs: (N, in_channels, H, W) -> (N, 3, H, W) in the 0.2-power space.
+
+    ``step`` processes one frame with the recurrent state of the previous one; ``forward`` runs a
+    sequence (N, T, C, H, W), carrying the state (back-propagation through time when training).
+    Frames of any size work: they are padded (edge replication) to a multiple of 2^levels and the
+    output is cropped back. The state is a list of ``levels + 1`` hidden tensors, or None (zeros).
+    """
+
+    NET_NAME = "rae"
+    Config = RAEConfig
+
+    def __init__(self, config: RAEConfig | None = None) -> None:
+        super().__init__()
+        self.config = config = config or RAEConfig()
+        enc = config.encoder_features
+        self.encoder_convs = nn.ModuleList()
+        self.encoder_blocks = nn.ModuleList()
+        previous = config.in_channels
+        for k, features in enumerate(enc):
+            convs = [_conv(previous, features)] + ([_conv(features, features)] if k == 0 else [])
+            self.encoder_convs.append(nn.ModuleList(convs))
+            self.encoder_blocks.append(RecurrentBlock(features, config.negative_slope))
+            previous = features
+        self.bottleneck_conv = _conv(previous, enc[-1])
+        self.bottleneck_block = RecurrentBlock(enc[-1], config.negative_slope)
+        previous = enc[-1]
+        self.decoder_convs = nn.ModuleList()
+        for skip, (first, second) in zip(reversed(enc), config.decoder_features):
+            self.decoder_convs.append(nn.ModuleList([_conv(previous + skip, first), _conv(first, second)]))
+            previous = second
+        self.output_conv = _conv(previous, 3)
+        self._initialise()
+
+    def _initialise(self) -> None:
+        """He et al. 2015 initialisation (§5.3): normal, fan-in, gain of leaky ReLU 0.1; the linear
+        output layer gets gain 1; biases 0."""
+        for module in self.modules():
+            if isinstance(module, nn.Conv2d):
+                if module is self.output_conv:
+                    nn.init.kaiming_normal_(module.weight, nonlinearity="linear")
+                else:
+                    nn.init.kaiming_normal_(module.weight, a=self.config.negative_slope, nonlinearity="leaky_relu")
+                nn.init.zeros_(module.bias)
+
+    @property
+    def multiple(self) -> int:
+        """Frame sizes are padded to a multiple of this."""
+        return 2**self.config.levels
+
+    def _act(self, x: torch.Tensor) -> torch.Tensor:
+        return F.leaky_relu(x, self.config.negative_slope)
+
+    def step(self, x: torch.Tensor, state: State | None = None) -> tuple[torch.Tensor, State]:
+        """One frame: x (N, in_channels, H, W), state of the previous frame -> (output (N, 3, H, W), new state)."""
+        if x.dim() != 4 or x.shape[1] != self.config.in_channels:
+            raise ValueError(f"rae: expected input (N, {self.config.in_channels}, H, W), got {tuple(x.shape)}")
+        height, width = x.shape[-2:]
+        m = self.multiple
+        pad_h, pad_w = (-height) % m, (-width) % m
+        if pad_h or pad_w:
+            x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
+        n_blocks = self.config.levels + 1
+        if state is not None and len(state) != n_blocks:
+            raise ValueError(f"rae: state has {len(state)} tensors, expected {n_blocks}")
+        hidden = list(state) if state is not None else [None] * n_blocks
+        new_state: State = []
+        skips = []
+        for k, (convs, block) in enumerate(zip(self.encoder_convs, self.encoder_blocks)):
+            for conv in convs:
+                x = self._act(conv(x))
+            x = block(x, hidden[k])
+            new_state.append(x)
+            skips.append(x)
+            x = F.max_pool2d(x, 2)
+        x = self.bottleneck_block(self._act(self.bottleneck_conv(x)), hidden[-1])
+        new_state.append(x)
+        for (first, second), skip in zip(self.decoder_convs, reversed(skips)):
+            x = F.interpolate(x, scale_factor=2, mode="nearest")
+            x = self._act(first(torch.cat([x, skip], dim=1)))
+            x = self._act(second(x))
+        out = self.output_conv(x)
+        return out[..., :height, :width], new_state
+
+    def forward(self, x: torch.Tensor, state: State | None = None,
+                reset_every_frame: bool = False) -> tuple[torch.Tensor, State | None]:
+        """A sequence x (N, T, in_channels, H, W) -> (outputs (N, T, 3, H, W), state after the last frame).
+
+        ``reset_every_frame`` starts every frame from a zero state (the recurrent connections unused).
+        """
+        if x.dim() != 5:
+            raise ValueError(f"rae: expected a sequence (N, T, C, H, W), got {tuple(x.shape)}")
+        outputs = []
+        for t in range(x.shape[1]):
+            out, state = self.step(x[:, t], None if reset_every_frame else state)
+            outputs.append(out)
+        return torch.stack(outputs, dim=1), state
+
+
+# ------------------------------------------------------------------------------------------ inputs
+def world_to_view(to_world: Any) -> torch.Tensor:
+    """(3, 3) rotation from world space to view space (x right, y up, z towards the viewer) of a
+    Mitsuba camera-to-world matrix ``to_world`` (4 x 4 or 3 x 3, nested lists or array)."""
+    rotation = np.asarray(to_world, dtype=np.float64)[:3, :3]
+    return torch.from_numpy(MITSUBA_CAMERA_TO_VIEW @ rotation.T).float()
+
+
+def encode_color(linear: torch.Tensor, divisor: torch.Tensor, exponent: float) -> torch.Tensor:
+    """(linear / divisor)^exponent with non-finite values -> 0 and negatives clamped to 0."""
+    return (sanitize(linear) / divisor).clamp_min(0).pow(exponent)
+
+
+def decode_color(encoded: torch.Tensor, divisor: torch.Tensor, exponent: float) -> torch.Tensor:
+    """Inverse of :func:`encode_color`: max(encoded, 0)^(1/exponent) * divisor (linear HDR radiance)."""
+    return encoded.clamp_min(0).pow(1.0 / exponent) * divisor
+
+
+def prepare_inputs(config: RAEConfig, radiance: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
+                   depth: torch.Tensor, roughness: torch.Tensor,
+                   view_rotation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Network input and demodulation divisor from per-pixel means over the samples.
+
+    radiance, albedo, normal (world space): (..., 3, H, W); depth, roughness: (..., 1, H, W), metres
+    and linear alpha; view_rotation: (..., 3, 3) from :func:`world_to_view` (leading dims as the
+    images'). Returns x (..., in_channels, H, W) = [colour^0.2, normal_view x y, depth, roughness]
+    (the configured subset) and divisor (..., 3, H, W) = max(albedo, albedo_floor), or ones when
+    ``config.demodulate`` is off. Non-finite inputs become 0.
+    """
+    divisor = sanitize(albedo).clamp_min(config.albedo_floor) if config.demodulate else torch.ones_like(radiance)
+    channels = [encode_color(radiance, divisor, config.exponent)]
+    for feature in config.features:
+        if feature == "normal":
+            rotation = sanitize(view_rotation)[..., :2, :]
+            channels.append(torch.einsum("...ij,...jhw->...ihw", rotation, sanitize(normal)))
+        elif feature == "depth":
+            channels.append(sanitize(depth))
+        else:
+            channels.append(sanitize(roughness))
+    return torch.cat(channels, dim=-3), divisor
+
+
+# ----------------------------------------------------------------------------------- training task
+#: Per-sample buffers the RAE reads.
+INPUT_BUFFERS: tuple[str, ...] = ("radiance", "albedo", "normal", "depth", "roughness")
+
+
+@dataclass
+class RAETask:
+    """How the trainer (``denoisers.training.loop``) trains an RAE on ``denoisers.training.data`` batches.
+
+    A batch holds per-sample buffers (N, T, S, C, H, W) of :data:`INPUT_BUFFERS`, ``reference.radiance``
+    (N, T, 3, H, W) and ``world_to_view`` (N, T, 3, 3). The target is the reference demodulated by the
+    same divisor as the input (the frame's noisy mean albedo, since this renderer's albedo is per sample
+    rather than rasterised), raised to the power 0.2; the loss is :func:`denoisers.losses.rae_loss`.
+    """
+
+    config: RAEConfig = field(default_factory=RAEConfig)
+    loss_weights: dict[str, float] = field(default_factory=lambda: dict(RAE_LOSS_WEIGHTS))
+
+    name: str = "rae"
+
+    def build_model(self) -> RecurrentAutoencoder:
+        return RecurrentAutoencoder(self.config)
+
+    def net_spec(self) -> dict[str, Any]:
+        return {"name": RecurrentAutoencoder.NET_NAME, "config": self.config.to_dict()}
+
+    def describe(self) -> dict[str, Any]:
+        """Everything that changes what training computes (part of the checkpoint's fingerprint)."""
+        return {"task": self.name, "net": self.net_spec(), "loss_weights": dict(self.loss_weights)}
+
+    def inputs(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """(x (N, T, in_channels, H, W), divisor (N, T, 3, H, W)) of a batch."""
+        means = {b: batch[b].mean(dim=2) for b in INPUT_BUFFERS}
+        return prepare_inputs(self.config, means["radiance"], means["albedo"], means["normal"], means["depth"],
+                              means["roughness"], batch["world_to_view"])
+
+    def loss(self, model: nn.Module, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        x, divisor = self.inputs(batch)
+        target = encode_color(batch["reference.radiance"], divisor, self.config.exponent)
+        pred, _ = model(x)
+        total, terms = rae_loss(pred, target, self.loss_weights)
+        return total, {name: float(value) for name, value in terms.items()}
+
+    def predict(self, model: nn.Module, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """(N, T, 3, H, W) linear HDR radiance of the model on a batch (state carried through each sequence)."""
+        x, divisor = self.inputs(batch)
+        pred, _ = model(x)
+        return decode_color(pred, divisor, self.config.exponent)
+
+
+# ------------------------------------------------------------------------------------ descriptions
+def layer_table(config: RAEConfig | None = None) -> list[str]:
+    """One line per convolution: name, input -> output features, resolution divisor."""
+    config = config or RAEConfig()
+    lines = []
+    previous = config.in_channels
+    enc = config.encoder_features
+    for k, features in enumerate(enc):
+        for i in range(2 if k == 0 else 1):
+            lines.append(f"encoder {k} conv {i}: {previous} -> {features} @1/{2**k}")
+            previous = features
+        lines.append(f"encoder {k} recurrent block: 3 convs, {features} features (+{features} hidden) @1/{2**k}")
+    lines.append(f"bottleneck conv: {previous} -> {enc[-1]} @1/{2**config.levels}")
+    lines.append(f"bottleneck recurrent block: 3 convs, {enc[-1]} features @1/{2**config.levels}")
+    previous = enc[-1]
+    for k, (skip, (first, second)) in zip(range(config.levels - 1, -1, -1), zip(reversed(enc), config.decoder_features)):
+        lines.append(f"decoder {k} conv 0: {previous}+{skip} -> {first} @1/{2**k}")
+        lines.append(f"decoder {k} conv 1: {first} -> {second} @1/{2**k}")
+        previous = second
+    lines.append(f"output conv: {previous} -> 3 (linear) @1/1")
+    return lines
+
+
+def parameter_count(config: RAEConfig | None = None) -> int:
+    """Trainable parameters of an RAE with ``config`` (default: the paper's full-size network)."""
+    model = RecurrentAutoencoder(config or RAEConfig())
+    return sum(p.numel() for p in model.parameters())
+
+
+def parameter_report(width: float = 1.0) -> str:
+    """Full-size parameter count beside the paper's, plus the count at ``width`` if that differs."""
+    full = parameter_count(RAEConfig())
+    text = (f"RAE full size (Fig. 4 'AE': {RAEConfig().encoder_features} encoder features, 6 recurrent blocks, "
+            f"36 conv layers): {full:,} trainable parameters; paper (§5.2): {PAPER_PARAMETER_COUNT:,}")
+    if width != 1.0:
+        text += f"\nRAE at width {width:g}: {parameter_count(RAEConfig(width=width)):,} trainable parameters"
+    return text
+
+
+def conv_flops(config: RAEConfig, height: int, width: int) -> int:
+    """Floating-point operations (2 per multiply-add) of the convolutions for one frame of (height, width),
+    counted at the padded size the network runs at (pooling, upsampling and activations excluded)."""
+    model = RecurrentAutoencoder(config)
+    m = model.multiple
+    h, w = math.ceil(height / m) * m, math.ceil(width / m) * m
+    total = 0
+    for name, module in model.named_modules():
+        if isinstance(module, nn.Conv2d):
+            if name.startswith("encoder"):
+                level = int(name.split(".")[1])
+            elif name.startswith("bottleneck"):
+                level = config.levels
+            elif name.startswith("decoder"):
+                level = config.levels - 1 - int(name.split(".")[1])
+            else:
+                level = 0
+            pixels = (h >> level) * (w >> level)
+            total += 2 * pixels * module.in_channels * module.out_channels * 9
+    return total
+

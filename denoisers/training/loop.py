@@ -1,0 +1,586 @@
+"""A generic trainer for the learned denoisers: Adam, learning-rate schedules, step or time budgets, exact
+resume from checkpoints, validation with best-checkpoint selection, training curves and a progress bar.
+
+A method plugs in a *task* (see :class:`TrainingTask`; the RAE's is ``denoisers.nets.rae.RAETask``) and a
+data source with ``batch(index, batch_size)`` (``denoisers.training.data.SequenceDataset``). Files in
+the output directory:
+
+* ``checkpoint.pt`` -- everything needed to continue exactly: model, Adam state, schedule, step, elapsed
+  time, the torch / numpy / python RNG states, the data stream position (batch ``i`` is a pure function
+  of the data seed and ``i``, so the position is the step count), history and best-so-far. Written
+  atomically (temporary file, fsync, rename), every ``checkpoint_every`` steps, every
+  ``checkpoint_seconds`` and at the end. A new :class:`Trainer` on the same directory resumes from it,
+  and N uninterrupted steps give bit-identical weights to N/2 + kill + resume + N/2.
+* ``best.pt`` -- the model with the best validation metric so far (the last model without validation).
+* ``curves.csv`` / ``curves.png`` -- training loss (mean over each ``log_every`` steps) and validation
+  metrics per step; ``summary.json`` -- the outcome.
+
+Errors: a non-finite loss stops training with :class:`NonFiniteLossError` naming the step and the batch
+(its sequences); an unreadable, truncated or foreign checkpoint raises :class:`CheckpointError` naming
+the file, as does a checkpoint written for a different configuration.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import random
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from torch import nn
+
+from scenegen.atomic import write_text_atomic
+
+CHECKPOINT_FORMAT = "mcdenoise-checkpoint"
+CHECKPOINT_VERSION = 1
+CHECKPOINT_NAME = "checkpoint.pt"
+BEST_NAME = "best.pt"
+CURVES_CSV = "curves.csv"
+CURVES_PNG = "curves.png"
+SUMMARY_NAME = "summary.json"
+#: curves.png is redrawn at most this often during training (drawing takes ~0.3 s), and at the end.
+PLOT_INTERVAL_SECONDS = 60.0
+#: Validation metrics where larger is better (everything else is minimised).
+HIGHER_IS_BETTER: frozenset[str] = frozenset({"ssim", "psnr"})
+#: Trainer settings that do not change the weights after a given step (excluded from the fingerprint,
+#: so a run can be resumed with a longer budget or other logging).
+_NOT_FINGERPRINTED = frozenset({"max_steps", "max_seconds", "progress", "threads", "checkpoint_every",
+                                "checkpoint_seconds", "log_every"})
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint cannot be used; the message names the file and why."""
+
+
+class NonFiniteLossError(FloatingPointError):
+    """Training produced a NaN/Inf loss; ``step`` (0-based, = batch index) and ``batch`` name where."""
+
+    def __init__(self, message: str, step: int, batch: str) -> None:
+        super().__init__(message)
+        self.step, self.batch = step, batch
+
+
+class TrainingTask(Protocol):
+    """What the trainer needs from a method (see ``denoisers.nets.rae.RAETask``)."""
+
+    name: str
+
+    def build_model(self) -> nn.Module: ...                                   # fresh, initialised network
+    def net_spec(self) -> dict[str, Any]: ...                                 # {'name', 'config'} for nets.build_net
+    def describe(self) -> dict[str, Any]: ...                                 # everything that changes training
+    def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, float]]: ...
+
+
+class BatchSource(Protocol):
+    def batch(self, index: int, batch_size: int) -> Any: ...
+    def describe(self) -> dict[str, Any]: ...
+
+
+# ------------------------------------------------------------------------------------- schedules
+def lr_factor(schedule: Mapping[str, Any], step: int) -> float:
+    """Multiplier of the base learning rate for optimiser step ``step`` (0-based).
+
+    * ``{"name": "constant"}``
+    * ``{"name": "ramp_inv_sqrt", "ramp_steps": R, "ramp_factor": k}`` -- Chaitanya et al. 2017 §5.3:
+      "ramped up tenfold using a geometric progression during the first 10 training epochs, and then
+      decreased according to 1/sqrt(t)": k^(step/R - 1) for step < R (1/k -> 1), then sqrt(R / step).
+      The base rate is the peak (0.001 in the paper); R is in steps here (the paper: 10 of 500 epochs).
+    * ``{"name": "cosine", "warmup_steps": W, "total_steps": S, "min_factor": m}`` -- linear warm-up,
+      then cosine decay from 1 to m at step S (m afterwards).
+    * ``{"name": "step", "every": n, "gamma": g}`` -- g^(step // n).
+    """
+    name = schedule.get("name", "constant")
+    if name == "constant":
+        return 1.0
+    if name == "ramp_inv_sqrt":
+        ramp, factor = int(schedule.get("ramp_steps", 100)), float(schedule.get("ramp_factor", 10.0))
+        if ramp < 1 or factor < 1:
+            raise ValueError(f"ramp_inv_sqrt needs ramp_steps >= 1 and ramp_factor >= 1, got {dict(schedule)}")
+        return factor ** (step / ramp - 1.0) if step < ramp else math.sqrt(ramp / step)
+    if name == "cosine":
+        warmup, total = int(schedule.get("warmup_steps", 0)), int(schedule["total_steps"])
+        minimum = float(schedule.get("min_factor", 0.0))
+        if step < warmup:
+            return (step + 1) / warmup
+        progress = min(1.0, (step - warmup) / max(1, total - warmup))
+        return minimum + (1.0 - minimum) * 0.5 * (1.0 + math.cos(math.pi * progress))
+    if name == "step":
+        return float(schedule.get("gamma", 0.1)) ** (step // int(schedule["every"]))
+    raise ValueError(f"unknown learning-rate schedule {name!r}; known: constant, ramp_inv_sqrt, cosine, step")
+
+
+# ---------------------------------------------------------------------------------------- config
+@dataclass
+class TrainerConfig:
+    """Optimisation and bookkeeping settings (defaults: the RAE's Adam settings, §5.3).
+
+    At least one budget, ``max_steps`` or ``max_seconds`` (training wall time, summed over resumed
+    runs), must be set; training stops at whichever comes first. ``best_metric`` is a validation key
+    ('loss', 'ssim', 'psnr', 'rmse'); ssim and psnr are maximised, the others minimised.
+    ``validation_warmup_frames`` skips the first frames of each validation sequence in the image metrics.
+    """
+
+    seed: int = 0
+    batch_size: int = 4
+    max_steps: int | None = None
+    max_seconds: float | None = None
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.9, 0.99)
+    eps: float = 1e-8
+    weight_decay: float = 0.0
+    schedule: dict[str, Any] = field(default_factory=lambda: {"name": "ramp_inv_sqrt", "ramp_steps": 100,
+                                                              "ramp_factor": 10.0})
+    grad_clip_norm: float | None = None
+    log_every: int = 10
+    validate_every: int = 100
+    checkpoint_every: int = 100
+    checkpoint_seconds: float | None = 600.0
+    best_metric: str = "loss"
+    validation_warmup_frames: int = 0
+    progress: bool = True
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        self.betas = tuple(float(b) for b in self.betas)
+        if self.max_steps is None and self.max_seconds is None:
+            raise ValueError("training needs a budget: set max_steps and/or max_seconds")
+        if self.batch_size < 1 or self.log_every < 1 or self.validate_every < 0 or self.checkpoint_every < 0:
+            raise ValueError(f"need batch_size >= 1, log_every >= 1, validate_every >= 0, checkpoint_every >= 0: {self}")
+        lr_factor(self.schedule, 0)  # rejects unknown schedules early
+
+    def fingerprint_data(self) -> dict[str, Any]:
+        return {k: v for k, v in asdict(self).items() if k not in _NOT_FINGERPRINTED}
+
+
+@dataclass
+class TrainResult:
+    """Outcome of :meth:`Trainer.run`."""
+
+    steps: int
+    elapsed_seconds: float
+    resumed_from: int | None
+    best_step: int | None
+    best_metric: str
+    best_value: float | None
+    checkpoint: Path
+    best: Path
+    curves_csv: Path
+    curves_png: Path
+
+
+# ----------------------------------------------------------------------------------- checkpoints
+def _save_atomic(obj: Any, path: Path) -> None:
+    """torch.save into a hidden temporary sibling, fsync, rename: ``path`` is always a complete file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    with open(staging, "wb") as handle:
+        handle.write(buffer.getbuffer())
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(staging, path)
+
+
+def load_checkpoint(path: Path | str) -> dict[str, Any]:
+    """Read a checkpoint or model file written by the trainer; :class:`CheckpointError` naming the file if
+    it is missing, unreadable, truncated or not one of ours."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint file not found")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # zip/pickle errors of a truncated or overwritten file
+        raise CheckpointError(f"{path}: corrupt or unreadable checkpoint ({type(error).__name__}: {error}); "
+                              f"delete it to train from scratch") from error
+    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")
+    if data.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {data.get('version')}, this code reads {CHECKPOINT_VERSION}")
+    missing = [k for k in ("net", "model_state") if k not in data]
+    if data.get("kind") == "training":
+        missing += [k for k in ("optimizer_state", "step", "rng", "history", "fingerprint") if k not in data]
+    if missing:
+        raise CheckpointError(f"{path}: checkpoint lacks {missing}")
+    return data
+
+
+def load_model(path: Path | str) -> nn.Module:
+    """The network stored in a checkpoint or model file (architecture rebuilt from its spec), in eval mode."""
+    from denoisers.nets import build_net
+
+    data = load_checkpoint(path)
+    try:
+        model = build_net(data["net"]["name"], data["net"]["config"])
+        model.load_state_dict(data["model_state"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as error:
+        raise CheckpointError(f"{path}: cannot rebuild the network from the checkpoint ({error})") from error
+    return model.eval()
+
+
+def _rng_state() -> dict[str, Any]:
+    version, mt_state, gauss = random.getstate()
+    name, keys, position, has_gauss, cached = np.random.get_state()
+    return {"torch": torch.get_rng_state(),
+            "numpy": {"name": name, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(position),
+                      "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
+            "python": {"version": version, "state": list(mt_state), "gauss": gauss}}
+
+
+def _set_rng_state(state: Mapping[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    numpy_state = state["numpy"]
+    np.random.set_state((numpy_state["name"], numpy_state["keys"].numpy().astype(np.uint32), numpy_state["pos"],
+                         numpy_state["has_gauss"], numpy_state["cached_gaussian"]))
+    python_state = state["python"]
+    random.setstate((python_state["version"], tuple(python_state["state"]), python_state["gauss"]))
+
+
+def _fingerprint(data: Mapping[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
+
+
+# --------------------------------------------------------------------------------------- trainer
+class Trainer:
+    """Trains ``task``'s model on ``train_data`` batches, validating on ``validation`` batches.
+
+    ``out_dir`` holds the files of the module docstring; an existing ``checkpoint.pt`` there is resumed.
+    ``fingerprint_extra`` adds anything else that should forbid resuming when it changes.
+    """
+
+    def __init__(self, task: TrainingTask, train_data: BatchSource, validation: Sequence[Any], config: TrainerConfig,
+                 out_dir: Path | str, fingerprint_extra: Mapping[str, Any] | None = None) -> None:
+        self.task, self.train_data, self.validation, self.config = task, train_data, list(validation), config
+        self.out_dir = Path(out_dir)
+        self.checkpoint_path = self.out_dir / CHECKPOINT_NAME
+        self.best_path = self.out_dir / BEST_NAME
+        self.fingerprint_data = {
+            "trainer": config.fingerprint_data(), "task": task.describe(), "data": train_data.describe(),
+            "validation": [getattr(b, "describe", lambda: repr(b))() for b in self.validation],
+            "extra": dict(fingerprint_extra or {}),
+        }
+        self.fingerprint = _fingerprint(self.fingerprint_data)
+        self.model: nn.Module | None = None
+        self.optimizer: torch.optim.Optimizer | None = None
+        self.step = 0
+        self.elapsed = 0.0
+        self.history: list[dict[str, Any]] = []
+        self.best: dict[str, Any] | None = None
+        self.last_validation_step = -1
+        self._accumulator: dict[str, float] = {}
+        self._last_plot = -math.inf
+        self._checkpoint_step: int | None = None
+
+    # --------------------------------------------------------------------------------- set-up
+    def _setup(self) -> int | None:
+        """Build model and optimiser from the seed, then load ``checkpoint.pt`` if present.
+        Returns the step resumed from (None for a fresh start)."""
+        config = self.config
+        torch.manual_seed(config.seed)
+        np.random.seed(config.seed % 2**32)
+        random.seed(config.seed)
+        self.model = self.task.build_model()
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr, betas=config.betas, eps=config.eps,
+                                          weight_decay=config.weight_decay)
+        if not self.checkpoint_path.exists():
+            return None
+        data = load_checkpoint(self.checkpoint_path)
+        if data.get("kind") != "training":
+            raise CheckpointError(f"{self.checkpoint_path}: a model file, not a training checkpoint")
+        if data["fingerprint"] != self.fingerprint:
+            try:
+                stored = json.loads(data.get("fingerprint_data", "{}"))
+            except json.JSONDecodeError:
+                stored = {}
+            current = json.loads(json.dumps(self.fingerprint_data, sort_keys=True, default=str))
+            changed = sorted(k for k in set(stored) | set(current) if stored.get(k) != current.get(k))
+            raise CheckpointError(f"{self.checkpoint_path}: written for a different training configuration "
+                                  f"(changed: {', '.join(changed) or 'unknown'}); delete {self.out_dir} to retrain")
+        try:
+            self.model.load_state_dict(data["model_state"])
+            self.optimizer.load_state_dict(data["optimizer_state"])
+            _set_rng_state(data["rng"])
+        except (KeyError, TypeError, ValueError, RuntimeError) as error:
+            raise CheckpointError(f"{self.checkpoint_path}: cannot restore the training state ({error})") from error
+        self.step = self._checkpoint_step = int(data["step"])
+        self.elapsed = float(data.get("elapsed_seconds", 0.0))
+        self.history = [dict(row) for row in data["history"]]
+        self.best = dict(data["best"]) if data.get("best") else None
+        self.last_validation_step = int(data.get("last_validation_step", -1))
+        self._accumulator = dict(data.get("accumulator", {}))
+        return self.step
+
+    def _budget_left(self) -> bool:
+        config = self.config
+        if config.max_steps is not None and self.step >= config.max_steps:
+            return False
+        return config.max_seconds is None or self.elapsed < config.max_seconds
+
+    # ------------------------------------------------------------------------------- training
+    def run(self, on_step: Callable[[int], None] | None = None) -> TrainResult:
+        """Train until the budget is used up (resuming ``checkpoint.pt`` if present) and return the outcome.
+
+        ``on_step(step)`` is called after every optimiser step (tests use it to simulate a kill).
+        """
+        from tqdm.auto import tqdm
+
+        config = self.config
+        if config.threads:
+            torch.set_num_threads(int(config.threads))
+        resumed_from = self._setup()
+        assert self.model is not None and self.optimizer is not None
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        started = time.perf_counter()
+        elapsed_at_start = self.elapsed
+        last_checkpoint = started
+        log_started, log_step = started, self.step
+        first_step = self.step
+        progress = tqdm(total=config.max_steps, initial=self.step, disable=not config.progress, unit="step",
+                        desc=f"train {self.task.name}", dynamic_ncols=True, mininterval=1.0)
+        try:
+            while self._budget_left():
+                loss_value, terms = self._train_step()
+                self.elapsed = elapsed_at_start + (time.perf_counter() - started)
+                self._accumulate(loss_value, terms)
+                if self.step % config.log_every == 0:
+                    now = time.perf_counter()
+                    self._log_row(steps_per_s=(self.step - log_step) / max(now - log_started, 1e-9))
+                    log_started, log_step = now, self.step
+                if config.validate_every and self.step % config.validate_every == 0:
+                    self._validate()
+                time_due = config.checkpoint_seconds is not None and \
+                    time.perf_counter() - last_checkpoint >= config.checkpoint_seconds
+                if (config.checkpoint_every and self.step % config.checkpoint_every == 0) or time_due:
+                    self.save_checkpoint()
+                    last_checkpoint = time.perf_counter()
+                progress.update(1)
+                progress.set_postfix(loss=f"{loss_value:.4g}", refresh=False, steps_per_s=
+                                     f"{(self.step - first_step) / max(time.perf_counter() - started, 1e-9):.3g}")
+                if on_step is not None:
+                    on_step(self.step)
+        finally:
+            progress.close()
+        if self._accumulator.get("count"):
+            now = time.perf_counter()
+            self._log_row(steps_per_s=(self.step - log_step) / max(now - log_started, 1e-9))
+        if self.validation and self.last_validation_step != self.step:
+            self._validate()
+        if not self.validation or self.best is None or not self.best_path.exists():
+            # Without validation (or before any finite validation result) the last model is the best guess.
+            self._save_model(self.best_path, metrics={})
+            self.best = {"step": self.step, "metric": config.best_metric, "value": None, "metrics": {}}
+        self.save_checkpoint()
+        self.write_curves(plot=True)
+        result = TrainResult(steps=self.step, elapsed_seconds=self.elapsed, resumed_from=resumed_from,
+                             best_step=self.best.get("step"), best_metric=config.best_metric,
+                             best_value=self.best.get("value"), checkpoint=self.checkpoint_path, best=self.best_path,
+                             curves_csv=self.out_dir / CURVES_CSV, curves_png=self.out_dir / CURVES_PNG)
+        self._write_summary(result)
+        return result
+
+    def _train_step(self) -> tuple[float, dict[str, float]]:
+        """One optimiser step on batch number ``self.step``; returns (loss, loss terms)."""
+        config, model, optimizer = self.config, self.model, self.optimizer
+        batch = self.train_data.batch(self.step, config.batch_size)
+        lr = config.lr * lr_factor(config.schedule, self.step)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        model.train()
+        optimizer.zero_grad(set_to_none=True)
+        loss, terms = self.task.loss(model, batch)
+        if not bool(torch.isfinite(loss)):
+            description = batch.describe() if hasattr(batch, "describe") else f"batch {self.step}"
+            raise NonFiniteLossError(
+                f"training stopped: non-finite loss ({float(loss.detach())}) at step {self.step} ({description}); "
+                f"last checkpoint: {self._checkpoint_note()}", step=self.step, batch=description)
+        loss.backward()
+        if config.grad_clip_norm is not None:
+            nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip_norm)
+        optimizer.step()
+        self.step += 1
+        self._last_lr = lr
+        return float(loss.detach()), terms
+
+    def _checkpoint_note(self) -> str:
+        if not self.checkpoint_path.exists():
+            return "none written yet"
+        return f"{self.checkpoint_path} (step {self._checkpoint_step})"
+
+    def _accumulate(self, loss: float, terms: Mapping[str, float]) -> None:
+        acc = self._accumulator
+        acc["count"] = acc.get("count", 0.0) + 1
+        acc["loss"] = acc.get("loss", 0.0) + loss
+        for name, value in terms.items():
+            acc[f"loss_{name}"] = acc.get(f"loss_{name}", 0.0) + float(value)
+
+    def _row(self, step: int) -> dict[str, Any]:
+        for row in reversed(self.history):
+            if row["step"] == step:
+                return row
+        row = {"step": step}
+        self.history.append(row)
+        return row
+
+    def _log_row(self, steps_per_s: float) -> None:
+        acc, self._accumulator = self._accumulator, {}
+        count = acc.pop("count", 0.0)
+        if not count:
+            return
+        row = self._row(self.step)
+        row.update(elapsed_s=self.elapsed, lr=getattr(self, "_last_lr", self.config.lr), steps_per_s=steps_per_s)
+        row.update({f"train_{key}": value / count for key, value in acc.items()})
+
+    # ----------------------------------------------------------------------------- validation
+    def evaluate(self, batches: Sequence[Any] | None = None) -> dict[str, float]:
+        """Validation metrics of the current model: mean loss (and its terms) over the batches, and, when
+        the task has ``predict``, mean SSIM / PSNR / RMSE (denoisers.metrics) of the linear outputs
+        against ``reference.radiance`` per sequence, skipping ``validation_warmup_frames``."""
+        from denoisers import metrics
+
+        batches = self.validation if batches is None else list(batches)
+        model = self.model
+        model.eval()
+        sums: dict[str, float] = {}
+        counts: dict[str, int] = {}
+
+        def add(key: str, value: float) -> None:
+            sums[key] = sums.get(key, 0.0) + value
+            counts[key] = counts.get(key, 0) + 1
+
+        warmup = self.config.validation_warmup_frames
+        with torch.no_grad():
+            for batch in batches:
+                loss, terms = self.task.loss(model, batch)
+                add("loss", float(loss))
+                for name, value in terms.items():
+                    add(f"loss_{name}", float(value))
+                if hasattr(self.task, "predict"):
+                    prediction = self.task.predict(model, batch)
+                    reference = batch["reference.radiance"]
+                    for n in range(prediction.shape[0]):
+                        pred, ref = prediction[n, warmup:], reference[n, warmup:]
+                        for name, function in (("ssim", metrics.ssim), ("psnr", metrics.psnr), ("rmse", metrics.rmse)):
+                            try:
+                                add(name, function(pred, ref))
+                            except ValueError:  # non-finite output, or frames too small for SSIM
+                                add(name, float("nan"))
+        model.train()
+        return {key: sums[key] / counts[key] for key in sums}
+
+    def _validate(self) -> None:
+        self.last_validation_step = self.step
+        if not self.validation:
+            return
+        results = self.evaluate()
+        row = self._row(self.step)
+        row.update({f"val_{key}": value for key, value in results.items()})
+        row.setdefault("elapsed_s", self.elapsed)
+        metric = self.config.best_metric
+        if metric not in results:
+            raise KeyError(f"best_metric {metric!r} is not a validation result; available: {sorted(results)}")
+        value = results[metric]
+        better = (value > self.best["value"] if metric in HIGHER_IS_BETTER else value < self.best["value"]) \
+            if self.best and self.best.get("value") is not None else True
+        if math.isfinite(value) and better:
+            self.best = {"step": self.step, "metric": metric, "value": value, "metrics": results}
+            self._save_model(self.best_path, metrics=results)
+        self.write_curves()
+
+    # ---------------------------------------------------------------------------------- files
+    def _save_model(self, path: Path, metrics: Mapping[str, float]) -> None:
+        _save_atomic({"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "kind": "model",
+                      "net": self.task.net_spec(), "model_state": self.model.state_dict(), "step": self.step,
+                      "metrics": dict(metrics)}, path)
+
+    def save_checkpoint(self) -> None:
+        """Write ``checkpoint.pt`` (atomically) and refresh the curves."""
+        _save_atomic({
+            "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "kind": "training",
+            "fingerprint": self.fingerprint,
+            "fingerprint_data": json.dumps(self.fingerprint_data, sort_keys=True, default=str),
+            "net": self.task.net_spec(), "model_state": self.model.state_dict(),
+            "optimizer_state": self.optimizer.state_dict(),
+            "scheduler": {"schedule": dict(self.config.schedule), "base_lr": self.config.lr,
+                          "next_lr": self.config.lr * lr_factor(self.config.schedule, self.step)},
+            "step": self.step, "elapsed_seconds": self.elapsed,
+            "sampler": {"next_batch": self.step, "batch_size": self.config.batch_size},
+            "rng": _rng_state(), "history": self.history, "accumulator": dict(self._accumulator),
+            "best": self.best, "last_validation_step": self.last_validation_step,
+        }, self.checkpoint_path)
+        self._checkpoint_step = self.step
+        self.write_curves()
+
+    def write_curves(self, plot: bool | None = None) -> None:
+        """``curves.csv`` (one row per logged or validated step) and ``curves.png``; the plot is redrawn
+        when ``plot`` is True, or (None) when it is older than :data:`PLOT_INTERVAL_SECONDS`."""
+        if not self.history:
+            return
+        columns = ["step"] + sorted({key for row in self.history for key in row} - {"step"})
+        lines = [",".join(columns)]
+        for row in sorted(self.history, key=lambda r: r["step"]):
+            lines.append(",".join("" if row.get(c) is None else f"{row[c]:.8g}" if isinstance(row[c], float)
+                                  else str(row[c]) for c in columns))
+        write_text_atomic(self.out_dir / CURVES_CSV, "\n".join(lines) + "\n")
+        now = time.perf_counter()
+        if plot or (plot is None and now - self._last_plot >= PLOT_INTERVAL_SECONDS):
+            plot_curves(self.history, self.out_dir / CURVES_PNG, title=f"{self.task.name} training")
+            self._last_plot = now
+
+    def _write_summary(self, result: TrainResult) -> None:
+        from denoisers.nets import count_parameters
+
+        summary = {
+            "task": self.task.name, "steps": result.steps, "elapsed_seconds": result.elapsed_seconds,
+            "resumed_from": result.resumed_from, "best_step": result.best_step, "best_metric": result.best_metric,
+            "best_value": result.best_value, "best_metrics": (self.best or {}).get("metrics", {}),
+            "parameters": count_parameters(self.model), "net": self.task.net_spec(),
+            "fingerprint": self.fingerprint,
+        }
+        write_text_atomic(self.out_dir / SUMMARY_NAME, json.dumps(summary, indent=1, sort_keys=True, default=str) + "\n")
+
+
+def plot_curves(history: Sequence[Mapping[str, Any]], path: Path, title: str = "training") -> None:
+    """Training loss (log scale) with the validation loss, and the validation image metrics, per step."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rows = sorted(history, key=lambda r: r["step"])
+
+    def series(key: str) -> tuple[list[int], list[float]]:
+        points = [(r["step"], r[key]) for r in rows if r.get(key) is not None and math.isfinite(r[key])]
+        return [p[0] for p in points], [p[1] for p in points]
+
+    figure = Figure(figsize=(10, 4), constrained_layout=True)
+    FigureCanvasAgg(figure)
+    loss_axes, metric_axes = figure.subplots(1, 2)
+    for key, label in (("train_loss", "training loss"), ("val_loss", "validation loss")):
+        steps, values = series(key)
+        if steps:
+            loss_axes.plot(steps, values, marker="." if key.startswith("val") else None, label=label)
+    if any(v > 0 for r in rows for k, v in r.items() if k.endswith("loss") and v is not None and math.isfinite(v)):
+        loss_axes.set_yscale("log")
+    loss_axes.set_xlabel("step")
+    loss_axes.set_ylabel("loss")
+    loss_axes.set_title(title)
+    loss_axes.legend(loc="best")
+    steps, values = series("val_ssim")
+    if steps:
+        metric_axes.plot(steps, values, marker=".", label="validation SSIM")
+        metric_axes.set_ylabel("SSIM")
+        metric_axes.legend(loc="best")
+    else:
+        metric_axes.text(0.5, 0.5, "no validation metrics", ha="center", va="center", transform=metric_axes.transAxes)
+    metric_axes.set_xlabel("step")
+    path = Path(path)
+    staging = path.with_name(f".{path.name}.tmp-{os.getpid()}.png")
+    figure.savefig(staging, dpi=100)
+    os.replace(staging, path)
