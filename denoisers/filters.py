@@ -7,6 +7,13 @@ Everything is vectorised over pixels; the only Python loops run over the (at mos
 The a-trous step exploits that most edge-stopping terms are symmetric, d(p, q) = d(q, p): a term is
 computed once per pair of opposite offsets (+o, -o), over the pixels where both ends lie in the image,
 and used for both taps, which halves the dominant cost.
+
+Speed notes (one CPU thread, where the filters are memory- and op-count-bound): weights are evaluated
+as exp2 of base-2 log-weights (torch's exp is ~4x slower than exp2 here); masks are float 0 / 1 made by
+comparisons with a float ``out`` (bool tensors, ``torch.where`` and ``masked_fill`` are 5-30x slower
+than float ops); hot loops keep their full-image buffers in a :class:`PairWorkspace` across iterations
+and frames, so that views are built once and no multi-megabyte temporaries are allocated per frame
+(fresh ones cost page faults).
 """
 from __future__ import annotations
 
@@ -26,6 +33,11 @@ SANITIZE_LIMIT = 1e8
 #: Log-weights are clamped here: exp of very negative numbers takes a slow path on x86 (a 10x slower
 #: filter), and exp(-60) ~ 1e-26 is as good as zero next to the centre tap's weight.
 MIN_LOG_WEIGHT = -60.0
+#: log2(e). Weights are evaluated as exp2(log2(e) x) = exp(x): torch's exp2 is ~4x faster than exp on
+#: the CPU (and log1p ~1.5x faster than log), and the filters spend much of their time there.
+LOG2_E = 1.0 / math.log(2.0)
+#: :data:`MIN_LOG_WEIGHT` as a base-2 log-weight.
+MIN_LOG2_WEIGHT = MIN_LOG_WEIGHT * LOG2_E
 
 #: Callback of :func:`atrous_step`: (guides at p, guides at q) over one region -> (S, [U_k]) with
 #: S (1, h, w) a symmetric log-weight (or None) and U_k (1, h, w) symmetric non-negative distances.
@@ -69,7 +81,9 @@ def luminance(rgb: torch.Tensor) -> torch.Tensor:
 def normalize_vectors(v: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     """Unit vectors along dim -3 of (..., 3, H, W); zero vectors (no surface) stay zero."""
     length = v.square().sum(dim=-3, keepdim=True).sqrt_()
-    return v / length.clamp_min_(eps) * (length > eps)
+    # The mask as float32: comparisons into bool tensors are several times slower on the CPU.
+    nonzero = torch.gt(length, eps, out=torch.empty_like(length))
+    return v / length.clamp_min_(eps) * nonzero
 
 
 def b3_kernel_2d() -> torch.Tensor:
@@ -140,6 +154,107 @@ def pair_regions(height: int, width: int, radius: int, step: int) -> Iterator[tu
             yield region, i, j
 
 
+class PairWorkspace:
+    """Full-image buffers that an a-trous filter reuses across iterations and frames, with their views at
+    the tap pairs of every offset created once (building a view costs about as much as a small op).
+
+    A buffer is an image (C, H, W) or a doubled image (2, C, H, W): two copies that act as separate
+    accumulators (or sources) of the taps +o and -o, so both taps of a pair are accumulated by one
+    in-place op (within one image their target regions overlap, which an in-place op cannot write).
+    Views of a pair are (2, C, h, w) with index 0 for tap +o (centres over ``first``) and 1 for -o:
+
+    - ``pair(name)``, image: the image at ``first`` and at ``second`` (overlapping; read only);
+    - ``straight(name)``, doubled: copy 0 at ``first``, copy 1 at ``second`` (the taps' centres);
+    - ``crossed(name)``, doubled: copy 0 at ``second``, copy 1 at ``first`` (the taps' neighbours).
+    """
+
+    def __init__(self, height: int, width: int, images: dict[str, int], doubled: dict[str, int]) -> None:
+        self.height, self.width = height, width
+        self.buffers = {name: torch.zeros(channels, height, width) for name, channels in images.items()}
+        self.buffers.update({name: torch.zeros(2, channels, height, width) for name, channels in doubled.items()})
+        #: Further buffers of this size that the filter keeps with the workspace (no views cached).
+        self.pool: list[torch.Tensor] = []
+        self._views: dict[tuple[str, str, int, int], torch.Tensor] = {}
+        self._cache: dict[tuple, object] = {}
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        return self.buffers[name]
+
+    def regions(self, radius: int, step: int) -> list[tuple[PairRegion, int, int]]:
+        """:func:`pair_regions` of this image size, cached."""
+        key = ("regions", "", radius, step)
+        if key not in self._cache:
+            self._cache[key] = list(pair_regions(self.height, self.width, radius, step))
+        return self._cache[key]
+
+    def constant(self, value: float, shape: tuple[int, ...]) -> torch.Tensor:
+        """A cached tensor of ``shape`` filled with ``value`` (for small operands, e.g. of addmm)."""
+        key = ("constant", shape, value)
+        if key not in self._cache:
+            self._cache[key] = torch.full(shape, value)
+        return self._cache[key]
+
+    def first(self, name: str, region: PairRegion) -> torch.Tensor:
+        """(C, h, w) view of image ``name`` over ``first``."""
+        return self._view("first", name, region)
+
+    def second(self, name: str, region: PairRegion) -> torch.Tensor:
+        """(C, h, w) view of image ``name`` over ``second``."""
+        return self._view("second", name, region)
+
+    def pair(self, name: str, region: PairRegion) -> torch.Tensor:
+        """(2, C, h, w): image ``name`` at ``first`` and at ``second`` (read only)."""
+        return self._view("pair", name, region)
+
+    def straight(self, name: str, region: PairRegion) -> torch.Tensor:
+        """(2, C, h, w): doubled ``name``, copy 0 at ``first`` and copy 1 at ``second``."""
+        return self._view("straight", name, region)
+
+    def crossed(self, name: str, region: PairRegion) -> torch.Tensor:
+        """(2, C, h, w): doubled ``name``, copy 0 at ``second`` and copy 1 at ``first``."""
+        return self._view("crossed", name, region)
+
+    def _view(self, kind: str, name: str, region: PairRegion) -> torch.Tensor:
+        key = (kind, name, region.dy, region.dx)
+        view = self._views.get(key)
+        if view is None:
+            view = self._views[key] = self._make_view(kind, self.buffers[name], region)
+        return view
+
+    def _make_view(self, kind: str, buffer: torch.Tensor, region: PairRegion) -> torch.Tensor:
+        if kind == "first":
+            return region.at_first(buffer)
+        if kind == "second":
+            return region.at_second(buffer)
+        width, plane = self.width, self.height * self.width
+        (first_rows, first_columns), (second_rows, second_columns) = region.first, region.second
+        rows, columns = first_rows.stop - first_rows.start, first_columns.stop - first_columns.start
+        start_first = first_rows.start * width + first_columns.start
+        start_second = second_rows.start * width + second_columns.start
+        shift = start_second - start_first       # = dy W + dx > 0 for a half offset
+        channels = buffer.shape[-3]
+        start_first += buffer.storage_offset()
+        start_second += buffer.storage_offset()
+        if kind == "pair":
+            copy_stride, start = shift, start_first
+        elif kind == "straight":
+            copy_stride, start = channels * plane + shift, start_first
+        else:
+            copy_stride, start = channels * plane - shift, start_second
+        if (kind == "pair") != (buffer.dim() == 3) or not buffer.is_contiguous() or shift <= 0:
+            raise ValueError(f"PairWorkspace: no {kind} view of a buffer of shape {tuple(buffer.shape)}")
+        return buffer.as_strided((2, channels, rows, columns), (copy_stride, plane, width, 1), start)
+
+
+def revisited_next_step(i: int, j: int) -> bool:
+    """Whether the next a-trous iteration (step doubled) visits the pixel offset of tap (i, j) again.
+
+    Its tap (i / 2, j / 2) lands there, so terms that depend only on the offset (geometric edge-stopping
+    distances) can be handed over instead of recomputed: 4 of the 12 pairs of a 5x5 kernel.
+    """
+    return i % 2 == 0 and j % 2 == 0
+
+
 def atrous_step(values: torch.Tensor, step: int, guides: dict[str, torch.Tensor], pair_terms: PairTerms,
                 centre_scales: CentreScales | None = None, variance: torch.Tensor | None = None,
                 kernel_1d: Sequence[float] = B3_SPLINE) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -178,7 +293,7 @@ def atrous_step(values: torch.Tensor, step: int, guides: dict[str, torch.Tensor]
             if symmetric is None:
                 shared_weight = torch.full_like(region.at_first(values[:1]), math.exp(log_h))
             else:
-                shared_weight = symmetric.add_(log_h).clamp_min_(MIN_LOG_WEIGHT).exp_()
+                shared_weight = symmetric.add_(log_h).clamp_min_(MIN_LOG_WEIGHT).mul_(LOG2_E).exp2_()
         elif symmetric is not None:
             symmetric.add_(log_h)
         # Tap +o: centres over `first`, neighbours over `second`; tap -o the other way round.
@@ -188,7 +303,7 @@ def atrous_step(values: torch.Tensor, step: int, guides: dict[str, torch.Tensor]
                 exponent = torch.addcmul(base, centre(scales[0]), distances[0], value=-1.0)
                 for a, u in zip(scales[1:], distances[1:]):
                     exponent.addcmul_(centre(a), u, value=-1.0)
-                weight = exponent.clamp_min_(MIN_LOG_WEIGHT).exp_()
+                weight = exponent.clamp_min_(MIN_LOG_WEIGHT).mul_(LOG2_E).exp2_()
             else:
                 weight = shared_weight
             centre(accumulated).addcmul_(neighbour(with_ones), weight)
@@ -232,22 +347,31 @@ def bilinear_taps(motion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tor
     image; weights (4, H, W); inside (4, H, W) bool, whether the tap lies in the image). Taps are ordered
     (y0, x0), (y0, x1), (y1, x0), (y1, x1).
     """
+    indices, weights, inside = bilinear_footprint(motion)
+    return indices, weights, inside.bool()
+
+
+def bilinear_footprint(motion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`bilinear_taps` with ``inside`` as float32 0 / 1 (cheaper to make and to multiply with)."""
     _, height, width = motion.shape
-    motion = sanitize(motion, limit=4.0 * (height + width))   # far outside is outside; keeps int64 sane
-    ys = torch.arange(height, dtype=torch.float32).view(height, 1)
-    xs = torch.arange(width, dtype=torch.float32).view(1, width)
-    x = xs + motion[0]
-    y = ys + motion[1]
+    motion = sanitize(motion, limit=4.0 * (height + width))   # far outside is outside; keeps indices sane
+    x = motion[0] + torch.arange(width, dtype=torch.float32)
+    y = motion[1] + torch.arange(height, dtype=torch.float32).view(height, 1)
     x0, y0 = torch.floor(x), torch.floor(y)
     fx, fy = x - x0, y - y0
-    x0, y0 = x0.long(), y0.long()
-    indices, weights, inside = [], [], []
-    for ty, tx, wy, wx in ((y0, x0, 1 - fy, 1 - fx), (y0, x0 + 1, 1 - fy, fx),
-                           (y0 + 1, x0, fy, 1 - fx), (y0 + 1, x0 + 1, fy, fx)):
-        inside.append((ty >= 0) & (ty < height) & (tx >= 0) & (tx < width))
-        indices.append(ty.clamp(0, height - 1) * width + tx.clamp(0, width - 1))
-        weights.append(wy * wx)
-    return torch.stack(indices), torch.stack(weights), torch.stack(inside)
+    # Per axis: (2, H, W) for the taps at x0 and x0 + 1 (y0 and y0 + 1); the 4 taps are their outer product.
+    x_taps, y_taps = torch.stack([x0, x0 + 1]), torch.stack([y0, y0 + 1])
+    # Tap coordinates are integers, so clamp(c + 1, 0, 1) = [c >= 0] and clamp(n - c, 0, 1) = [c <= n - 1].
+    x_inside = (x_taps + 1).clamp_(0, 1).mul_((width - x_taps).clamp_(0, 1))
+    y_inside = (y_taps + 1).clamp_(0, 1).mul_((height - y_taps).clamp_(0, 1))
+    # Flat indices are exact small integers, in float64 beyond float32's 2^24.
+    index_dtype = torch.float32 if height * width < 2 ** 24 else torch.float64
+    rows = y_taps.clamp_(0, height - 1).to(index_dtype).mul_(width)
+    columns = x_taps.clamp_(0, width - 1).to(index_dtype)
+    indices = (rows[:, None] + columns[None]).view(4, height, width).long()
+    weights = (torch.stack([1 - fy, fy])[:, None] * torch.stack([1 - fx, fx])[None]).view(4, height, width)
+    inside = (y_inside[:, None] * x_inside[None]).view(4, height, width)
+    return indices, weights, inside
 
 
 def gather_taps(image: torch.Tensor, indices: torch.Tensor) -> torch.Tensor:

@@ -2,10 +2,13 @@
 Chaitanya et al. 2017 (Sec. 5.4, Figs. 7-8)."""
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
-from denoisers.filters import atrous_step, check_sizes, luminance, sanitize
+from denoisers.filters import (B3_SPLINE, LOG2_E, MIN_LOG2_WEIGHT, PairRegion, PairWorkspace, check_sizes,
+                               luminance, revisited_next_step, sanitize)
 from denoisers.registry import Denoiser, Frame, register
 
 
@@ -53,14 +56,17 @@ class EdgeAvoidingATrous(Denoiser):
         self.sigma_position = float(sigma_position)
         self.iterations = int(iterations)
         self.color_sigma_decay = float(color_sigma_decay)
+        self._workspace: PairWorkspace | None = None   # a-trous buffers, kept from frame to frame
 
     def denoise(self, frame: Frame) -> torch.Tensor:
         check_sizes(self.info.name, frame.samples)
         color = sanitize(frame.mean("radiance"))
         geometry = torch.cat([sanitize(frame.mean("normal")) / self.sigma_normal,
                               sanitize(frame.mean("position")) / self.sigma_position])
+        height, width = color.shape[-2:]
+        self._workspace = eaw_workspace(height, width, color.shape[0], geometry.shape[0], self._workspace)
         return filter_eaw(color, geometry, self.sigma_color * mean_luminance_scale(color),
-                          self.iterations, self.color_sigma_decay)
+                          self.iterations, self.color_sigma_decay, self._workspace)
 
 
 def mean_luminance_scale(color: torch.Tensor) -> float:
@@ -69,19 +75,78 @@ def mean_luminance_scale(color: torch.Tensor) -> float:
 
 
 def filter_eaw(color: torch.Tensor, scaled_geometry: torch.Tensor, sigma_color: float, iterations: int,
-               color_sigma_decay: float = 0.5) -> torch.Tensor:
-    """Run the EAW iterations on ``color`` (3, H, W).
+               color_sigma_decay: float = 0.5, workspace: PairWorkspace | None = None) -> torch.Tensor:
+    """Run the EAW iterations on ``color`` (C, H, W).
 
     scaled_geometry: (G, H, W) static edge-stopping features already divided by their sigmas (the
-    normal and position terms); sigma_color: sigma_rt of the first iteration in radiance units.
+    normal and position terms); sigma_color: sigma_rt of the first iteration in radiance units;
+    workspace: buffers of :func:`eaw_workspace` to reuse (made here when None or of another size).
+
+    Each iteration is :func:`denoisers.filters.atrous_step` with the symmetric weight
+    w(p, q) = exp(-|f_p - f_q|^2) of the concatenated scaled features f = [c_i / sigma_i, geometry],
+    written out because it is the hot loop: the weight is a base-2 exponential, one per pair of opposite
+    taps, the geometric distance of an offset is computed once for the two iterations that visit it
+    (:func:`denoisers.filters.revisited_next_step`), and both taps of a pair are accumulated by one op
+    on the views of a :class:`denoisers.filters.PairWorkspace`.
     """
-
-    def pair_terms(at_p: dict[str, torch.Tensor], at_q: dict[str, torch.Tensor]):
-        # exp(-|f_p - f_q|^2) over the concatenated scaled features = w_rt * w_n * w_x.
-        return F.mse_loss(at_p["f"], at_q["f"], reduction="none").sum(dim=0, keepdim=True).neg_(), ()
-
+    channels, height, width = color.shape
+    workspace = eaw_workspace(height, width, channels, scaled_geometry.shape[0], workspace)
+    radius = (len(B3_SPLINE) - 1) // 2
+    centre_h = B3_SPLINE[radius] ** 2
+    # Features scaled by sqrt(log2 e): -|f_p - f_q|^2 is then directly a base-2 log-weight.
+    root_log2_e = math.sqrt(LOG2_E)
+    torch.mul(scaled_geometry, root_log2_e, out=workspace["geometry"])
+    values, accumulated = workspace["values"], workspace["accumulated"]   # (2, C + 1, H, W) each
+    values[:, :channels] = color
+    # Pixel offset -> (log2 h - |g_p - g_q|^2 over the pair region, the log2 h it includes).
+    geometry_terms: dict[tuple[int, int], tuple[torch.Tensor, float]] = {}
     for i in range(iterations):
-        sigma = sigma_color * color_sigma_decay ** i
-        features = torch.cat([color / sigma, scaled_geometry])
-        color, _ = atrous_step(color, 2 ** i, {"f": features}, pair_terms)
+        torch.mul(values[0, :channels], root_log2_e / (sigma_color * color_sigma_decay ** i),
+                  out=workspace["features"])
+        torch.mul(values[0], centre_h, out=accumulated[0])
+        accumulated[1].zero_()
+        next_terms: dict[tuple[int, int], tuple[torch.Tensor, float]] = {}
+        for region, ti, tj in workspace.regions(radius, 2 ** i):
+            log2_h = math.log2(B3_SPLINE[radius + ti] * B3_SPLINE[radius + tj])
+            offset = (region.dy, region.dx)
+            if offset in geometry_terms:
+                base, base_log2_h = geometry_terms.pop(offset)
+                base.add_(log2_h - base_log2_h)
+            else:
+                base = _log2_weight(workspace.constant(log2_h, (1, 1)), workspace, "geometry", region)
+            if i + 1 < iterations and revisited_next_step(ti, tj):
+                next_terms[offset] = (base, log2_h)
+            weight = _log2_weight(base.view(1, -1), workspace, "features", region)
+            weight.clamp_min_(MIN_LOG2_WEIGHT).exp2_()          # shared by the taps +o and -o
+            workspace.straight("accumulated", region).addcmul_(workspace.crossed("values", region), weight)
+        geometry_terms = next_terms
+        total = accumulated[0].add_(accumulated[1])
+        if i + 1 < iterations:    # the next pass's input, straight into both copies
+            torch.div(total[:channels], total[channels:], out=values[0, :channels])
+            values[1, :channels] = values[0, :channels]
+        else:
+            color = total[:channels] / total[channels:]
     return color
+
+
+def _log2_weight(base: torch.Tensor, workspace: PairWorkspace, name: str, region: PairRegion) -> torch.Tensor:
+    """base - |f_p - f_q|^2 over the pair region, (1, h, w), for the features ``name`` of the workspace.
+
+    base: (1, h w) or (1, 1). The channel sum is a (1, C) x (C, h w) product, cheaper than a reduction.
+    """
+    squares = F.mse_loss(workspace.first(name, region), workspace.second(name, region), reduction="none")
+    channels, rows, columns = squares.shape
+    minus_ones = workspace.constant(-1.0, (1, channels))
+    return torch.addmm(base, minus_ones, squares.view(channels, rows * columns)).view(1, rows, columns)
+
+
+def eaw_workspace(height: int, width: int, channels: int, geometry_channels: int,
+                  reuse: PairWorkspace | None = None) -> PairWorkspace:
+    """Buffers of :func:`filter_eaw` for C colour and G geometry channels; ``reuse`` if it fits."""
+    if reuse is not None and (reuse.height, reuse.width) == (height, width) \
+            and reuse["geometry"].shape[0] == geometry_channels and reuse["features"].shape[0] == channels:
+        return reuse
+    workspace = PairWorkspace(height, width, images={"geometry": geometry_channels, "features": channels},
+                              doubled={"values": channels + 1, "accumulated": channels + 1})
+    workspace["values"][:, channels] = 1.0   # the ones channel accumulates the weight sum
+    return workspace

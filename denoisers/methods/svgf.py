@@ -7,8 +7,9 @@ from dataclasses import dataclass
 
 import torch
 
-from denoisers.filters import (MIN_LOG_WEIGHT, atrous_step, bilinear_taps, check_sizes, gaussian_blur_3x3,
-                               luminance, normalize_vectors, sanitize)
+from denoisers.filters import (B3_SPLINE, LOG2_E, MIN_LOG2_WEIGHT, MIN_LOG_WEIGHT, REC709_LUMINANCE, PairRegion,
+                               PairWorkspace, bilinear_footprint, check_sizes, gaussian_blur_3x3, luminance,
+                               normalize_vectors, revisited_next_step, sanitize)
 from denoisers.registry import Denoiser, Frame, register
 
 # Denominator floor of the luminance edge-stopping term (the paper only says "small"); with zero
@@ -30,14 +31,110 @@ MAX_HISTORY = 255.0
 
 @dataclass
 class _History:
-    """State carried from one frame to the next, all at the previous frame's pixels."""
+    """State carried from one frame to the next, all at the previous frame's pixels, packed into one
+    (10, H, W) tensor so that the reprojection gathers every channel in one go."""
 
-    illumination: torch.Tensor   # (3, H, W) demodulated colour after the first a-trous iteration
-    moments: torch.Tensor        # (2, H, W) integrated first and second luminance moments
-    length: torch.Tensor         # (1, H, W) history length in frames, 1 = this frame only
-    depth: torch.Tensor          # (1, H, W) pixel-centre G-buffer depth (metres)
-    normal: torch.Tensor         # (3, H, W) pixel-centre G-buffer normal (unit)
+    state: torch.Tensor          # (10, H, W) [illumination, moments, length, depth, normal]
     index: int                   # frame index
+
+    @property
+    def illumination(self) -> torch.Tensor:
+        """(3, H, W) demodulated colour after the first a-trous iteration."""
+        return self.state[0:3]
+
+    @property
+    def moments(self) -> torch.Tensor:
+        """(2, H, W) integrated first and second luminance moments."""
+        return self.state[3:5]
+
+    @property
+    def length(self) -> torch.Tensor:
+        """(1, H, W) history length in frames, 1 = this frame only."""
+        return self.state[5:6]
+
+    @property
+    def depth(self) -> torch.Tensor:
+        """(1, H, W) pixel-centre G-buffer depth (metres)."""
+        return self.state[6:7]
+
+    @property
+    def normal(self) -> torch.Tensor:
+        """(3, H, W) pixel-centre G-buffer normal (unit)."""
+        return self.state[7:10]
+
+
+class _GeometryTerms:
+    """Geometric base-2 log-weights of one frame, G(p, o) = log2(e) (sigma_n log max(0, n_p . n_q)
+    - a_z(p, o) |z_p - z_q|) + log2 h, per tap pair, with a hand-over of terms between passes.
+
+    ``log2_weights(region, log2_h)`` returns G of the taps +o and -o as (2, 1, h, w) over ``first``
+    (taken from the hand-over when a previous pass kept it for this offset); ``keep`` hands it to the
+    next pass that visits the same pixel offset (the next a-trous iteration, or the first one after the
+    7x7 spatial variance estimate). The terms live in full-size buffers of the workspace, reused across
+    frames (a dozen kept half-megabyte temporaries cost more in page faults than in arithmetic): a term
+    that is not kept may be modified in place, and is valid until the next ``log2_weights`` call.
+    n_p . n_q is floored at exp(MIN_LOG_WEIGHT / sigma_n) instead of 1e-30: below it the weight is
+    clamped to exp(MIN_LOG_WEIGHT) either way (log h <= 0), and for sigma_n >= 87 the floor keeps the
+    cosine in [0.5, 1], where log(c) = log1p(c - 1) is exact to rounding and faster than log.
+    """
+
+    def __init__(self, svgf: SVGF, workspace: PairWorkspace, normal: torch.Tensor, depth: torch.Tensor,
+                 gradient: torch.Tensor) -> None:
+        self.workspace = workspace
+        self.sigma_depth = svgf.sigma_depth
+        self.normal_scale = svgf.sigma_normal * LOG2_E
+        self.cosine_floor = max(NORMAL_COSINE_FLOOR, math.exp(MIN_LOG_WEIGHT / svgf.sigma_normal))
+        for channel in range(3):
+            workspace[f"normal{channel}"].copy_(normal[channel:channel + 1])
+        workspace["depth"].copy_(depth)
+        self.gradient = gradient
+        # a_z(p, o) log2 e = 1 / (ln 2 (sigma_z |grad z . o| + eps(p))), |grad z . d| cached per direction d.
+        self.depth_floor = (depth * DEPTH_EPSILON_RELATIVE + 1e-6).mul_(math.log(2.0))
+        self.projections: dict[tuple[int, int], torch.Tensor] = {}
+        # Pixel offset -> (index of its term buffer, log2 h included); the buffer of the last term made.
+        self.handed_over: dict[tuple[int, int], tuple[int, float]] = {}
+        self.current: int | None = None
+        self.buffers = workspace.pool                     # (2, 1, H, W) each, grown on demand
+        self.free = list(range(len(self.buffers)))
+
+    def log2_weights(self, region: PairRegion, log2_h: float) -> torch.Tensor:
+        """G of the taps +o and -o with kernel weight h, (2, 1, h, w) (see the class docstring)."""
+        if self.current is not None:
+            self.free.append(self.current)
+        kept = self.handed_over.pop((region.dy, region.dx), None)
+        if kept is not None:
+            self.current, kept_log2_h = kept
+            return region.at_first(self.buffers[self.current]).add_(log2_h - kept_log2_h)
+        if not self.free:
+            self.buffers.append(torch.empty(2, 1, self.workspace.height, self.workspace.width))
+            self.free.append(len(self.buffers) - 1)
+        self.current = self.free.pop()
+        workspace = self.workspace
+        cosine = workspace.first("normal0", region) * workspace.second("normal0", region)
+        cosine.addcmul_(workspace.first("normal1", region), workspace.second("normal1", region))
+        cosine.addcmul_(workspace.first("normal2", region), workspace.second("normal2", region))
+        if self.cosine_floor >= 0.5:
+            log_cosine = cosine.sub_(1.0).clamp_min_(self.cosine_floor - 1.0).log1p_()
+        else:
+            log_cosine = cosine.clamp_min_(self.cosine_floor).log_()
+        symmetric = log_cosine.mul_(self.normal_scale).add_(log2_h)
+        distance = torch.sub(workspace.first("depth", region), workspace.second("depth", region)).abs_()
+        length = math.gcd(region.dy, region.dx)
+        direction = (region.dy // length, region.dx // length)
+        if direction not in self.projections:
+            self.projections[direction] = (self.gradient[0:1] * direction[1]
+                                           + self.gradient[1:2] * direction[0]).abs_()
+        depth_scale = torch.add(self.depth_floor, self.projections[direction],
+                                alpha=self.sigma_depth * length * math.log(2.0), out=workspace["depth_scale"])
+        depth_scale.reciprocal_()
+        return torch.addcmul(symmetric, workspace.pair("depth_scale", region), distance, value=-1.0,
+                             out=region.at_first(self.buffers[self.current]))
+
+    def keep(self, region: PairRegion, log2_h: float) -> None:
+        """Hand the last term (made for ``region`` with ``log2_h``) to the next pass visiting its offset;
+        the caller must not modify it afterwards."""
+        self.handed_over[(region.dy, region.dx)] = (self.current, log2_h)
+        self.current = None
 
 
 @register("svgf", inputs=("radiance", "albedo", "normal", "depth"),
@@ -111,6 +208,8 @@ class SVGF(Denoiser):
         self.reprojection_depth_tolerance = float(reprojection_depth_tolerance)
         self.reprojection_normal_cos = float(reprojection_normal_cos)
         self._history: _History | None = None
+        self._workspace: PairWorkspace | None = None
+        self._gathered: torch.Tensor | None = None
 
     def reset(self) -> None:
         self._history = None
@@ -118,13 +217,14 @@ class SVGF(Denoiser):
     # ---------------------------------------------------------------------------------------------
     def denoise(self, frame: Frame) -> torch.Tensor:
         check_sizes(self.info.name, {**frame.samples, **frame.pixel})
-        radiance = sanitize(frame.samples["radiance"])                       # (S, 3, H, W)
+        radiance = sanitize(frame.samples["radiance"])                       # (S, 3, H, W), a fresh copy
         spp = radiance.shape[0]
         albedo = sanitize(frame.mean("albedo")).clamp_min_(self.albedo_epsilon)
-        illumination_samples = radiance / albedo
+        illumination_samples = radiance.div_(albedo)
         illumination = illumination_samples.mean(dim=0)
         sample_luminance = luminance(illumination_samples)                     # (S, 1, H, W)
-        moments = torch.cat([sample_luminance.mean(dim=0), sample_luminance.square().mean(dim=0)])
+        first_moment = sample_luminance.mean(dim=0)
+        moments = torch.cat([first_moment, sample_luminance.square_().mean(dim=0)])
         normal = normalize_vectors(sanitize(frame.mean("normal")))
         depth = sanitize(frame.mean("depth")).abs_()
         gbuffer_depth = sanitize(frame.pixel["gbuffer.depth"])
@@ -137,7 +237,8 @@ class SVGF(Denoiser):
             integrated, integrated_moments = illumination, moments
         else:
             prev_illumination, prev_moments, prev_length = previous.split([3, 2, 1])
-            length = torch.where(success, (prev_length + 1).clamp_max_(MAX_HISTORY), 1.0)
+            # success ? min(prev + 1, MAX) : 1, as arithmetic (torch.where is slow on the CPU).
+            length = (prev_length + 1).clamp_max_(MAX_HISTORY).sub_(1).mul_(success).add_(1)
             alpha_c = torch.clamp(1.0 / length, min=self.alpha_color)
             alpha_m = torch.clamp(1.0 / length, min=self.alpha_moments)
             integrated = torch.lerp(prev_illumination, illumination, alpha_c)
@@ -145,75 +246,187 @@ class SVGF(Denoiser):
 
         # Variance of the filtered signal: temporal where the history is long enough, spatial elsewhere.
         depth_gradient = _depth_gradient(depth)
-        guides = {"n": normal, "z": depth}
+        geometry = _GeometryTerms(self, self._workspace_for(*depth.shape[-2:]), normal, depth, depth_gradient)
         variance = _moment_variance(integrated_moments, spp)
-        short = length < self.min_temporal_history
-        if bool(short.any()):
-            spatial_moments = self._spatial_moments(integrated_moments, normal, depth, depth_gradient, short)
+        if float(length.min()) < self.min_temporal_history:
+            short = length < self.min_temporal_history
+            spatial_moments = self._spatial_moments(integrated_moments, normal, depth, depth_gradient, short,
+                                                    geometry)
             variance = torch.where(short, _moment_variance(spatial_moments, spp), variance)
 
         # Variance-guided a-trous iterations; the first one's output is the colour history.
-        filtered = integrated
-        history_illumination = integrated
-        depth_scales = self._depth_scales(depth, depth_gradient)
-        for i in range(self.iterations):
-            luminance_scale = 1.0 / (self.sigma_luminance * gaussian_blur_3x3(variance).clamp_min_(0).sqrt_()
-                                     + LUMINANCE_EPSILON)
+        filtered, history_illumination = self._atrous(integrated, variance, normal, depth, depth_gradient,
+                                                      geometry)
 
-            def centre_scales(dy: int, dx: int, luminance_scale=luminance_scale) -> list[torch.Tensor]:
-                return [luminance_scale, *depth_scales(dy, dx)]
-
-            filtered, variance = atrous_step(filtered, 2 ** i, {**guides, "l": luminance(filtered)},
-                                             self._all_terms, centre_scales, variance=variance)
-            if i == 0:
-                history_illumination = filtered
-
-        self._history = _History(illumination=history_illumination, moments=integrated_moments,
-                                 length=length, depth=gbuffer_depth, normal=gbuffer_normal, index=frame.index)
+        # The state buffer is reused from frame to frame (the reprojection above was its last reader).
+        state = self._history.state if self._history is not None else None
+        if state is None or state.shape[-2:] != depth.shape[-2:]:
+            state = torch.empty(10, *depth.shape[-2:])
+        torch.cat([history_illumination, integrated_moments, length, gbuffer_depth, gbuffer_normal], out=state)
+        self._history = _History(state=state, index=frame.index)
         return filtered * albedo
 
     # ---------------------------------------------------------------------------------------------
+    def _atrous(self, illumination: torch.Tensor, variance: torch.Tensor, normal: torch.Tensor,
+                depth: torch.Tensor, gradient: torch.Tensor, geometry: _GeometryTerms | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``iterations`` variance-guided a-trous passes: (filtered (3, H, W), first pass's output).
+
+        Each pass is :func:`denoisers.filters.atrous_step` with :meth:`_all_terms` and the scales of
+        :meth:`_depth_scales`, i.e. the weight of the class docstring
+        w = exp(S(p, q) - a_l(p) |l_p - l_q| - a_z(p, o) |z_p - z_q|), S = sigma_n log max(0, n_p . n_q)
+        + log h, written out because it is the hot loop of the method: log-weights are base 2 (exp2 is
+        several times faster than exp), the geometric part comes from :class:`_GeometryTerms` (computed
+        once per pixel offset for both taps, and handed over to the next pass that visits the offset
+        again), and both taps of a pair are weighted, accumulated and variance-accumulated by single ops
+        on the views of a :class:`denoisers.filters.PairWorkspace` kept across frames.
+        geometry: this frame's terms when the caller has them (possibly with terms handed over by the
+        spatial variance estimate), otherwise made here from normal (3, H, W), depth (1, H, W) and
+        gradient (2, H, W).
+        """
+        _, height, width = illumination.shape
+        workspace = self._workspace_for(height, width)
+        if geometry is None:
+            geometry = _GeometryTerms(self, workspace, normal, depth, gradient)
+        radius = (len(B3_SPLINE) - 1) // 2
+        centre_h = B3_SPLINE[radius] ** 2
+        ln2 = math.log(2.0)
+        values, variances = workspace["values"], workspace["variance"]   # (2, 4, H, W), (2, 1, H, W)
+        accumulated, variance_accumulated = workspace["accumulated"], workspace["variance_accumulated"]
+        values[:, :3] = illumination
+        variances[:] = variance
+        history = illumination
+        for i in range(self.iterations):
+            last = i + 1 == self.iterations
+            current_variance = variances[0]
+            deviation = gaussian_blur_3x3(current_variance).clamp_min_(0).sqrt_()
+            torch.reciprocal(deviation.mul_(self.sigma_luminance * ln2).add_(LUMINANCE_EPSILON * ln2),
+                             out=workspace["luminance_scale"])     # a_l log2 e
+            red, green, blue = values[0, 0:1], values[0, 1:2], values[0, 2:3]
+            lum = torch.mul(red, REC709_LUMINANCE[0], out=workspace["luminance"])
+            lum.add_(green, alpha=REC709_LUMINANCE[1]).add_(blue, alpha=REC709_LUMINANCE[2])
+            torch.mul(values[0], centre_h, out=accumulated[0])
+            accumulated[1].zero_()
+            if not last:
+                torch.mul(current_variance, centre_h ** 2, out=variance_accumulated[0])
+                variance_accumulated[1].zero_()
+            for region, ti, tj in workspace.regions(radius, 2 ** i):
+                log2_h = math.log2(B3_SPLINE[radius + ti] * B3_SPLINE[radius + tj])
+                geometric = geometry.log2_weights(region, log2_h)
+                luminance_distance = torch.sub(workspace.first("luminance", region),
+                                               workspace.second("luminance", region)).abs_()
+                if not last and revisited_next_step(ti, tj):
+                    geometry.keep(region, log2_h)
+                    weight = torch.addcmul(geometric, workspace.pair("luminance_scale", region),
+                                           luminance_distance, value=-1.0)
+                else:
+                    weight = geometric.addcmul_(workspace.pair("luminance_scale", region), luminance_distance,
+                                                value=-1.0)
+                weight.clamp_min_(MIN_LOG2_WEIGHT).exp2_()                      # (2, 1, h, w): taps +o, -o
+                workspace.straight("accumulated", region).addcmul_(workspace.crossed("values", region), weight)
+                if not last:    # the variance after the last pass is not used
+                    workspace.straight("variance_accumulated", region).addcmul_(
+                        workspace.crossed("variance", region), weight.square_())
+            total = accumulated[0].add_(accumulated[1])
+            weight_sum = total[3:]
+            if not last:    # the next pass's input, straight into both copies
+                torch.div(total[:3], weight_sum, out=values[0, :3])
+                values[1, :3] = values[0, :3]
+                torch.add(variance_accumulated[0], variance_accumulated[1], out=variances[0])
+                variances[0].div_(weight_sum.square_())
+                variances[1] = variances[0]
+                if i == 0:
+                    history = values[0, :3].clone()
+            else:
+                filtered = total[:3] / weight_sum
+                if i == 0:
+                    history = filtered
+        return filtered, history
+
+    def _workspace_for(self, height: int, width: int) -> PairWorkspace:
+        """The a-trous buffers for this image size (rebuilt when the size changes)."""
+        workspace = self._workspace
+        if workspace is None or (workspace.height, workspace.width) != (height, width):
+            workspace = PairWorkspace(height, width,
+                                      images={"normal0": 1, "normal1": 1, "normal2": 1, "depth": 1, "depth_scale": 1,
+                                              "luminance": 1, "luminance_scale": 1},
+                                      doubled={"values": 4, "variance": 1, "accumulated": 4,
+                                               "variance_accumulated": 1, "moments": 3, "moments_accumulated": 3})
+            # The ones channels accumulate the weight sums.
+            workspace["values"][:, 3] = 1.0
+            workspace["moments"][:, 2] = 1.0
+            self._workspace = workspace
+        return workspace
+
     def _reproject(self, frame: Frame, depth: torch.Tensor, normal: torch.Tensor
                    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """Previous [illumination, moments, length] (6, H, W) at this frame's pixels and the (1, H, W)
-        success mask, or (None, None) when there is no usable history."""
+        success mask (float 1 / 0), or (None, None) when there is no usable history."""
         history = self._history
         if (history is None or frame.camera_cut or frame.index != history.index + 1
                 or history.depth.shape != depth.shape):
             return None, None
         motion = sanitize(frame.pixel["motion"])
-        valid = (sanitize(frame.pixel["valid"]) > 0.5).reshape(1, -1)
-        indices, weights, inside = bilinear_taps(motion)                        # (4, H, W) each
-        taps, height, width = indices.shape
-        # One gather of every history channel at the 4 taps: (10, 4, H*W).
-        state = torch.cat([history.illumination, history.moments, history.length, history.depth,
-                           history.normal]).reshape(10, -1)
-        gathered = state.index_select(1, indices.reshape(-1)).view(10, taps, height * width)
-        tap_depth, tap_normal = gathered[6], gathered[7:10]                     # (4, HW), (3, 4, HW)
-        depth_rows = depth.reshape(1, -1)
-        consistent = (inside.reshape(taps, -1) & valid
-                      & ((tap_depth - depth_rows).abs_() <= self.reprojection_depth_tolerance * depth_rows)
-                      & ((tap_normal * normal.reshape(3, 1, -1)).sum(dim=0) >= self.reprojection_normal_cos))
-        weights = weights.reshape(taps, -1) * consistent                        # (4, HW)
-        weight_sum = weights.sum(dim=0)                                         # (HW,)
-        success = (weight_sum > MIN_REPROJECTION_WEIGHT).view(1, height, width)
-        previous = (gathered[:6] * weights).sum(dim=1)                          # (6, HW)
+        valid = sanitize(frame.pixel["valid"])
+        valid = torch.gt(valid, 0.5, out=valid)     # masks are float 0 / 1: bool ops are slow on the CPU
+        indices, weights, inside = bilinear_footprint(motion)                   # (4, H, W) each
+        weights = weights.mul_(inside).mul_(valid)                              # taps outside or invalid: 0
+        _, height, width = depth.shape
+        state = history.state.view(10, -1)
+        if self._gathered is None or self._gathered.shape != state.shape:
+            self._gathered = torch.empty_like(state)
+        at_tap = self._gathered.view(10, height, width)
+        depth_tolerance = depth * self.reprojection_depth_tolerance
+        previous = torch.zeros(6, height, width)
+        weight_sum = torch.zeros(1, height, width)
+        # One tap at a time: all history channels gathered at that tap into a buffer kept across frames
+        # (fresh multi-megabyte temporaries cost page faults every frame), then its consistency tests.
+        for tap in range(indices.shape[0]):
+            torch.index_select(state, 1, indices[tap].view(-1), out=self._gathered)
+            depth_difference = (at_tap[6:7] - depth).abs_()
+            cosine = at_tap[7:8] * normal[0:1]
+            cosine.addcmul_(at_tap[8:9], normal[1:2]).addcmul_(at_tap[9:10], normal[2:3])
+            tap_weight = torch.le(depth_difference, depth_tolerance, out=depth_difference)
+            tap_weight.mul_(torch.ge(cosine, self.reprojection_normal_cos, out=cosine)).mul_(weights[tap:tap + 1])
+            previous.addcmul_(at_tap[:6], tap_weight)
+            weight_sum += tap_weight
+        success = torch.gt(weight_sum, MIN_REPROJECTION_WEIGHT, out=torch.empty_like(weight_sum))
         previous /= weight_sum.clamp_min_(MIN_REPROJECTION_WEIGHT)
-        return previous.view(6, height, width), success
+        return previous, success
 
     def _spatial_moments(self, moments: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor,
-                         gradient: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+                         gradient: torch.Tensor, where: torch.Tensor, geometry: _GeometryTerms | None = None
+                         ) -> torch.Tensor:
         """(2, H, W) moments averaged over a (2r + 1)^2 window with the depth and normal weights of the
         a-trous passes (no luminance term); only pixels in ``where`` (1, H, W) bool are guaranteed.
 
         Dense (shifted views over the image) when many pixels need it, otherwise gathered at just those
         pixels -- in a moving scene the few disoccluded pixels would not pay for a full-image pass.
+        The dense estimate is :func:`denoisers.filters.atrous_step` with a box window, :meth:`_geometry_terms`
+        and :meth:`_depth_scales`, written out like :meth:`_atrous`; given this frame's ``geometry``,
+        it hands the terms of the offsets within the 5x5 kernel over to the first a-trous pass.
         """
         if float(where.float().mean()) > SPARSE_VARIANCE_FRACTION:
-            window = (1.0,) * (2 * self.variance_radius + 1)
-            filtered, _ = atrous_step(moments, 1, {"n": normal, "z": depth}, self._geometry_terms,
-                                      self._depth_scales(depth, gradient), kernel_1d=window)
-            return filtered
+            _, height, width = moments.shape
+            workspace = self._workspace_for(height, width)
+            if geometry is None:
+                geometry = _GeometryTerms(self, workspace, normal, depth, gradient)
+            values, accumulated = workspace["moments"], workspace["moments_accumulated"]   # (2, 3, H, W)
+            values[:, :2] = moments
+            accumulated[0] = values[0]    # the centre tap, weight 1
+            accumulated[1].zero_()
+            atrous_radius = (len(B3_SPLINE) - 1) // 2
+            for region, i, j in workspace.regions(self.variance_radius, 1):
+                geometric = geometry.log2_weights(region, 0.0)      # box window: log2 h = 0
+                if abs(i) <= atrous_radius and abs(j) <= atrous_radius:
+                    geometry.keep(region, 0.0)
+                    weight = torch.clamp_min(geometric, MIN_LOG2_WEIGHT).exp2_()
+                else:
+                    weight = geometric.clamp_min_(MIN_LOG2_WEIGHT).exp2_()
+                workspace.straight("moments_accumulated", region).addcmul_(workspace.crossed("moments", region),
+                                                                           weight)
+            total = accumulated[0].add_(accumulated[1])
+            return total[:2] / total[2:]
         _, height, width = moments.shape
         centres = where.reshape(-1).nonzero().squeeze(1)                         # (K,)
         cy, cx = centres // width, centres % width
@@ -238,6 +451,9 @@ class SVGF(Denoiser):
         filtered.reshape(2, -1)[:, centres] = averaged
         return filtered
 
+    # The per-pair terms in the form of :func:`denoisers.filters.atrous_step`'s callbacks: the reference
+    # formulation that :meth:`_atrous` and the dense :meth:`_spatial_moments` write out (the tests run
+    # both and compare).
     def _geometry_terms(self, at_p: dict[str, torch.Tensor], at_q: dict[str, torch.Tensor]):
         """Symmetric terms: sigma_n log max(0, n_p . n_q) and [|z_p - z_q|]."""
         cosine = (at_p["n"] * at_q["n"]).sum(dim=0, keepdim=True).clamp_min_(NORMAL_COSINE_FLOOR)
@@ -265,6 +481,7 @@ class SVGF(Denoiser):
 
         return scales
 
+
 def _moment_variance(moments: torch.Tensor, spp: int) -> torch.Tensor:
     """(2, H, W) luminance moments [m1, m2] of single samples -> (1, H, W) variance of the spp-sample mean."""
     return (moments[1:2] - moments[0:1].square()).clamp_min_(0) / spp
@@ -282,7 +499,10 @@ def _depth_gradient(depth: torch.Tensor) -> torch.Tensor:
         # At the image border one of the two is 0 by construction; use the other there.
         forward.narrow(dim, depth.shape[dim] - 1, 1).copy_(backward.narrow(dim, depth.shape[dim] - 1, 1))
         backward.narrow(dim, 0, 1).copy_(forward.narrow(dim, 0, 1))
-        return torch.where(forward.abs() <= backward.abs(), forward, backward)
+        # torch.where(|forward| <= |backward|, forward, backward) with a float mask (where is slow on
+        # the CPU); exact, as x * 1 + y * 0 = x for finite values.
+        take_forward = torch.le(forward.abs(), backward.abs(), out=torch.empty_like(forward))
+        return forward.mul_(take_forward).add_(backward.mul_(1 - take_forward))
 
     return torch.cat([one_axis(2), one_axis(1)])
 
