@@ -9,7 +9,7 @@ Per method and resolution: median seconds per ``denoise()`` call over ``--repeat
 every ``--sizes`` resolution and the slope of log(time) against log(pixels) (1 = linear scaling).
 
 Usage: python benchmarks/denoiser_speed.py [--methods eaw svgf rls wrls oidn] [--size 256]
-           [--sizes 128 256 512] [--spp 2] [--repeats 7] [--warmup 2] [--threads 2]
+           [--sizes 128 256 512] [--spp 2] [--repeats 7] [--warmup 2] [--threads 1]
 """
 from __future__ import annotations
 
@@ -102,7 +102,7 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--warmup", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (the workflow's evaluation.threads)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (the workflow's evaluation.threads)")
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
