@@ -8,7 +8,6 @@ reference batches; pixels and paths run in Mitsuba's vectorised wavefront.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -270,16 +269,6 @@ def psnr_between_halves(half0: np.ndarray, half1: np.ndarray) -> float:
     variance var(half)/2 = E|h0 - h1|^2 / 4: its own noise floor is about this value + 6.02 dB
     (to first order in the tonemapper).
     """
-    tonemap = lambda x: np.power(np.clip(x, 0, None) / (1.0 + np.clip(x, 0, None)), 1.0 / 2.4)  # noqa: E731
-    mse = float(np.mean((tonemap(half0) - tonemap(half1)) ** 2))
-    return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
+    from denoisers.metrics import psnr
 
-
-class Stopwatch:
-    """Wall-clock timer for samples/s bookkeeping."""
-
-    def __init__(self) -> None:
-        self.start = time.perf_counter()
-
-    def elapsed(self) -> float:
-        return time.perf_counter() - self.start
+    return psnr(half0, half1)
