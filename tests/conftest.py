@@ -94,3 +94,14 @@ def load_with_attributes(scene_dict: dict, records: dict[str, dict]):
 @pytest.fixture(scope="session")
 def test_scene_dir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("test_scene")
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One torch thread for the duration of a test: filter tests are small and the machine is shared."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -19,12 +19,7 @@ from denoisers.methods.eaw import eaw_workspace, filter_eaw
 from denoisers.registry import Frame
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def random_guides(height: int, width: int, seed: int) -> dict[str, torch.Tensor]:
