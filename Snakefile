@@ -1,8 +1,8 @@
 # Monte Carlo denoising reference harness: seeded procedural scenes -> Mitsuba 3 noisy per-sample
-# renders and high-spp references (OpenEXR) -> denoised test clips, per-frame metrics and a
-# generated report. Rules live in workflow/rules/, the config schema in
-# workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
-# `snakemake denoise`, `snakemake evaluate`, `snakemake report`.
+# renders and high-spp references (OpenEXR) -> learned denoisers trained on the training scenes ->
+# denoised test clips, per-frame metrics and a generated report. Rules live in workflow/rules/, the
+# config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
+# `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake report`.
 
 from snakemake.utils import min_version
 
@@ -18,6 +18,7 @@ report: "workflow/report/workflow.rst"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/scenes.smk"
 include: "workflow/rules/render.smk"
+include: "workflow/rules/train.smk"
 include: "workflow/rules/evaluate.smk"
 
 
@@ -25,6 +26,7 @@ localrules:
     all,
     scenes,
     renders,
+    train,
     denoise,
     evaluate,
     report,
@@ -39,6 +41,11 @@ rule renders:
     input:
         chunk_dirs("noisy"),
         chunk_dirs("reference"),
+
+
+rule train:
+    input:
+        model_dirs(),
 
 
 # The evaluation targets take input functions: the (method, spp) pairs are planned (importing
@@ -64,4 +71,5 @@ rule all:
     input:
         rules.scenes.input,
         rules.renders.input,
+        rules.train.input,
         rules.build_report.output,

@@ -1,5 +1,6 @@
 """Command line of the evaluation stages (``python -m denoisers <command>``); the workflow's rules call it.
 
+  train       one configured model on the training scenes          -> results/models/{model}/
   denoise     one configured method on one test clip at one spp  -> results/denoised/{method}/{scene}/spp{spp}/
   evaluate    per-frame metrics of a denoised clip               -> results/metrics/{method}/{scene}/spp{spp}.csv
   robustness  one method on a clip with injected spikes/NaN/Inf  -> results/robustness/{method}/{scene}/spp{spp}/
@@ -31,6 +32,15 @@ def _parser() -> argparse.ArgumentParser:
         cmd.add_argument("--out", type=Path, required=True, help="output directory (written atomically)")
         cmd.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
         cmd.add_argument("--spp", type=int, required=True, help="evaluated samples per pixel")
+        cmd.add_argument("--results", type=Path, default=Path("results"),
+                         help="results root; trained models are read from <results>/models/<id>/")
+
+    train = sub.add_parser("train", help="train one configured model (training.models / ablations)")
+    train.add_argument("--config", type=Path, required=True, help="resolved config YAML")
+    train.add_argument("--model-id", required=True, help="model id (training.models or {ablation}_{variant})")
+    train.add_argument("--render-root", type=Path, required=True, help="results/renders (one folder per scene)")
+    train.add_argument("--out", type=Path, required=True, help="model directory results/models/{model} (atomic)")
+    train.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
 
     evaluate = sub.add_parser("evaluate", help="per-frame metrics of a denoised clip against its reference")
     evaluate.add_argument("--config", type=Path, required=True)
@@ -50,10 +60,11 @@ def _parser() -> argparse.ArgumentParser:
 def load_evaluation_config(path: Path) -> dict:
     """Load and validate a config, including the cross-key checks of the evaluation section."""
     from denoisers.evaluate import evaluation_problems
+    from denoisers.training.models import training_problems
     from scenegen.config import ConfigError, load_config
 
     cfg = load_config(path)
-    problems = evaluation_problems(cfg)
+    problems = evaluation_problems(cfg) + training_problems(cfg)
     if problems:
         raise ConfigError(f"{path}: invalid configuration:\n  - " + "\n  - ".join(problems))
     return cfg
@@ -65,12 +76,14 @@ def main(argv: list[str] | None = None) -> int:
                         stream=sys.stderr)
     from denoisers.evaluate import EvaluationError
     from denoisers.registry import MissingInputError
+    from denoisers.training.loop import CheckpointError, NonFiniteLossError
     from scenegen.config import ConfigError
     from scenegen.dataset import DatasetError
 
     try:
         return _run(args)
-    except (MissingInputError, EvaluationError, DatasetError, ConfigError) as error:
+    except (MissingInputError, EvaluationError, DatasetError, ConfigError, CheckpointError,
+            NonFiniteLossError) as error:
         # Expected failures get one clear line (the workflow prints the job's log), not a traceback.
         log.error("%s", error)
         return 1
@@ -89,9 +102,16 @@ def _run(args: argparse.Namespace) -> int:
     cfg = load_evaluation_config(args.config)
     from denoisers import evaluate
 
-    if args.command == "denoise":
+    if args.command == "train":
+        from denoisers.training.job import train_model
+
+        summary = train_model(cfg, args.model_id, args.render_root, args.out, threads=args.threads)
+        log.info("model %s: %d steps in %.0f s (%.3g s/step, stopped by %s), best validation loss %.4g at "
+                 "step %s", args.model_id, summary["steps"], summary["elapsed_seconds"], summary["seconds_per_step"],
+                 summary["stopped_by"], summary["best_value"] or float("nan"), summary["best_step"])
+    elif args.command == "denoise":
         record = evaluate.denoise_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
-                                       threads=args.threads)
+                                       threads=args.threads, results=args.results)
         log.info("%s %s spp %d: %.2f ms/frame (%.3g Mpix/s), +%.0f MB peak RSS, %d non-finite inputs, "
                  "%d non-finite outputs", record["method_id"], args.scene, args.spp, record["mean_seconds"] * 1e3,
                  record["mpix_per_s"], record["peak_memory_mb"], record["nonfinite_inputs"],
@@ -101,7 +121,7 @@ def _run(args: argparse.Namespace) -> int:
         log.info("%s: %d frames, mean PSNR %.2f dB", args.denoised, len(table), table["psnr"].mean())
     elif args.command == "robustness":
         summary = evaluate.robustness_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
-                                           threads=args.threads)
+                                           threads=args.threads, results=args.results)
         log.info("robustness %s %s: injected %s, %d non-finite outputs, mean PSNR %.2f dB", args.method_id,
                  args.scene, summary["injected"], summary["nonfinite_outputs"], summary["mean_psnr"])
     elif args.command == "report":

@@ -23,6 +23,7 @@ from typing import Any, Self
 import numpy as np
 
 from scenegen.atomic import atomic_directory, write_text_atomic
+from denoisers.training.models import resolve_method_params
 from scenegen.config import SCENE_SPLITS, scene_ids
 
 TEST_PREFIX = f"{SCENE_SPLITS[1]}_"
@@ -140,7 +141,7 @@ def plan_runs(cfg: dict, spps: Sequence[int] | None = None) -> list[Run]:
     available = rendered_layers(cfg)
     runs = []
     for spec in method_specs(cfg):
-        method = registry.build(spec.method, spec.params)
+        method = registry.build(spec.method, resolve_method_params(cfg, spec.params))
         for spp in spps if spps is not None else cfg["evaluation"]["spp"]:
             layers = spp * method.samples_factor
             short = [buffer for buffer in method.info.inputs if available[buffer] < layers]
@@ -329,11 +330,11 @@ def timing_summary(seconds: Sequence[float], width: int, height: int) -> dict[st
     }
 
 
-def _prepare(cfg: dict, method_id: str, spp: int):
+def _prepare(cfg: dict, method_id: str, spp: int, results: Path | str = "results"):
     from denoisers import registry
 
     spec = method_spec(cfg, method_id)
-    method = registry.build(spec.method, spec.params)
+    method = registry.build(spec.method, resolve_method_params(cfg, spec.params, results))
     return spec, method, spp * method.samples_factor
 
 
@@ -353,11 +354,11 @@ def _reference_render_rates(render_dir: Path) -> list[float]:
 
 
 def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Path, out_dir: Path,
-                 threads: int = 1) -> dict[str, Any]:
+                 threads: int = 1, results: Path | str = "results") -> dict[str, Any]:
     """Run one configured method on one clip at ``spp`` and write ``out_dir`` atomically:
     frame_TTTT.exr (radiance.R/G/B, linear HDR), frame_TTTT.png (tonemapped preview), timing.json.
-    Returns the timing record."""
-    spec, method, layers = _prepare(cfg, method_id, spp)
+    A row with ``params: {model: <id>}`` loads ``<results>/models/<id>/best.pt``. Returns the timing record."""
+    spec, method, layers = _prepare(cfg, method_id, spp, results)
     clip = _load_method_clip(Path(render_dir), spec, method, layers, reference=False)
     frames = _frames(clip, method, layers)
     result = run_method(method, frames, threads)
@@ -520,14 +521,14 @@ def inject_corruption(samples: dict[str, np.ndarray], *, seed: int, scene: str, 
 
 
 def robustness_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Path, out_dir: Path,
-                    threads: int = 1) -> dict[str, Any]:
+                    threads: int = 1, results: Path | str = "results") -> dict[str, Any]:
     """Run one method at ``spp`` on a clip whose noisy samples carry injected spikes and NaN/Inf (settings
     in ``evaluation.robustness``) and score it against the reference. Writes ``out_dir`` atomically:
     metrics.csv (per frame), summary.json (counts), last_frame.exr (the output of the last frame)."""
     import pandas as pd
 
     settings = cfg["evaluation"]["robustness"]
-    spec, method, layers = _prepare(cfg, method_id, spp)
+    spec, method, layers = _prepare(cfg, method_id, spp, results)
     clip = _load_method_clip(Path(render_dir), spec, method, layers, reference=True)
     injected = inject_corruption(clip.samples, seed=cfg["seed"], scene=scene, frames=clip.frames,
                                  spike_fraction=settings["spike_fraction"],

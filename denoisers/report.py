@@ -43,6 +43,8 @@ from scenegen.config import SCENE_SPLITS, scene_ids
 if TYPE_CHECKING:
     import pandas as pd
 
+    from denoisers.report_training import TrainedModels
+
 CONFIDENCE = 0.95
 #: Tables written as tables/{name}.csv and tables/{name}.md.
 TABLES: tuple[str, ...] = ("summary", "per_scene", "psnr_by_spp", "chaitanya_fig8", "isik_video", "timing",
@@ -69,9 +71,13 @@ REPRODUCED, NOT_REPRODUCED, NOT_RUN = "reproduced", "not reproduced", "not run"
 
 def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
     """Files the report writes, grouped: 'tables' (CSV), 'tables_md', 'quality' (chart PNG + SVG),
-    'curves' (per-frame error per test scene), 'grids' (image grid per test scene + robustness), 'markdown'."""
+    'curves' (per-frame error per test scene), 'grids' (image grid per test scene + robustness), 'markdown',
+    'training_tables' and 'training_figures' (trained models and ablations; empty without training)."""
+    from denoisers.report_training import training_outputs
+
     scenes = evaluated_scene_ids(cfg)
-    return {"tables": [f"{root}/tables/{t}.csv" for t in TABLES],
+    training = training_outputs(cfg, root)
+    return {"training_tables": training["tables"], "training_figures": training["figures"],"tables": [f"{root}/tables/{t}.csv" for t in TABLES],
             "tables_md": [f"{root}/tables/{t}.md" for t in TABLES],
             "quality": [f"{root}/figures/quality_vs_speed.png", f"{root}/figures/quality_vs_speed.svg"],
             "curves": [f"{root}/figures/frame_curves_{scene}.png" for scene in scenes],
@@ -150,6 +156,7 @@ class Results:
     per_scene: pd.DataFrame                 # per (method_id, spp, scene): frame means + timing
     robustness: pd.DataFrame | None = None  # per (method_id, scene): spiked metrics and counts
     results_dir: Path = field(default_factory=lambda: Path("results"))
+    models: TrainedModels | None = None      # trained models (denoisers.report_training)
 
     def ran(self, method_id: str, spp: int) -> bool:
         return any(r["id"] == method_id and r["spp"] == spp and r["status"] == "ran" for r in self.runs)
@@ -160,6 +167,11 @@ class Results:
             if spec.method == method and any(r["id"] == spec.id and r["status"] == "ran" for r in self.runs):
                 return spec.id
         return None
+
+    def rows_of(self, method: str) -> list[str]:
+        """Every row id whose registry method is ``method`` and that produced results."""
+        return [spec.id for spec in self.specs if spec.method == method
+                and any(r["id"] == spec.id and r["status"] == "ran" for r in self.runs)]
 
     def spec(self, method_id: str) -> MethodSpec:
         return next(spec for spec in self.specs if spec.id == method_id)
@@ -234,7 +246,10 @@ def collect(cfg: dict, results_dir: Path) -> Results:
         per_scene = pd.DataFrame(columns=["method_id", "spp", "scene", *metric_columns, *TIMING_COLUMNS])
     robustness = _collect_robustness(cfg, results_dir, specs, scenes) if cfg["evaluation"]["robustness"]["enabled"] \
         else None
-    return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir)
+    from denoisers.report_training import collect_models
+
+    return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir,
+                   collect_models(cfg, results_dir))
 
 
 def _collect_robustness(cfg: dict, results_dir: Path, specs: list[MethodSpec], scenes: list[str]) -> pd.DataFrame:
@@ -321,18 +336,30 @@ def pivot_table(res: Results, summary: pd.DataFrame, metrics: Sequence[str]) -> 
     return pd.DataFrame(rows)
 
 
+#: Registry methods shown in the Chaitanya Fig. 8 table (the paper's EAW and RAE, plus SVGF and OIDN, and the input).
+CHAITANYA_METHODS: tuple[str, ...] = ("noisy", "eaw", "svgf", "oidn", "rae")
+
+
 def chaitanya_table(res: Results) -> pd.DataFrame:
-    """Chaitanya et al. 2017 Fig. 8 layout: RMSE and SSIM per test scene at the lowest spp (1 spp there)."""
+    """Chaitanya et al. 2017 Fig. 8 layout at 1 spp (or the lowest evaluated spp): a row per method, RMSE and
+    SSIM per test scene, then the mean over scenes with its 95 % CI."""
     import pandas as pd
 
-    spp = min(res.cfg["evaluation"]["spp"])
+    spp = _claim_spp(res, 1)
     rows = []
-    for scene in res.scenes:
-        row = {"scene": scene, "spp": spp}
-        for spec in res.specs:
+    for spec in res.specs:
+        if spec.method not in CHAITANYA_METHODS:
+            continue
+        row: dict[str, Any] = {"method": spec.id, "spp": spp}
+        ran = res.ran(spec.id, spp)
+        for scene in res.scenes:
             for metric in ("rmse", "ssim"):
-                values = res.scene_values(spec.id, spp, metric) if res.ran(spec.id, spp) else None
-                row[f"{spec.id} {LABELS[metric]}"] = float(values[scene]) if values is not None else math.nan
+                row[f"{scene} {LABELS[metric]}"] = float(res.scene_values(spec.id, spp, metric)[scene]) if ran \
+                    else math.nan
+        for metric in ("rmse", "ssim"):
+            mean, low, high, _ = mean_ci(res.scene_values(spec.id, spp, metric).to_numpy(float)) if ran \
+                else (math.nan,) * 3 + (0,)
+            row[f"{metric}_mean"], row[f"{metric}_ci_low"], row[f"{metric}_ci_high"] = mean, low, high
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -540,6 +567,115 @@ def _decide_c42(res: Results) -> tuple[str, str, str, str]:
             "than RLS")
 
 
+def _rae_rows(res: Results) -> tuple[str | None, str | None]:
+    """(RAE row carrying its recurrent state, RAE row resetting it every frame), None where absent."""
+    carried = [r for r in res.rows_of("rae") if not res.spec(r).params.get("reset_state_every_frame")]
+    reset = [r for r in res.rows_of("rae") if res.spec(r).params.get("reset_state_every_frame")]
+    return (carried[0] if carried else None), (reset[0] if reset else None)
+
+
+def _verdict(comparisons: Sequence[Comparison]) -> str:
+    return REPRODUCED if all(c.a_better for c in comparisons) else NOT_REPRODUCED
+
+
+def _joined(comparisons: Sequence[Comparison]) -> tuple[str, str]:
+    return "; ".join(c.text() for c in comparisons), "; ".join(c.ci_text() for c in comparisons)
+
+
+def _rae_note(res: Results, row: str) -> str:
+    """What the evaluated RAE is: its model, width and training budget (from the model's summary)."""
+    model_id = res.spec(row).params.get("model")
+    model = res.models.models.get(model_id) if res.models and model_id else None
+    if model is None:
+        return f"RAE row {row}"
+    s = model.summary
+    width = s.get("net", {}).get("config", {}).get("width")
+    return (f"RAE {model_id}: width {width:g}, {s.get('parameters', 0):,} parameters, {s.get('steps')} steps "
+            f"({s.get('elapsed_seconds', 0) / 60:.0f} min) on {len(s.get('train_scenes', []))} scenes")
+
+
+def _decide_c11(res: Results) -> tuple[str, str, str, str]:
+    rae, eaw = _rae_rows(res)[0], res.row_of("eaw")
+    spp = _claim_spp(res, 1)
+    if rae is None or not (res.ran(rae, spp) and res.ran(eaw, spp)):
+        return NOT_RUN, "", "", f"rae (recurrent) or eaw did not run at {spp} spp"
+    comparisons = [compare(res.scene_values(rae, spp, m), res.scene_values(eaw, spp, m), m, rae, eaw, spp)
+                   for m in ("rmse", "ssim")]
+    return (_verdict(comparisons), *_joined(comparisons),
+            f"needs lower RMSE and higher SSIM on the test scenes; {_rae_note(res, rae)}")
+
+
+def _ablation_pair(res: Results, ablation: str, a: str, b: str):
+    variants = res.models.variants(ablation) if res.models else {}
+    return variants.get(a), variants.get(b)
+
+
+def _decide_c12(res: Results) -> tuple[str, str, str, str]:
+    from denoisers.report_training import INPUT_VARIANT_LABELS, paired
+    from denoisers.training.models import INPUT_ABLATION
+
+    full, color = _ablation_pair(res, INPUT_ABLATION, "all", "color")
+    if full is None or color is None:
+        return NOT_RUN, "", "", f"training ablation {INPUT_ABLATION} with variants 'all' and 'color' not trained"
+    variants = res.models.variants(INPUT_ABLATION)
+    losses = {v: m.final_training_loss() for v, m in variants.items()}
+    train_better = losses["all"] < losses["color"]
+    val_diff = paired(color, full, "loss")
+    val_better = val_diff[0] > 0
+    ranking = " < ".join(f"{INPUT_VARIANT_LABELS.get(v, v)} {losses[v]:.4f}" for v in sorted(losses, key=losses.get))
+    verdict = REPRODUCED if train_better and val_better else NOT_REPRODUCED
+    mean, low, high, n = val_diff
+    ci = (f"validation loss colour−all {mean:.4f} [{low:.4f}, {high:.4f}] (n={n} sequences)" if not math.isnan(low)
+          else f"validation loss colour−all {mean:.4f} (n={n}, no CI)")
+    return (verdict, f"final training loss: {ranking}", ci,
+            "needs a lower final training loss (mean of the last 20 % of logged steps) and a lower held-out "
+            "validation loss for all inputs than for colour only; the colour-only loss is measured on "
+            "non-demodulated colour, the others on demodulated colour (as in the paper's Fig. 3)")
+
+
+def _decide_c13(res: Results) -> tuple[str, str, str, str]:
+    from denoisers.report_training import paired
+    from denoisers.training.models import LOSS_ABLATION
+
+    combined, spatial = _ablation_pair(res, LOSS_ABLATION, "combined", "spatial")
+    if combined is None or spatial is None:
+        return NOT_RUN, "", "", f"training ablation {LOSS_ABLATION} with variants 'combined' and 'spatial' not trained"
+    mean, low, high, n = paired(combined, spatial, "ssim")
+    measured = (f"validation SSIM combined {combined.validation['ssim'].mean():.4f} vs spatial "
+                f"{spatial.validation['ssim'].mean():.4f} (paper 0.9417 vs 0.9335)")
+    ci = (f"combined−spatial {mean:.4f} [{low:.4f}, {high:.4f}] (n={n} sequences)" if not math.isnan(low)
+          else f"combined−spatial {mean:.4f} (n={n}, no CI)")
+    return (REPRODUCED if mean > 0 else NOT_REPRODUCED, measured, ci,
+            f"same data, seed and budget ({combined.summary.get('steps')} steps); SSIM of each model's best "
+            "validation-loss checkpoint on the held-out validation sequences")
+
+
+def _decide_c14(res: Results) -> tuple[str, str, str, str]:
+    rae, noisy = _rae_rows(res)[0], res.row_of("noisy")
+    spp = _claim_spp(res, 4)
+    if rae is None or not (res.ran(rae, spp) and res.ran(noisy, spp)):
+        return NOT_RUN, "", "", f"rae or noisy did not run at {spp} spp"
+    trained = res.models.models.get(res.spec(rae).params.get("model")) if res.models else None
+    trained_spp = trained.spec.data.get("spp") if trained else None
+    comparisons = [compare(res.scene_values(rae, spp, m), res.scene_values(noisy, spp, m), m, rae, noisy, spp)
+                   for m in ("rmse", "ssim")]
+    return (_verdict(comparisons), *_joined(comparisons),
+            f"RAE trained at {trained_spp} spp, evaluated at {spp} spp; needs lower RMSE and higher SSIM than "
+            "its input")
+
+
+def _decide_c15(res: Results) -> tuple[str, str, str, str]:
+    carried, reset = _rae_rows(res)
+    spp = _claim_spp(res, 1)
+    if carried is None or reset is None or not (res.ran(carried, spp) and res.ran(reset, spp)):
+        return NOT_RUN, "", "", ("needs an rae row and an rae row with params.reset_state_every_frame: true, "
+                                 f"both run at {spp} spp")
+    comparisons = [compare(res.scene_values(carried, spp, "trmae"), res.scene_values(reset, spp, "trmae"), "trmae",
+                           carried, reset, spp)]
+    return (_verdict(comparisons), *_joined(comparisons),
+            "same weights; the reset row starts every frame from a zero recurrent state")
+
+
 def _decide_c43(res: Results) -> tuple[str, str, str, str]:
     wrls, noisy = res.row_of("wrls"), res.row_of("noisy")
     spps = [s for s in res.cfg["evaluation"]["spp"] if res.ran(wrls, s) and res.ran(noisy, s)]
@@ -547,18 +683,53 @@ def _decide_c43(res: Results) -> tuple[str, str, str, str]:
         return NOT_RUN, "", "", "wrls and noisy never ran at the same spp"
     comparisons = [compare(res.scene_values(wrls, s, "psnr"), res.scene_values(noisy, s, "psnr"), "psnr", wrls,
                            noisy, s) for s in spps]
-    verdict = REPRODUCED if all(c.a_better for c in comparisons) else NOT_REPRODUCED
-    return (verdict, "; ".join(c.text() for c in comparisons), "; ".join(c.ci_text() for c in comparisons),
-            f"wRLS PSNR above the noisy input at every evaluated spp {spps}; the RAE half of the claim is not run")
+    verdict = _verdict(comparisons)
+    measured, ci = _joined(comparisons)
+    rae = _rae_rows(res)[0]
+    rae_spps = sorted(s for s in spps if rae is not None and res.ran(rae, s))
+    if len(rae_spps) < 2:
+        return (verdict, measured, ci, f"wRLS PSNR above the noisy input at every evaluated spp {spps}; the RAE "
+                                       "half of the claim is not run (needs rae at two or more spp)")
+    gains = {s: (res.scene_values(rae, s, "psnr") - res.scene_values(noisy, s, "psnr")) for s in rae_spps}
+    low_spp, high_spp = rae_spps[0], rae_spps[-1]
+    shrink = compare(gains[high_spp], gains[low_spp], "psnr", f"RAE gain @{high_spp}", f"RAE gain @{low_spp}",
+                     high_spp)
+    shrinks = shrink.diff[0] < 0
+    verdict = REPRODUCED if verdict == REPRODUCED and shrinks else NOT_REPRODUCED
+    gain_text = ", ".join(f"{s} spp {gains[s].mean():+.2f} dB" for s in rae_spps)
+    return (verdict, f"{measured}; RAE PSNR gain over its input: {gain_text}", f"{ci}; {shrink.ci_text()}",
+            f"needs wRLS above the noisy input at every spp {spps} and RAE's PSNR gain smaller at {high_spp} "
+            f"than at {low_spp} spp")
+
+
+def _decide_c44(res: Results) -> tuple[str, str, str, str]:
+    from denoisers import registry
+
+    wrls, rae = res.row_of("wrls"), _rae_rows(res)[0]
+    spp = _claim_spp(res, 1)
+    if rae is None or not (res.ran(wrls, spp) and res.ran(rae, spp)):
+        return NOT_RUN, "", "", f"wrls or rae did not run at {spp} spp"
+    untrained = not registry.get("wrls").info.trainable and registry.get("rae").info.trainable
+    comparisons = [compare(res.scene_values(wrls, spp, "ms_per_frame"), res.scene_values(rae, spp, "ms_per_frame"),
+                           "ms_per_frame", wrls, rae, spp)]
+    verdict = REPRODUCED if untrained and comparisons[0].a_better else NOT_REPRODUCED
+    return (verdict, *_joined(comparisons),
+            f"wRLS trainable: {registry.get('wrls').info.trainable}, RAE trainable: "
+            f"{registry.get('rae').info.trainable}; time per frame with {res.cfg['evaluation']['threads']} "
+            f"thread(s), {_rae_note(res, rae)}")
 
 
 CLAIMS: tuple[Claim, ...] = (
-    Claim("C1.1", "Chaitanya 2017", "RAE has lower RMSE and higher SSIM than EAW at 1 spp", ("rae", "eaw")),
+    Claim("C1.1", "Chaitanya 2017", "RAE has lower RMSE and higher SSIM than EAW at 1 spp", ("rae", "eaw"),
+          _decide_c11),
     Claim("C1.2", "Chaitanya 2017", "albedo demodulation and auxiliary features lower the training loss",
-          ("rae",)),
-    Claim("C1.3", "Chaitanya 2017", "the combined loss gives higher validation SSIM than spatial L1 alone", ("rae",)),
-    Claim("C1.4", "Chaitanya 2017", "RAE trained at 1 spp still improves on its input at 4 spp", ("rae", "noisy")),
-    Claim("C1.5", "Chaitanya 2017", "the recurrent network has lower TRMAE than the same network per frame", ("rae",)),
+          (), _decide_c12),
+    Claim("C1.3", "Chaitanya 2017", "the combined loss gives higher validation SSIM than spatial L1 alone", (),
+          _decide_c13),
+    Claim("C1.4", "Chaitanya 2017", "RAE trained at 1 spp still improves on its input at 4 spp", ("rae", "noisy"),
+          _decide_c14),
+    Claim("C1.5", "Chaitanya 2017", "the recurrent network has lower TRMAE than the same network per frame", ("rae",),
+          _decide_c15),
     Claim("C2.1", "Hasselgren 2020", "kernel prediction beats direct prediction (PSNR)", ("ntasd",)),
     Claim("C2.2", "Hasselgren 2020", "warped temporal recurrence improves PSNR and tPSNR over per-frame KPN",
           ("ntasd",)),
@@ -577,7 +748,8 @@ CLAIMS: tuple[Claim, ...] = (
           _decide_c42),
     Claim("C4.3", "Iglesias-Guitian 2022", "wRLS improves on its input at every spp (RAE's gain shrinks)",
           ("wrls", "noisy"), _decide_c43),
-    Claim("C4.4", "Iglesias-Guitian 2022", "wRLS needs no training and runs faster than RAE", ("wrls", "rae")),
+    Claim("C4.4", "Iglesias-Guitian 2022", "wRLS needs no training and runs faster than RAE", ("wrls", "rae"),
+          _decide_c44),
 )
 
 
@@ -845,7 +1017,8 @@ def _display(table: pd.DataFrame, metric_columns: dict[str, str]) -> pd.DataFram
 
 
 def _report_markdown(res: Results, outputs: dict[str, str], summary_md: str, claims: pd.DataFrame,
-                     equal_time_md: str, robustness_md: str | None, noise_md: str, not_run: list[dict]) -> str:
+                     equal_time_md: str, robustness_md: str | None, noise_md: str, not_run: list[dict],
+                     training_md: str = "") -> str:
     from denoisers import metrics
 
     cfg = res.cfg
@@ -903,6 +1076,8 @@ def _report_markdown(res: Results, outputs: dict[str, str], summary_md: str, cla
                   "of every input buffer (at least one) become NaN, +Inf or -Inf; seeded, identical for every method. "
                   "Metrics treat non-finite outputs as 0; their count is listed.", "",
                   robustness_md, "", "![Robustness grid](figures/robustness_grid.png)", ""]
+    if training_md:
+        lines += [training_md, ""]
     lines += ["## Reference noise floor", "", noise_md, ""]
     lines += ["## Per-scene figures", ""]
     for scene in res.scenes:
@@ -920,6 +1095,59 @@ def _report_markdown(res: Results, outputs: dict[str, str], summary_md: str, cla
     lines += ["", "## Files", ""]
     lines += [f"- [{Path(p).name}]({p})" for p in outputs.values()]
     return "\n".join(lines) + "\n"
+
+
+def _write_training(res: Results, cfg: dict, tables: Path, figures: Path, paper_fig8: pd.DataFrame) -> str:
+    """Training tables and figures (report_training); returns the REPORT.md section ('' without training)."""
+    from denoisers import report_training as rt
+    from denoisers.training.models import INPUT_ABLATION, LOSS_ABLATION
+
+    expected = rt.training_outputs(cfg, root=str(tables.parent))
+    if not expected["tables"]:
+        return ""
+    models = res.models
+    training = rt.training_table(models)
+    _write_table(training, tables, "training", frame_to_markdown(_display(training, {
+        c: "" for c in ("train_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim", "val_psnr",
+                        "val_rmse") if c in training})))
+    _write_table(paper_fig8, tables, "chaitanya_fig8_paper")
+    rt.plot_training_curves(models, figures / "training_curves.png")
+    lines = ["## Learned denoisers", "",
+             "Trained on the training scenes (never on test scenes); validation on held-out training-distribution "
+             "scenes. Sizes, budgets and validation metrics of each model's best (lowest validation loss) "
+             "checkpoint:", "", frame_to_markdown(_display(training, {
+                 c: "" for c in ("train_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim",
+                                 "val_psnr", "val_rmse") if c in training})),
+             "![Training curves](figures/training_curves.png)", ""]
+    if any(p.endswith(f"{INPUT_ABLATION}.csv") for p in expected["tables"]):
+        table = rt.input_ablation_table(models)
+        shown = _with_ci_columns(table.rename(columns={f"val_{m}": f"val_{m}_mean" for m in ("loss", "rmse", "ssim")})
+                                 .rename(columns=lambda c: c.replace("_low", "_ci_low").replace("_high", "_ci_high")),
+                                 {"val loss": ("val_loss", "rmse"), "val RMSE": ("val_rmse", "rmse"),
+                                  "val SSIM": ("val_ssim", "ssim")},
+                                 ["variant", "inputs", "model", "steps"], ["val_sequences"]) if len(table) else table
+        if len(table):
+            shown.insert(4, "final train loss", [fmt(v, "rmse") for v in table["final_train_loss"]])
+        markdown = frame_to_markdown(shown) if len(table) else "no variant trained\n"
+        _write_table(table, tables, INPUT_ABLATION, markdown)
+        rt.plot_input_ablation(models, figures / f"{INPUT_ABLATION}_curves.png")
+        lines += ["### Input ablation (Chaitanya et al. 2017, Fig. 3)", "",
+                  "Same data, seed and budget for every input set; ± over validation sequences.", "", markdown,
+                  f"![Input ablation](figures/{INPUT_ABLATION}_curves.png)", ""]
+    if any(p.endswith(f"{LOSS_ABLATION}.csv") for p in expected["tables"]):
+        table = rt.loss_ablation_table(models)
+        shown = _with_ci_columns(table.rename(columns={"val_ssim": "val_ssim_mean", "val_ssim_low": "val_ssim_ci_low",
+                                                       "val_ssim_high": "val_ssim_ci_high"}),
+                                 {"val SSIM": ("val_ssim", "ssim")}, ["variant", "model", "loss_weights", "steps"],
+                                 ["val_sequences", "paper_ssim"]) if len(table) else table
+        markdown = frame_to_markdown(shown) if len(table) else "no variant trained\n"
+        _write_table(table, tables, LOSS_ABLATION, markdown)
+        rt.plot_loss_ablation(models, figures / f"{LOSS_ABLATION}_curves.png")
+        lines += ["### Loss ablation (Chaitanya et al. 2017, §4.4)", "", markdown,
+                  f"![Loss ablation](figures/{LOSS_ABLATION}_curves.png)", ""]
+    if models.missing:
+        lines += [f"Not trained (no complete model directory): {', '.join(models.missing)}", ""]
+    return "\n".join(lines)
 
 
 def build_report(cfg: dict, results_dir: Path, out_dir: Path | None = None) -> list[Path]:
@@ -943,8 +1171,22 @@ def build_report(cfg: dict, results_dir: Path, out_dir: Path | None = None) -> l
     _write_table(pivot_table(res, summary, ["psnr"]), tables, "psnr_by_spp")
     _write_table(pivot_table(res, summary, ["psnr", "trmae"]), tables, "isik_video")
     chaitanya = chaitanya_table(res)
-    _write_table(chaitanya, tables, "chaitanya_fig8", frame_to_markdown(_display(
-        chaitanya, {c: "rmse" if "RMSE" in c else "ssim" for c in chaitanya.columns if c not in ("scene", "spp")})))
+    scene_columns = [c for c in chaitanya.columns if c.endswith((" RMSE", " SSIM"))]
+    chaitanya_md = frame_to_markdown(_with_ci_columns(
+        _display(chaitanya, {c: "rmse" if c.endswith("RMSE") else "ssim" for c in scene_columns}),
+        {}, ["method", "spp", *scene_columns], []).assign(**{
+            "mean RMSE": [fmt_ci(m, lo, hi, "rmse") for m, lo, hi in
+                          zip(chaitanya.get("rmse_mean", []), chaitanya.get("rmse_ci_low", []),
+                              chaitanya.get("rmse_ci_high", []))],
+            "mean SSIM": [fmt_ci(m, lo, hi, "ssim") for m, lo, hi in
+                          zip(chaitanya.get("ssim_mean", []), chaitanya.get("ssim_ci_low", []),
+                              chaitanya.get("ssim_ci_high", []))]}))
+    from denoisers import report_training
+
+    paper_fig8 = report_training.paper_fig8_table()
+    chaitanya_md += ("\nPaper (Chaitanya et al. 2017, Fig. 8; 1 spp, 1-bounce GI, 1080p, 2000-4000 spp targets; "
+                     "other scenes, for context only):\n\n" + frame_to_markdown(paper_fig8))
+    _write_table(chaitanya, tables, "chaitanya_fig8", chaitanya_md)
     timing = timing_table(res)
     timing_md = frame_to_markdown(_display(timing, {c: c.rsplit("_", 1)[0].replace("_ci", "") for c in timing.columns
                                                     if c.endswith(("_mean", "_low", "_high"))}))
@@ -978,6 +1220,8 @@ def build_report(cfg: dict, results_dir: Path, out_dir: Path | None = None) -> l
     _write_table(runs, tables, "runs")
     _write_table(split_table(cfg), tables, "split")
 
+    training_md = _write_training(res, cfg, tables, figures, paper_fig8)
+
     plot_quality_vs_speed(res, summary, [figures / "quality_vs_speed.png", figures / "quality_vs_speed.svg"])
     for scene in res.scenes:
         plot_frame_curves(res, scene, figures / f"frame_curves_{scene}.png")
@@ -985,9 +1229,11 @@ def build_report(cfg: dict, results_dir: Path, out_dir: Path | None = None) -> l
 
     expected = report_outputs(cfg, root=str(out_dir))
     links = {p: str(Path(p).relative_to(out_dir))
-             for group in ("tables", "quality", "curves", "grids") for p in expected[group]}
+             for group in ("tables", "quality", "curves", "grids", "training_tables", "training_figures")
+             for p in expected[group] if p.endswith((".csv", ".png", ".svg"))}
     not_run = [r for r in res.runs if r["status"] != "ran"]
-    text = _report_markdown(res, links, summary_md, claims, equal_time_md, robustness_md, noise_md, not_run)
+    text = _report_markdown(res, links, summary_md, claims, equal_time_md, robustness_md, noise_md, not_run,
+                            training_md)
     write_text_atomic(out_dir / "REPORT.md", text)
     written = [Path(p) for group in expected.values() for p in group]
     absent = [p for p in written if not p.is_file()]

@@ -64,8 +64,9 @@ def test_default_config_matches_the_shared_contract() -> None:
 
 def test_smoke_config_is_tiny() -> None:
     cfg = load_config(SMOKE_CONFIG)
-    assert scene_ids(cfg) == ["train_000", "test_000"]
-    assert [chunk_count(cfg, scene) for scene in scene_ids(cfg)] == [2, 2]
+    # Two training scenes: one trains, one is held out for validation.
+    assert scene_ids(cfg) == ["train_000", "train_001", "test_000"]
+    assert [chunk_count(cfg, scene) for scene in scene_ids(cfg)] == [2, 2, 2]
     assert (cfg["render"]["width"], cfg["render"]["height"], cfg["render"]["spp"]) == (48, 48, 4)
     assert cfg["render"]["reference_spp"] == 64
     assert cfg["scenes"]["objects"] == [3, 6]

@@ -22,13 +22,14 @@ import yaml
 from denoisers.evaluate import plan_runs, robustness_runs
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
+from denoisers.training.models import method_model, model_specs, training_split
 from scenegen.config import chunk_count, load_config, scene_ids
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
-             "robustness_clip", "build_report")
-STAGE_TARGETS = ("scenes", "renders", "denoise", "evaluate", "report")
+             "robustness_clip", "build_report", "train_denoiser")
+STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report")
 WORKFLOW_FILES = ("Snakefile", "workflow", "config")
 JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
 
@@ -95,19 +96,31 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     scenes, test_scenes = scene_ids(cfg), evaluated_scene_ids(cfg)
     evaluated = len(test_scenes) * sum(run.runnable for run in plan_runs(cfg))
     robustness = len(test_scenes) * sum(run.runnable for run in robustness_runs(cfg))
+    # Training reads every train_* scene (the held-out validation scenes too); the evaluation needs only the
+    # models its rows name, the report and the default target every configured model.
+    train_scenes = sum(training_split(cfg), [])
+    all_models = len(model_specs(cfg))
+    used_models = len({method_model(entry.get("params") or {}) for entry in cfg["evaluation"]["methods"]} - {None})
 
-    def renders(ids: list[str], kinds: tuple[str, ...] = ("noisy", "reference")) -> dict[str, int]:
-        chunks = sum(chunk_count(cfg, scene) for scene in ids)
-        return {"generate_scene": len(ids), **{f"render_{kind}": chunks for kind in kinds}}
+    def renders(noisy: list[str], reference: list[str]) -> dict[str, int]:
+        ids = set(noisy) | set(reference)
+        return {"generate_scene": len(ids), "render_noisy": sum(chunk_count(cfg, s) for s in set(noisy)),
+                "render_reference": sum(chunk_count(cfg, s) for s in set(reference))}
 
+    training_inputs = train_scenes if all_models else []
+    used_inputs = train_scenes if used_models else []
     evaluation = {"denoise_clip": evaluated, "evaluate_clip": evaluated, "robustness_clip": robustness}
     jobs = {
         "scenes": {"generate_scene": len(scenes)},
-        "renders": renders(scenes),
-        "denoise": {**renders(test_scenes, ("noisy",)), "denoise_clip": evaluated},
-        "evaluate": {**renders(test_scenes), **evaluation},
-        "report": {**renders(test_scenes), **evaluation, "build_report": 1},
-        "all": {**renders(scenes), **evaluation, "build_report": 1},
+        "renders": renders(scenes, scenes),
+        "train": {**renders(training_inputs, training_inputs), "train_denoiser": all_models},
+        "denoise": {**renders(test_scenes + used_inputs, used_inputs), "denoise_clip": evaluated,
+                    "train_denoiser": used_models},
+        "evaluate": {**renders(test_scenes + used_inputs, test_scenes + used_inputs), **evaluation,
+                     "train_denoiser": used_models},
+        "report": {**renders(test_scenes + training_inputs, test_scenes + training_inputs), **evaluation,
+                   "build_report": 1, "train_denoiser": all_models},
+        "all": {**renders(scenes, scenes), **evaluation, "build_report": 1, "train_denoiser": all_models},
     }[target]
     return {rule: count for rule, count in {**jobs, target: 1}.items() if count}
 
@@ -168,7 +181,7 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     config_files = {re.search(r"--config (\S+)", command).group(1) for command in scenegen + denoisers}
     assert len(config_files) == 1
     resolved = load_config(workflow_copy / config_files.pop())
-    assert resolved["render"]["width"] == 48 and resolved["scenes"]["n_train"] == 1
+    assert resolved["render"]["width"] == 48 and resolved["scenes"]["n_train"] == 2
     assert resolved["evaluation"] == cfg["evaluation"]
     assert any("render-noisy" in command and "--chunk 1 " in command for command in scenegen)
 
@@ -255,17 +268,18 @@ def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> Non
     assert (work / "results/renders/test_000/reference/chunk_001/stub.txt").is_file()
     assert dry_run("renders", "--configfile", "config/smoke.yaml", cwd=work) == {}
 
+    # The smoke config: 3 scenes x 2 chunks.
     noisy_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "spp", 2), cwd=work)
-    assert noisy_only == {"render_noisy": 4, "renders": 1}
+    assert noisy_only == {"render_noisy": 6, "renders": 1}
 
     reference_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "reference_spp", 32), cwd=work)
-    assert reference_only == {"render_reference": 4, "renders": 1}
+    assert reference_only == {"render_reference": 6, "renders": 1}
 
-    one_more_scene = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "n_train", 2), cwd=work)
+    one_more_scene = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "n_train", 3), cwd=work)
     assert one_more_scene == {"generate_scene": 1, "render_noisy": 2, "render_reference": 2, "renders": 1}
 
     everything = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "objects", [3, 7]), cwd=work)
-    assert everything == {"generate_scene": 2, "render_noisy": 4, "render_reference": 4, "renders": 1}
+    assert everything == {"generate_scene": 3, "render_noisy": 6, "render_reference": 6, "renders": 1}
 
 
 def rule_names() -> set[str]:

@@ -1,15 +1,11 @@
 """Training infrastructure shared by the learned denoisers (RAE, and later NTASD and AFN).
 
+``models``: which models the config trains and with what settings (config level, no torch: the
+Snakefile imports it while parsing); ``tasks``: how a method's settings become a training task;
 ``data``: training sequences cut and augmented from rendered clips (``SequenceDataset``);
-``loop``: the generic trainer with exact resume, validation and curves (``Trainer``).
+``loop``: the generic trainer with exact resume, validation and curves (``Trainer``);
+``job``: one training job of the workflow (rule train_denoiser).
+
+Import the submodules directly; this package file stays empty of imports so that reading the
+config does not load torch.
 """
-from __future__ import annotations
-
-from denoisers.training.data import (Batch, SequenceConfig, SequenceDataset, SequencePlan, fixed_batches,
-                                     load_training_clips)
-from denoisers.training.loop import (CheckpointError, NonFiniteLossError, Trainer, TrainerConfig, TrainResult,
-                                     load_checkpoint, load_model, lr_factor)
-
-__all__ = ["Batch", "SequenceConfig", "SequenceDataset", "SequencePlan", "fixed_batches", "load_training_clips",
-           "CheckpointError", "NonFiniteLossError", "Trainer", "TrainerConfig", "TrainResult", "load_checkpoint",
-           "load_model", "lr_factor"]

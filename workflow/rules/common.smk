@@ -19,6 +19,8 @@ from scenegen.config import (
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
 from denoisers.evaluate import evaluation_problems, method_spec, robustness_dir, evaluated_scene_ids
 from denoisers.report import report_outputs
+from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, settings_digest,
+                                       training_problems, training_split)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -33,7 +35,7 @@ except Exception as err:  # WorkflowError, or AttributeError when a section is n
     schema_error = err
 config_errors = config_problems(config) or ([str(schema_error)] if schema_error else [])
 if not config_errors:
-    config_errors = evaluation_problems(config)
+    config_errors = evaluation_problems(config) + training_problems(config)
 if config_errors:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
 
@@ -42,6 +44,7 @@ wildcard_constraints:
     scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+",
     chunk=r"\d{3}",
     method=r"[a-z0-9_]+",
+    model=r"[a-z][a-z0-9_]*",
     spp=r"\d+",
 
 
@@ -195,6 +198,41 @@ def evaluate_targets(wildcards=None) -> list[str]:
     return metrics_files() + robustness_dirs()
 
 
+# ---------------------------------------------------------------------------------------------
+# Training (workflow/rules/train.smk): one job per model of training.models and ablation variant.
+# A model is retrained when its settings, the training data's config or the input files change.
+# ---------------------------------------------------------------------------------------------
+TRAIN_SCENES, VALIDATION_SCENES = training_split(config)
+
+
+def model_dirs(wildcards=None) -> list[str]:
+    """Every trained model directory (stage target `train`)."""
+    return [str(model_dir("results", spec.id)) for spec in model_specs(config)]
+
+
+def training_chunk_dirs(kind: str):
+    """Input function: noisy or reference chunks of the training and validation scenes."""
+
+    def chunk_dirs_of_training(wildcards) -> list[str]:
+        return [f"results/renders/{scene}/{kind}/chunk_{chunk:03d}" for scene in TRAIN_SCENES + VALIDATION_SCENES
+                for chunk in range(chunk_count(config, scene))]
+
+    return chunk_dirs_of_training
+
+
+def train_digest(wildcards) -> str:
+    """Param: digest of the model's settings and of what its training data depend on (rerun trigger)."""
+    from denoisers.training.job import data_settings
+
+    return settings_digest(model_spec(config, wildcards.model), data_settings(config))
+
+
+def method_model_dir(wildcards) -> list[str]:
+    """Input function: the trained model an evaluation row uses (params.model), or nothing."""
+    model = method_model(method_spec(config, wildcards.method).params)
+    return [str(model_dir("results", model))] if model else []
+
+
 def scene_chunk_dirs(kind: str):
     """Input function: the noisy or reference chunk directories of the job's scene."""
 
@@ -216,7 +254,7 @@ def report_input(wildcards) -> dict[str, list[str]]:
     reference = [f"results/renders/{scene}/reference/chunk_{c:03d}" for scene in TEST_SCENES
                  for c in range(chunk_count(config, scene))]
     return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
-            "reference": reference}
+            "reference": reference, "models": model_dirs()}
 
 
 def _method_settings(wildcards) -> dict:

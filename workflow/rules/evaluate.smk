@@ -1,4 +1,5 @@
 # Stage 3: denoising and evaluation of the test scenes, and the generated report.
+# A row with params {model: <id>} reads results/models/<id>/ (rule train_denoiser) and depends on it.
 #   denoise_clip:    results/denoised/{method}/{scene}/spp{spp}/frame_{t:04d}.exr + .png, timing.json
 #   evaluate_clip:   results/metrics/{method}/{scene}/spp{spp}.csv (per-frame metrics)
 #   robustness_clip: results/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected)
@@ -9,6 +10,7 @@
 rule denoise_clip:
     input:
         noisy=scene_chunk_dirs("noisy"),
+        model=method_model_dir,
     output:
         out_dir=directory("results/denoised/{method}/{scene}/spp{spp}"),
     params:
@@ -61,6 +63,7 @@ rule evaluate_clip:
 rule robustness_clip:
     input:
         noisy=scene_chunk_dirs("noisy"),
+        model=method_model_dir,
         reference=scene_chunk_dirs("reference"),
     output:
         out_dir=directory("results/robustness/{method}/{scene}/spp{spp}"),
@@ -94,6 +97,8 @@ rule build_report:
         curves=report(REPORT_OUTPUTS["curves"], caption="../report/frame_curves.rst", category="Figures"),
         grids=report(REPORT_OUTPUTS["grids"], caption="../report/grids.rst", category="Figures"),
         summary=report(REPORT_OUTPUTS["markdown"], caption="../report/summary.rst", category="Summary"),
+        training=report(REPORT_OUTPUTS["training_tables"] + REPORT_OUTPUTS["training_figures"],
+                        caption="../report/training.rst", category="Training"),
     params:
         config_file=resolved_config_file,
         config_digest=report_digest,

@@ -1,0 +1,142 @@
+"""One training job of the workflow (rule train_denoiser): train a configured model on the rendered
+training scenes and publish it as ``results/models/<id>/``.
+
+The trainer works in ``<models>/.work/<id>-<digest>/`` (digest of everything that determines the
+weights except the budget), so a killed job resumes from its last checkpoint when rerun, and raising
+``budget.max_steps`` continues the previous run instead of starting over. Only when training has
+finished is the output directory written (atomically) with:
+
+* ``best.pt``         the model with the best validation loss (what evaluation rows load)
+* ``curves.csv/.png`` training loss, validation loss and image metrics per step
+* ``validation.csv``  per validation sequence: loss, loss terms, SSIM, PSNR, RMSE of ``best.pt``
+* ``summary.json``    steps, wall time, which budget stopped training, parameters, best step, scenes
+* ``settings.json``   the resolved model settings
+"""
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+from typing import Any
+
+from scenegen.atomic import atomic_directory, write_text_atomic
+
+from denoisers.training.models import ModelSpec, model_spec, settings_digest, training_split
+
+log = logging.getLogger(__name__)
+
+WORK_DIR_NAME = ".work"
+
+
+def data_settings(cfg: dict) -> dict[str, Any]:
+    """Config values the rendered training data depend on (changing them invalidates checkpoints)."""
+    return {"seed": cfg["seed"], "scenes": cfg["scenes"], "render": cfg["render"],
+            "split": training_split(cfg), "validation_sequences": cfg["training"]["validation_sequences"],
+            "validate_every": cfg["training"]["validate_every"]}
+
+
+def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
+    """The trainer's resumable directory: keyed by every setting but the budget."""
+    unbudgeted = ModelSpec(**{**spec.__dict__, "budget": {}})
+    digest = settings_digest(unbudgeted, data_settings(cfg))
+    return Path(models_root) / WORK_DIR_NAME / f"{spec.id}-{digest[:12]}"
+
+
+def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...]) -> Any:
+    from denoisers.training.data import SequenceConfig
+
+    data = spec.data
+    return SequenceConfig(length=data["length"], crop=data["crop"], spp=data["spp"], rotate=data["rotate"],
+                          flip=data["flip"], color_range=data["color_range"], backward_prob=data["backward_prob"],
+                          stop_prob=data["stop_prob"], sample_buffers=sample_buffers)
+
+
+def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = True) -> Any:
+    from denoisers.training.loop import TrainerConfig
+
+    optimizer, budget, training = spec.optimizer, spec.budget, cfg["training"]
+    warmup = min(int(cfg["evaluation"]["warmup_frames"]), spec.data["length"] - 1)
+    return TrainerConfig(seed=spec.seed, batch_size=optimizer["batch_size"], max_steps=budget["max_steps"],
+                         max_seconds=budget.get("max_seconds"), lr=optimizer["lr"], betas=tuple(optimizer["betas"]),
+                         schedule=dict(optimizer["schedule"]), grad_clip_norm=optimizer.get("grad_clip_norm"),
+                         log_every=max(1, min(10, budget["max_steps"] // 10 or 1)),
+                         validate_every=training["validate_every"], checkpoint_every=training["validate_every"],
+                         checkpoint_seconds=300.0, best_metric="loss", validation_warmup_frames=warmup,
+                         progress=progress, threads=threads)
+
+
+def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, threads: int = 2,
+                progress: bool = True) -> dict[str, Any]:
+    """Train model ``model_id`` of ``cfg`` on ``render_root/<scene>`` clips; write ``out_dir``; return the summary."""
+    import torch
+
+    from denoisers.training.data import fixed_batches, load_training_clips
+    from denoisers.training.loop import Trainer, load_checkpoint
+    from denoisers.training.tasks import task_builder
+
+    torch.set_num_threads(int(threads))
+    spec = model_spec(cfg, model_id)
+    builder = task_builder(spec.method)
+    task = builder.build(spec)
+    train_scenes, validation_scenes = training_split(cfg)
+    if not train_scenes or not validation_scenes:
+        raise ValueError(f"model {model_id!r}: need training and validation scenes, got {train_scenes} / "
+                         f"{validation_scenes}")
+    render_root = Path(render_root)
+    buffers = builder.sample_buffers
+    log.info("model %s (%s): training on %s, validating on %s", model_id, spec.method, ", ".join(train_scenes),
+             ", ".join(validation_scenes))
+    train_clips = load_training_clips([render_root / s for s in train_scenes], buffers)
+    validation_clips = load_training_clips([render_root / s for s in validation_scenes], buffers)
+
+    from denoisers.training.data import SequenceDataset
+
+    sequences = sequence_config(spec, buffers)
+    dataset = SequenceDataset(train_clips, sequences, seed=spec.seed)
+    # The same validation sequences for every model of the config (seeded by the global seed), so
+    # models are compared pairwise on identical data.
+    validation = fixed_batches(validation_clips, sequences, cfg["training"]["validation_sequences"], batch_size=1,
+                               seed=int(cfg["seed"]))
+    config = trainer_config(cfg, spec, threads, progress)
+    work_dir = work_dir_for(Path(out_dir).parent, cfg, spec)
+    checkpoint = work_dir / "checkpoint.pt"
+    if checkpoint.exists() and int(load_checkpoint(checkpoint)["step"]) > spec.budget["max_steps"]:
+        log.info("%s holds more steps than budget.max_steps = %d: training from scratch", checkpoint,
+                 spec.budget["max_steps"])
+        shutil.rmtree(work_dir)
+    trainer = Trainer(task, dataset, validation, config, work_dir,
+                      fingerprint_extra={"model": spec.settings() | {"budget": None}, "data": data_settings(cfg)})
+    result = trainer.run()
+
+    # Per-sequence validation metrics of the selected model (paired comparisons between models).
+    best = load_checkpoint(result.best)
+    trainer.model.load_state_dict(best["model_state"])
+    rows = []
+    for index, batch in enumerate(validation):
+        metrics = trainer.evaluate([batch])
+        rows.append({"sequence": index, "description": batch.describe(), **metrics})
+    import pandas as pd
+
+    stopped_by = "max_steps" if result.steps >= spec.budget["max_steps"] else "max_seconds"
+    summary = json.loads((work_dir / "summary.json").read_text())
+    summary.update({"model_id": model_id, "method": spec.method, "ablation": spec.ablation, "variant": spec.variant,
+                    "train_scenes": train_scenes, "validation_scenes": validation_scenes, "stopped_by": stopped_by,
+                    "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
+                    "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1)})
+    if hasattr(task, "config") and hasattr(task.config, "width"):
+        from denoisers.nets import build_net, count_parameters
+
+        full = build_net(task.net_spec()["name"], {**task.net_spec()["config"], "width": 1.0})
+        summary["parameters_full_width"] = count_parameters(full)
+    if stopped_by == "max_seconds":
+        log.warning("model %s: the time cap max_seconds = %s stopped training at step %d of %d; the weights "
+                    "depend on this machine's speed", model_id, spec.budget.get("max_seconds"), result.steps,
+                    spec.budget["max_steps"])
+    with atomic_directory(Path(out_dir)) as staging:
+        for name in ("best.pt", "curves.csv", "curves.png"):
+            shutil.copy2(work_dir / name, staging / name)
+        pd.DataFrame(rows).to_csv(staging / "validation.csv", index=False)
+        write_text_atomic(staging / "summary.json", json.dumps(summary, indent=1, sort_keys=True, default=str) + "\n")
+        write_text_atomic(staging / "settings.json", json.dumps(spec.settings(), indent=1, sort_keys=True) + "\n")
+    return summary

@@ -1,0 +1,197 @@
+"""Which models the config trains, with what settings, on which scenes (config level: no torch).
+
+``training.models`` lists trained models; every entry of ``training.ablations`` adds one model per
+variant, id ``{ablation}_{variant}``, whose settings are the base model's with the variant's ``net`` /
+``loss`` / ``data`` keys overriding and the ablation's ``budget`` replacing the base budget (so all
+variants of a comparison share data and budget). Missing data / optimizer / budget keys take the
+defaults of the config schema (workflow/schemas/config.schema.yaml, ``$defs``).
+
+Scene split: the ``train_*`` scenes minus the last ``training.validation_scenes`` of them train;
+those last ones validate. Test scenes are never read by training.
+
+Evaluation rows use a model through ``params: {model: <id>}``; :func:`resolve_method_params` turns
+that into the method's ``checkpoint`` (``results/models/<id>/best.pt``).
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from scenegen.config import SCENE_SPLITS, load_schema, scene_ids
+
+TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
+#: Files a finished model directory holds (the rule's output directory).
+MODEL_FILE = "best.pt"
+MODEL_FILES: tuple[str, ...] = (MODEL_FILE, "curves.csv", "curves.png", "summary.json", "validation.csv",
+                                "settings.json")
+#: Ablation ids the report knows how to read (Chaitanya et al. 2017 Fig. 3 and §4.4).
+INPUT_ABLATION, LOSS_ABLATION = "rae_inputs", "rae_loss"
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """One trained model: its id, method and fully resolved settings."""
+
+    id: str
+    method: str
+    seed: int
+    net: dict[str, Any] = field(hash=False, compare=False)
+    loss: dict[str, Any] = field(hash=False, compare=False)
+    data: dict[str, Any] = field(hash=False, compare=False)
+    optimizer: dict[str, Any] = field(hash=False, compare=False)
+    budget: dict[str, Any] = field(hash=False, compare=False)
+    ablation: str | None = None
+    variant: str | None = None
+
+    def settings(self) -> dict[str, Any]:
+        """Everything that determines the trained weights (with the data), for digests and settings.json."""
+        return {"id": self.id, "method": self.method, "seed": self.seed, "net": self.net, "loss": self.loss,
+                "data": self.data, "optimizer": self.optimizer, "budget": self.budget,
+                "ablation": self.ablation, "variant": self.variant}
+
+
+def _schema_defaults(definition: str, value: Mapping[str, Any] | None) -> dict[str, Any]:
+    """``value`` with the defaults of ``$defs/<definition>`` of the config schema filled in."""
+    from scenegen.config import _DefaultFillingValidator
+
+    schema = load_schema()
+    filled = copy.deepcopy(dict(value or {}))
+    _DefaultFillingValidator(schema["$defs"][definition]).validate(filled)
+    return filled
+
+
+def _derived_seed(cfg: dict, model_id: str) -> int:
+    digest = hashlib.sha256(f"{cfg['seed']}/train/{model_id}".encode()).digest()
+    return int.from_bytes(digest[:4], "little")
+
+
+def _base_spec(cfg: dict, entry: Mapping[str, Any]) -> ModelSpec:
+    return ModelSpec(
+        id=entry["id"], method=entry["method"],
+        seed=int(entry["seed"]) if entry.get("seed") is not None else _derived_seed(cfg, entry["id"]),
+        net=copy.deepcopy(dict(entry.get("net") or {})), loss=copy.deepcopy(dict(entry.get("loss") or {})),
+        data=_schema_defaults("training_data", entry.get("data")),
+        optimizer=_schema_defaults("training_optimizer", entry.get("optimizer")),
+        budget=_schema_defaults("training_budget", entry.get("budget")))
+
+
+def model_specs(cfg: dict) -> list[ModelSpec]:
+    """Every model the config trains: ``training.models`` in order, then every ablation variant."""
+    training = cfg.get("training") or {}
+    bases = {entry["id"]: _base_spec(cfg, entry) for entry in training.get("models", [])}
+    specs = list(bases.values())
+    for ablation in training.get("ablations", []):
+        base = bases.get(ablation["model"])
+        if base is None:
+            continue  # reported by training_problems
+        budget = _schema_defaults("training_budget", ablation["budget"]) if ablation.get("budget") else base.budget
+        for variant in ablation["variants"]:
+            model_id = f"{ablation['id']}_{variant['id']}"
+            specs.append(ModelSpec(
+                id=model_id, method=base.method, seed=base.seed,
+                net={**base.net, **copy.deepcopy(variant.get("net") or {})},
+                loss={**base.loss, **copy.deepcopy(variant.get("loss") or {})},
+                data=_schema_defaults("training_data", {**base.data, **(variant.get("data") or {})}),
+                optimizer=copy.deepcopy(base.optimizer), budget=copy.deepcopy(budget),
+                ablation=ablation["id"], variant=variant["id"]))
+    return specs
+
+
+def model_spec(cfg: dict, model_id: str) -> ModelSpec:
+    """The spec of model ``model_id``; KeyError listing the configured ids otherwise."""
+    for spec in model_specs(cfg):
+        if spec.id == model_id:
+            return spec
+    known = ", ".join(spec.id for spec in model_specs(cfg)) or "none"
+    raise KeyError(f"no trained model with id {model_id!r}; configured models: {known}")
+
+
+def ablation_variants(cfg: dict, ablation_id: str) -> dict[str, ModelSpec]:
+    """variant id -> spec of one ablation (empty if the config has no such ablation)."""
+    return {spec.variant: spec for spec in model_specs(cfg) if spec.ablation == ablation_id}
+
+
+def training_split(cfg: dict) -> tuple[list[str], list[str]]:
+    """(training scenes, validation scenes): the train_* ids, the last ``validation_scenes`` held out."""
+    train = [scene for scene in scene_ids(cfg) if scene.startswith(TRAIN_PREFIX)]
+    held_out = min(int((cfg.get("training") or {}).get("validation_scenes", 1)), len(train))
+    return train[:len(train) - held_out], train[len(train) - held_out:]
+
+
+def model_dir(results: Path | str, model_id: str) -> Path:
+    return Path(results) / "models" / model_id
+
+
+def model_checkpoint(results: Path | str, model_id: str) -> Path:
+    return model_dir(results, model_id) / MODEL_FILE
+
+
+def settings_digest(spec: ModelSpec, extra: Mapping[str, Any] | None = None) -> str:
+    """SHA-256 of a model's settings (and ``extra``, e.g. the scene split)."""
+    payload = json.dumps({"model": spec.settings(), "extra": dict(extra or {})}, sort_keys=True, default=str)
+    return hashlib.sha256(payload.encode()).hexdigest()
+
+
+def resolve_method_params(cfg: dict, params: Mapping[str, Any], results: Path | str = "results") -> dict[str, Any]:
+    """Constructor parameters of an evaluation row: ``model: <id>`` becomes ``checkpoint: <model dir>/best.pt``."""
+    resolved = dict(params)
+    if "model" in resolved:
+        model_id = resolved.pop("model")
+        model_spec(cfg, model_id)  # KeyError naming the configured models
+        resolved["checkpoint"] = str(model_checkpoint(results, model_id))
+    return resolved
+
+
+def method_model(params: Mapping[str, Any]) -> str | None:
+    """The trained model an evaluation row uses (its ``model`` param), if any."""
+    return params.get("model")
+
+
+def training_problems(cfg: dict) -> list[str]:
+    """Constraints of the ``training`` section the JSON schema cannot express (schema-valid cfg)."""
+    training = cfg.get("training") or {}
+    problems: list[str] = []
+    base_ids = [entry["id"] for entry in training.get("models", [])]
+    for ablation in training.get("ablations", []):
+        if ablation["model"] not in base_ids:
+            problems.append(f"config key 'training.ablations' entry {ablation['id']!r} names model "
+                            f"{ablation['model']!r}, which is not in training.models; allowed: {base_ids}")
+        variant_ids = [v["id"] for v in ablation["variants"]]
+        for dup in sorted({v for v in variant_ids if variant_ids.count(v) > 1}):
+            problems.append(f"config key 'training.ablations' entry {ablation['id']!r} has variant {dup!r} twice")
+    specs = model_specs(cfg)
+    ids = [spec.id for spec in specs]
+    for dup in sorted({i for i in ids if ids.count(i) > 1}):
+        problems.append(f"config key 'training' defines the model id {dup!r} more than once (models and "
+                        f"ablation variants {{ablation}}_{{variant}} share one namespace)")
+    for entry in cfg["evaluation"]["methods"]:
+        model = method_model(entry.get("params") or {})
+        if model is not None and model not in ids:
+            problems.append(f"config key 'evaluation.methods' row {entry['id']!r} uses model {model!r}, which "
+                            f"training does not define; allowed: {ids or 'none (training.models is empty)'}")
+    if not specs:
+        return problems
+    from denoisers.training.tasks import task_problems
+
+    train, validation = training_split(cfg)
+    if not train or not validation:
+        problems.append(f"training needs at least one training and one validation scene: scenes.n_train = "
+                        f"{cfg['scenes']['n_train']}, training.validation_scenes = {training['validation_scenes']}; "
+                        f"allowed: n_train > validation_scenes")
+    size = min(cfg["render"]["width"], cfg["render"]["height"])
+    for spec in specs:
+        where = f"training model {spec.id!r}"
+        if spec.data["crop"] > size:
+            problems.append(f"{where}: data.crop = {spec.data['crop']} exceeds the frame size {size}")
+        if spec.data["length"] > cfg["scenes"]["frames"]:
+            problems.append(f"{where}: data.length = {spec.data['length']} exceeds scenes.frames = "
+                            f"{cfg['scenes']['frames']}")
+        if spec.data["spp"] > cfg["render"]["spp"]:
+            problems.append(f"{where}: data.spp = {spec.data['spp']} exceeds render.spp = {cfg['render']['spp']}")
+        problems += [f"{where}: {problem}" for problem in task_problems(spec)]
+    return problems

@@ -1,0 +1,74 @@
+"""Training tasks of the trainable methods: how a method's ``net`` / ``loss`` settings become a
+:class:`denoisers.training.loop.TrainingTask`, and which buffers its batches need.
+
+Adding a learned method = its registry module (denoisers/methods/), its network (denoisers/nets/) and
+one ``@register_task(<method name>)`` builder here.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from denoisers.training.models import ModelSpec
+
+
+@dataclass(frozen=True)
+class TaskBuilder:
+    """build(spec) -> task; sample_buffers: per-sample buffers the batches carry."""
+
+    build: Callable[[ModelSpec], Any]
+    sample_buffers: tuple[str, ...]
+
+
+_TASKS: dict[str, TaskBuilder] = {}
+
+
+def register_task(method: str, sample_buffers: tuple[str, ...]) -> Callable[[Callable[[ModelSpec], Any]],
+                                                                          Callable[[ModelSpec], Any]]:
+    """Decorator: ``build(spec)`` makes the training task of registry method ``method``."""
+
+    def decorate(build: Callable[[ModelSpec], Any]) -> Callable[[ModelSpec], Any]:
+        _TASKS[method] = TaskBuilder(build, tuple(sample_buffers))
+        return build
+
+    return decorate
+
+
+def task_builder(method: str) -> TaskBuilder:
+    """The builder of ``method``; KeyError naming the trainable methods otherwise."""
+    if method not in _TASKS:
+        raise KeyError(f"method {method!r} cannot be trained; trainable methods: {', '.join(sorted(_TASKS))}")
+    return _TASKS[method]
+
+
+def build_task(spec: ModelSpec) -> Any:
+    return task_builder(spec.method).build(spec)
+
+
+def task_problems(spec: ModelSpec) -> list[str]:
+    """Why ``spec`` cannot be built (unknown method, unknown net / loss keys, bad values); empty if it can."""
+    try:
+        build_task(spec)
+    except (KeyError, TypeError, ValueError) as error:
+        return [str(error.args[0]) if error.args else str(error)]
+    return []
+
+
+# ------------------------------------------------------------------------------------------- RAE
+RAE_BUFFERS = ("radiance", "albedo", "normal", "depth", "roughness")
+
+
+@register_task("rae", sample_buffers=RAE_BUFFERS)
+def _rae_task(spec: ModelSpec) -> Any:
+    """RAE (Chaitanya et al. 2017): net keys of RAEConfig, loss weights spatial / gradient / temporal."""
+    from denoisers.losses import RAE_LOSS_WEIGHTS
+    from denoisers.nets.rae import RAEConfig, RAETask
+
+    unknown = set(spec.loss) - set(RAE_LOSS_WEIGHTS)
+    if unknown:
+        raise KeyError(f"rae: unknown loss terms {sorted(unknown)}; known: {sorted(RAE_LOSS_WEIGHTS)}")
+    weights = {**RAE_LOSS_WEIGHTS, **{k: float(v) for k, v in spec.loss.items()}}
+    if any(w < 0 for w in weights.values()) or not any(w > 0 for w in weights.values()):
+        raise ValueError(f"rae: loss weights must be >= 0 with at least one > 0, got {weights}")
+    return RAETask(config=RAEConfig.from_dict(spec.net), loss_weights=weights)
