@@ -28,6 +28,7 @@ from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_SUMMARY, TIMING_FILE, de
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.report import CLAIMS, NOT_REPRODUCED, NOT_RUN, REPRODUCED, report_outputs
+from denoisers.training.models import MODEL_FILES, model_dir, model_specs
 from scenegen.config import chunk_count, chunk_frames, load_config, scene_ids
 from scenegen.dataset import REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
 
@@ -183,6 +184,7 @@ def test_benchmarks_exist_for_every_job(pipeline: PipelineRun) -> None:
     for scene in evaluated_scene_ids(pipeline.cfg):
         for folder, kind in EVALUATION_BENCHMARKS.items():
             expected += [bench / folder / run.spec.id / scene / f"spp{run.spp}.tsv" for run in pipeline.runs(kind)]
+    expected += [bench / "train" / f"{spec.id}.tsv" for spec in model_specs(pipeline.cfg)]
     expected.append(bench / "build_report.tsv")
     for path in expected:
         assert path.is_file(), f"missing benchmark {path}"
@@ -271,3 +273,27 @@ def test_every_configured_baseline_is_in_the_main_table(pipeline: PipelineRun) -
         rows = re.findall(rf"^\| {re.escape(method['id'])} \|", summary_md, flags=re.MULTILINE)
         assert len(rows) == len(pipeline.cfg["evaluation"]["spp"]), method["id"]
         assert re.search(rf"^\| {re.escape(method['id'])} \|", report, flags=re.MULTILINE), method["id"]
+
+
+def test_every_configured_model_is_trained_and_reported(pipeline: PipelineRun) -> None:
+    specs = model_specs(pipeline.cfg)
+    assert {spec.id for spec in specs} >= {"rae", "rae_inputs_color", "rae_inputs_all", "rae_loss_spatial",
+                                           "rae_loss_combined"}
+    for spec in specs:
+        folder = model_dir(pipeline.results, spec.id)
+        assert {p.name for p in folder.iterdir()} - {SNAKEMAKE_MARKER} == set(MODEL_FILES), folder
+        summary = json.loads((folder / "summary.json").read_text())
+        assert summary["steps"] == spec.budget["max_steps"] and summary["stopped_by"] == "max_steps"
+        assert "test_000" not in summary["train_scenes"] + summary["validation_scenes"]
+    tables = pipeline.results / "tables"
+    training = pd.read_csv(tables / "training.csv")
+    assert list(training["model"]) == [spec.id for spec in specs] and set(training["status"]) == {"trained"}
+    assert len(pd.read_csv(tables / "rae_inputs.csv")) == 6 and len(pd.read_csv(tables / "rae_loss.csv")) == 2
+    # RAE is in the Fig. 8 table, the timing table and the quality-versus-speed chart (matplotlib keeps
+    # every text label as a comment in the SVG).
+    fig8 = pd.read_csv(tables / "chaitanya_fig8.csv")
+    assert {"eaw", "svgf", "oidn", "rae"} <= set(fig8["method"]) and np.isfinite(fig8["rmse_mean"]).all()
+    assert "rae" in set(pd.read_csv(tables / "timing.csv")["method_id"])
+    assert "<!-- rae -->" in (pipeline.results / "figures" / "quality_vs_speed.svg").read_text()
+    report = (pipeline.results / "REPORT.md").read_text()
+    assert "## Learned denoisers" in report and "figures/rae_inputs_curves.png" in report

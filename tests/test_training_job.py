@@ -1,0 +1,164 @@
+"""Tests of the training stage's configuration (denoisers/training/models.py, tasks.py) and of one training job
+(denoisers/training/job.py) on synthetic clips standing in for the rendered training scenes."""
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from denoisers.nets.rae import RAEConfig, parameter_count
+from denoisers.training import data as training_data
+from denoisers.training.job import train_model, work_dir_for
+from denoisers.training.loop import load_checkpoint
+from denoisers.training.models import (model_spec, model_specs, resolve_method_params, training_problems,
+                                       training_split)
+from scenegen.config import load_config
+from tests.test_training import synthetic_clip
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def smoke_config() -> dict:
+    return load_config(REPO_ROOT / "config" / "smoke.yaml")
+
+
+def tiny_training_config() -> dict:
+    """The smoke config with a two-level RAE on 8x8 crops of 3-frame sequences (synthetic 16x16 clips)."""
+    cfg = smoke_config()
+    cfg["training"]["models"][0].update(net={"width": 0.125, "levels": 2}, data={**cfg["training"]["models"][0]["data"],
+                                                                                 "crop": 8, "length": 3})
+    cfg["training"]["models"][0]["budget"] = {"max_steps": 3}
+    cfg["training"]["ablations"] = []
+    cfg["training"]["validate_every"] = 2
+    return cfg
+
+
+@pytest.fixture
+def synthetic_renders(monkeypatch: pytest.MonkeyPatch):
+    """load_clip returns a synthetic clip named after the render directory (seeded by the scene)."""
+
+    def fake_load_clip(render_dir, **kwargs):
+        name = Path(render_dir).name
+        return synthetic_clip(frames=6, layers=4, seed=sum(map(ord, name)), scene=name)
+
+    monkeypatch.setattr(training_data, "load_clip", fake_load_clip)
+    training_data.clear_clip_cache()
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+    training_data.clear_clip_cache()
+
+
+# ------------------------------------------------------------------------------------- config level
+def test_ablation_variants_inherit_the_base_model_and_share_the_ablation_budget() -> None:
+    cfg = load_config(REPO_ROOT / "config" / "config.yaml")
+    specs = {spec.id: spec for spec in model_specs(cfg)}
+    base = specs["rae"]
+    assert base.net == {"width": 0.5} and base.budget["max_steps"] == 3000
+    color = specs["rae_inputs_color"]
+    assert color.net == {"width": 0.5, "demodulate": False, "features": []}
+    assert color.loss == base.loss and color.data == base.data and color.optimizer == base.optimizer
+    assert color.seed == base.seed and color.budget == {"max_steps": 600, "max_seconds": 900}
+    assert specs["rae_loss_spatial"].loss == {"spatial": 1.0, "gradient": 0.0, "temporal": 0.0}
+    assert (color.ablation, color.variant) == ("rae_inputs", "color")
+    # Every input set of Fig. 3 and both losses of §4.4 are configured.
+    assert {s.variant for s in specs.values() if s.ablation == "rae_inputs"} == {
+        "color", "untextured", "depth", "normal", "normal_depth", "all"}
+    assert {s.variant for s in specs.values() if s.ablation == "rae_loss"} == {"spatial", "combined"}
+
+
+def test_missing_keys_take_the_schema_defaults() -> None:
+    cfg = smoke_config()
+    cfg["training"]["models"] = [{"id": "plain", "method": "rae"}]
+    cfg["training"]["ablations"] = []
+    spec = model_spec(cfg, "plain")
+    assert spec.data == {"length": 7, "crop": 64, "spp": 1, "rotate": True, "flip": True, "color_range": [0.0, 2.0],
+                         "backward_prob": 0.5, "stop_prob": 0.1}
+    assert spec.optimizer["batch_size"] == 4 and spec.optimizer["schedule"]["name"] == "ramp_inv_sqrt"
+    assert spec.budget == {"max_steps": 1000, "max_seconds": None}
+
+
+def test_the_last_training_scenes_are_held_out_for_validation() -> None:
+    cfg = load_config(REPO_ROOT / "config" / "config.yaml")
+    train, validation = training_split(cfg)
+    assert train == [f"train_{i:03d}" for i in range(7)] and validation == ["train_007"]
+
+
+@pytest.mark.parametrize("break_config, message", [
+    (lambda c: c["training"]["ablations"][0].update(model="raee"), "names model 'raee'"),
+    (lambda c: c["training"]["models"].append(dict(c["training"]["models"][0], id="rae_loss_spatial")),
+     "model id 'rae_loss_spatial' more than once"),
+    (lambda c: c["evaluation"]["methods"].append({"id": "x", "method": "rae", "params": {"model": "nope"}}),
+     "uses model 'nope'"),
+    (lambda c: c["training"]["models"][0]["data"].update(crop=64), "data.crop = 64 exceeds the frame size 48"),
+    (lambda c: c["training"]["models"][0]["data"].update(length=9), "data.length = 9 exceeds scenes.frames = 4"),
+    (lambda c: c["scenes"].update(n_train=1), "at least one training and one validation scene"),
+    (lambda c: c["training"]["models"][0]["net"].update(widht=0.5), "unknown configuration keys ['widht']"),
+    (lambda c: c["training"]["models"][0]["loss"].update(perceptual=1.0), "unknown loss terms ['perceptual']"),
+    (lambda c: c["training"]["models"][0].update(method="eaw"), "method 'eaw' cannot be trained"),
+])
+def test_training_problems_name_the_key(break_config, message: str) -> None:
+    cfg = smoke_config()
+    assert training_problems(cfg) == []
+    broken = copy.deepcopy(cfg)
+    break_config(broken)
+    problems = training_problems(broken)
+    assert any(message in problem for problem in problems), problems
+
+
+def test_an_evaluation_row_names_its_model_and_gets_the_checkpoint_path() -> None:
+    cfg = smoke_config()
+    params = resolve_method_params(cfg, {"model": "rae", "reset_state_every_frame": True}, "some/results")
+    assert params == {"checkpoint": "some/results/models/rae/best.pt", "reset_state_every_frame": True}
+    assert resolve_method_params(cfg, {"factor": 2}) == {"factor": 2}
+    with pytest.raises(KeyError, match="no trained model with id 'missing'"):
+        resolve_method_params(cfg, {"model": "missing"})
+
+
+def test_the_work_directory_ignores_the_budget_but_not_the_settings(tmp_path: Path) -> None:
+    cfg = smoke_config()
+    spec = model_spec(cfg, "rae")
+    longer = copy.deepcopy(cfg)
+    longer["training"]["models"][0]["budget"] = {"max_steps": 400}
+    wider = copy.deepcopy(cfg)
+    wider["training"]["models"][0]["net"]["width"] = 0.5
+    assert work_dir_for(tmp_path, cfg, spec) == work_dir_for(tmp_path, longer, model_spec(longer, "rae"))
+    assert work_dir_for(tmp_path, cfg, spec) != work_dir_for(tmp_path, wider, model_spec(wider, "rae"))
+
+
+# ---------------------------------------------------------------------------------------- the job
+def test_a_training_job_publishes_the_model_and_is_deterministic(tmp_path: Path, synthetic_renders) -> None:
+    cfg = tiny_training_config()
+    summary = train_model(cfg, "rae", tmp_path / "renders", tmp_path / "a" / "models" / "rae", threads=1,
+                          progress=False)
+    out = tmp_path / "a" / "models" / "rae"
+    assert {p.name for p in out.iterdir()} == {"best.pt", "curves.csv", "curves.png", "summary.json",
+                                                "validation.csv", "settings.json"}
+    assert summary["steps"] == 3 and summary["stopped_by"] == "max_steps"
+    assert summary["train_scenes"] == ["train_000"] and summary["validation_scenes"] == ["train_001"]
+    assert summary["parameters_full_width"] == parameter_count(RAEConfig(levels=2))      # width 1, same design
+    assert summary["parameters"] == parameter_count(RAEConfig(width=0.125, levels=2))
+    assert json.loads((out / "settings.json").read_text())["net"] == {"width": 0.125, "levels": 2}
+    validation = (out / "validation.csv").read_text().strip().splitlines()
+    assert len(validation) == 1 + cfg["training"]["validation_sequences"]
+    # The same config and seed from scratch give the same weights.
+    train_model(cfg, "rae", tmp_path / "renders", tmp_path / "b" / "models" / "rae", threads=1, progress=False)
+    a, b = (load_checkpoint(tmp_path / run / "models" / "rae" / "best.pt")["model_state"] for run in "ab")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_longer_budget_continues_the_previous_run(tmp_path: Path, synthetic_renders) -> None:
+    cfg = tiny_training_config()
+    out = tmp_path / "models" / "rae"
+    first = train_model(cfg, "rae", tmp_path / "renders", out, threads=1, progress=False)
+    assert first["resumed_from"] is None
+    cfg["training"]["models"][0]["budget"] = {"max_steps": 5}
+    longer = train_model(cfg, "rae", tmp_path / "renders", out, threads=1, progress=False)
+    assert longer["resumed_from"] == 3 and longer["steps"] == 5
+    # A shorter budget than the checkpoint's steps trains from scratch instead of pretending.
+    cfg["training"]["models"][0]["budget"] = {"max_steps": 2}
+    shorter = train_model(cfg, "rae", tmp_path / "renders", out, threads=1, progress=False)
+    assert shorter["resumed_from"] is None and shorter["steps"] == 2
