@@ -627,7 +627,9 @@ def _decide_c12(res: Results) -> tuple[str, str, str, str]:
     mean, low, high, n = val_diff
     ci = (f"validation loss colour−all {mean:.4f} [{low:.4f}, {high:.4f}] (n={n} sequences)" if not math.isnan(low)
           else f"validation loss colour−all {mean:.4f} (n={n}, no CI)")
-    return (verdict, f"final training loss: {ranking}", ci,
+    rmse = {v: float(m.validation["rmse"].mean()) for v, m in (("all", full), ("color", color))}
+    return (verdict, f"final training loss: {ranking}; validation RMSE of the remodulated output (one space for "
+            f"all inputs): all {rmse['all']:.4f} vs colour only {rmse['color']:.4f}", ci,
             "needs a lower final training loss (mean of the last 20 % of logged steps) and a lower held-out "
             "validation loss for all inputs than for colour only; the colour-only loss is measured on "
             "non-demodulated colour, the others on demodulated colour (as in the paper's Fig. 3)")
