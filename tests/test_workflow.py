@@ -282,6 +282,57 @@ def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> Non
     assert everything == {"generate_scene": 3, "render_noisy": 6, "render_reference": 6, "renders": 1}
 
 
+STUB_TRAIN_CLI = """\
+\"\"\"Stand-in for `python -m denoisers train`: validates the resolved config and creates the model directory.\"\"\"
+import argparse
+import pathlib
+
+from scenegen.config import load_config
+
+parser = argparse.ArgumentParser()
+parser.add_argument("command", choices=["train"])
+for option in ("--config", "--model-id", "--render-root", "--out", "--threads"):
+    parser.add_argument(option)
+args = parser.parse_args()
+load_config(args.config)
+out = pathlib.Path(args.out)
+out.mkdir(parents=True)
+(out / "stub.txt").write_text(args.model_id + "\\n")
+"""
+STUB_DENOISERS_INIT = f"__path__.append({str(REPO_ROOT / 'denoisers')!r})\n"
+
+
+def test_training_reruns_only_when_its_settings_or_data_change(stub_workflow: Path) -> None:
+    work = stub_workflow
+    package = work / "denoisers"
+    package.mkdir()
+    (package / "__init__.py").write_text(STUB_DENOISERS_INIT)
+    (package / "__main__.py").write_text(STUB_TRAIN_CLI)
+    run_snakemake("train", "--cores", "2", "--configfile", "config/smoke.yaml", cwd=work)
+    assert (work / "results/models/rae_loss_spatial/stub.txt").is_file()
+    assert dry_run("train", "--configfile", "config/smoke.yaml", cwd=work) == {}
+
+    def variant(name: str, change) -> str:
+        cfg = yaml.safe_load((work / "config/smoke.yaml").read_text())
+        change(cfg)
+        (work / name).write_text(yaml.safe_dump(cfg))
+        return name
+
+    # An ablation's budget: only its variants. The base model's network: the base and every variant.
+    ablation = dry_run("train", "--configfile", variant("a.yaml", lambda c: c["training"]["ablations"][0].update(
+        budget={"max_steps": 3})), cwd=work)
+    assert ablation == {"train_denoiser": 6, "train": 1}
+    base = dry_run("train", "--configfile", variant("b.yaml", lambda c: c["training"]["models"][0]["net"].update(
+        width=0.5)), cwd=work)
+    assert base == {"train_denoiser": 9, "train": 1}
+    # Evaluation settings do not touch the models; the training data's render settings retrain all.
+    evaluation = dry_run("train", "--configfile", variant("c.yaml", lambda c: c["evaluation"].update(threads=2)),
+                         cwd=work)
+    assert evaluation == {}
+    data = dry_run("train", "--configfile", variant("d.yaml", lambda c: c["render"].update(max_depth=6)), cwd=work)
+    assert data["train_denoiser"] == 9
+
+
 def rule_names() -> set[str]:
     names = set()
     for rule_file in (REPO_ROOT / "workflow/rules").glob("*.smk"):

@@ -33,7 +33,9 @@ def data_settings(cfg: dict) -> dict[str, Any]:
     """Config values the rendered training data depend on (changing them invalidates checkpoints)."""
     return {"seed": cfg["seed"], "scenes": cfg["scenes"], "render": cfg["render"],
             "split": training_split(cfg), "validation_sequences": cfg["training"]["validation_sequences"],
-            "validate_every": cfg["training"]["validate_every"]}
+            "validate_every": cfg["training"]["validate_every"],
+            # Validation image metrics skip these first frames of each sequence (see trainer_config).
+            "validation_warmup_frames": cfg["evaluation"]["warmup_frames"]}
 
 
 def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
