@@ -7,6 +7,9 @@ of them alike; temporal methods see a continuous stream (reset once, then frame 
 Per method and resolution: median seconds per ``denoise()`` call over ``--repeats`` rounds after
 ``--warmup`` rounds; printed as ms/frame, Mpix/s and the ratio to OIDN at ``--size``; then the time at
 every ``--sizes`` resolution and the slope of log(time) against log(pixels) (1 = linear scaling).
+The native kernels of ``denoisers.native`` (EAW, SVGF) are built before any timing; the "path" column
+says which implementation each method ran (native / torch; "-" for methods without a choice).
+``MCDN_NATIVE=0`` times the torch implementations instead.
 
 Usage: python benchmarks/denoiser_speed.py [--methods eaw svgf rls wrls oidn] [--size 256]
            [--sizes 128 256 512] [--spp 2] [--repeats 7] [--warmup 2] [--threads 1]
@@ -20,7 +23,7 @@ import time
 import numpy as np
 import torch
 
-from denoisers import registry
+from denoisers import native, registry
 from denoisers.registry import Frame
 
 DEFAULT_METHODS = ("eaw", "svgf", "rls", "wrls", "oidn")
@@ -75,8 +78,10 @@ def only_declared(frame: Frame, info: registry.MethodInfo) -> Frame:
                  pixel={b: frame.pixel[b] for b in info.pixel_inputs}, index=frame.index, camera_cut=frame.camera_cut)
 
 
-def time_methods(names: list[str], size: int, spp: int, repeats: int, warmup: int) -> dict[str, float]:
-    """Median seconds per denoise() call of each method at size x size, interleaved round by round."""
+def time_methods(names: list[str], size: int, spp: int, repeats: int, warmup: int
+                 ) -> tuple[dict[str, float], dict[str, str]]:
+    """Median seconds per denoise() call of each method at size x size, interleaved round by round, and
+    the implementation each method used ("native", "torch" or "-")."""
     frames = synthetic_frames(size, spp, warmup + repeats)
     methods = {name: registry.build(name) for name in names}
     inputs = {name: [only_declared(f, method.info) for f in frames] for name, method in methods.items()}
@@ -91,7 +96,8 @@ def time_methods(names: list[str], size: int, spp: int, repeats: int, warmup: in
                 elapsed = time.perf_counter() - start
                 if step >= warmup:
                     seconds[name].append(elapsed)
-    return {name: statistics.median(values) for name, values in seconds.items()}
+    paths = {name: getattr(method, "backend", "-") for name, method in methods.items()}
+    return {name: statistics.median(values) for name, values in seconds.items()}, paths
 
 
 def main() -> None:
@@ -112,20 +118,29 @@ def main() -> None:
         print(f"skipping {name!r}: not registered (registered: {', '.join(known)})")
     sizes = sorted(set(args.sizes) | {args.size})
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {args.spp} spp, median of "
-          f"{args.repeats} frames after {args.warmup} warm-up frames, methods interleaved\n")
-    timings = {size: time_methods(names, size, args.spp, args.repeats, args.warmup) for size in sizes}
+          f"{args.repeats} frames after {args.warmup} warm-up frames, methods interleaved")
+    # Build (or load from torch's cache) the native kernels now, so that no build lands in a timed call.
+    start = time.perf_counter()
+    kernels = native.load()
+    state = ("disabled (MCDN_NATIVE=0)" if not native.enabled() else
+             "unavailable, torch fallback" if kernels is None else f"ready in {time.perf_counter() - start:.1f} s")
+    print(f"native kernels: {state}\n")
+    timings, paths = {}, {}
+    for size in sizes:
+        timings[size], paths[size] = time_methods(names, size, args.spp, args.repeats, args.warmup)
 
     at_size = timings[args.size]
     pixels = args.size * args.size
     oidn = at_size.get("oidn")
     print(f"side by side at {args.size}x{args.size}:")
-    print(f"  {'method':8s} {'ms/frame':>10s} {'Mpix/s':>9s} {'x faster than OIDN':>20s}")
+    print(f"  {'method':8s} {'path':>6s} {'ms/frame':>10s} {'Mpix/s':>9s} {'x faster than OIDN':>20s}")
     for name in names:
         ratio = f"{oidn / at_size[name]:.2f}" if oidn else "n/a"
         flag = ""
         if oidn and name in TARGET_METHODS:
             flag = "  (target >= 5x: " + ("met)" if oidn / at_size[name] >= TARGET_SPEEDUP else "NOT met)")
-        print(f"  {name:8s} {at_size[name] * 1e3:10.2f} {pixels / at_size[name] / 1e6:9.3f} {ratio:>20s}{flag}")
+        print(f"  {name:8s} {paths[args.size][name]:>6s} {at_size[name] * 1e3:10.2f} "
+              f"{pixels / at_size[name] / 1e6:9.3f} {ratio:>20s}{flag}")
 
     print("\nscaling with pixel count (ms/frame; slope of log time vs log pixels, 1 = linear):")
     print("  " + f"{'method':8s}" + "".join(f"{f'{s}x{s}':>11s}" for s in sizes) + f"{'slope':>8s}")

@@ -4,14 +4,16 @@
 geometric terms shared between iterations, both taps of a pair in one op on ``PairWorkspace`` views);
 here they are compared with the same iterations run through ``atrous_step`` and the original per-pair
 callbacks (``atrous_step`` itself is checked against a direct evaluation in test_filters.py). Inputs are
-random, with zero normals, depth jumps and sizes at which some tap offsets leave the image.
+random, with zero normals, depth jumps and sizes at which some tap offsets leave the image. The a-trous
+comparisons run on both implementations of the hot loops: the torch one (``MCDN_NATIVE=0``) and the native
+kernels of ``denoisers.native`` (skipped when they cannot be built).
 """
 from __future__ import annotations
 
 import pytest
 import torch
 
-from denoisers import registry
+from denoisers import native, registry
 from denoisers.filters import (PairRegion, PairWorkspace, atrous_step, bilinear_footprint, bilinear_taps,
                                gather_taps, gaussian_blur_3x3, luminance)
 from denoisers.methods import svgf as svgf_module
@@ -20,6 +22,15 @@ from denoisers.registry import Frame
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(params=["torch", "native"])
+def backend(request, monkeypatch) -> str:
+    """Runs a test with the torch hot loops and with the native kernels."""
+    monkeypatch.setenv(native.ENVIRONMENT_SWITCH, "1" if request.param == "native" else "0")
+    if request.param == "native" and native.load() is None:
+        pytest.skip("native kernels unavailable")
+    return request.param
 
 
 def random_guides(height: int, width: int, seed: int) -> dict[str, torch.Tensor]:
@@ -91,7 +102,7 @@ def reference_eaw(color: torch.Tensor, geometry: torch.Tensor, sigma: float, ite
 
 
 @pytest.mark.parametrize("height, width, iterations", [(40, 56, 5), (23, 17, 5), (9, 70, 3), (33, 33, 1)])
-def test_filter_eaw_matches_the_generic_atrous_step(height: int, width: int, iterations: int) -> None:
+def test_filter_eaw_matches_the_generic_atrous_step(backend: str, height: int, width: int, iterations: int) -> None:
     guides = random_guides(height, width, seed=height + width)
     geometry = torch.cat([guides["normal"] / 0.5, guides["depth"].expand(3, height, width) / 0.25])
     sigma = 0.7
@@ -131,7 +142,7 @@ def reference_svgf_atrous(svgf, illumination, variance, normal, depth, gradient)
     (70, 9, {"iterations": 3, "sigma_luminance": 1.0, "sigma_depth": 0.3}),
     (12, 12, {"iterations": 1}),
 ])
-def test_svgf_atrous_matches_the_generic_atrous_step(height: int, width: int, params: dict) -> None:
+def test_svgf_atrous_matches_the_generic_atrous_step(backend: str, height: int, width: int, params: dict) -> None:
     guides = random_guides(height, width, seed=height * width)
     generator = torch.Generator().manual_seed(height)
     variance = torch.rand(1, height, width, generator=generator) ** 2

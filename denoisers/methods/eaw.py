@@ -3,10 +3,12 @@ Chaitanya et al. 2017 (Sec. 5.4, Figs. 7-8)."""
 from __future__ import annotations
 
 import math
+from types import ModuleType
 
 import torch
 import torch.nn.functional as F
 
+from denoisers import native
 from denoisers.filters import (B3_SPLINE, LOG2_E, MIN_LOG2_WEIGHT, PairRegion, PairWorkspace, check_sizes,
                                luminance, revisited_next_step, sanitize)
 from denoisers.registry import Denoiser, Frame, register
@@ -57,6 +59,8 @@ class EdgeAvoidingATrous(Denoiser):
         self.iterations = int(iterations)
         self.color_sigma_decay = float(color_sigma_decay)
         self._workspace: PairWorkspace | None = None   # a-trous buffers, kept from frame to frame
+        #: Implementation of the a-trous passes in the last ``denoise`` call: "native" or "torch".
+        self.backend = "torch"
 
     def denoise(self, frame: Frame) -> torch.Tensor:
         check_sizes(self.info.name, frame.samples)
@@ -64,7 +68,11 @@ class EdgeAvoidingATrous(Denoiser):
         geometry = torch.cat([sanitize(frame.mean("normal")) / self.sigma_normal,
                               sanitize(frame.mean("position")) / self.sigma_position])
         height, width = color.shape[-2:]
-        self._workspace = eaw_workspace(height, width, color.shape[0], geometry.shape[0], self._workspace)
+        if _native_kernels(color, geometry) is not None:
+            self.backend = "native"
+        else:
+            self.backend = "torch"
+            self._workspace = eaw_workspace(height, width, color.shape[0], geometry.shape[0], self._workspace)
         return filter_eaw(color, geometry, self.sigma_color * mean_luminance_scale(color),
                           self.iterations, self.color_sigma_decay, self._workspace)
 
@@ -88,13 +96,21 @@ def filter_eaw(color: torch.Tensor, scaled_geometry: torch.Tensor, sigma_color: 
     taps, the geometric distance of an offset is computed once for the two iterations that visit it
     (:func:`denoisers.filters.revisited_next_step`), and both taps of a pair are accumulated by one op
     on the views of a :class:`denoisers.filters.PairWorkspace`.
+
+    With the native kernels (:mod:`denoisers.native`, unless ``MCDN_NATIVE=0``), float32 inputs, C = 3
+    and G <= 8, the same iterations run as one fused C++ loop per pass instead (``workspace`` unused).
     """
     channels, height, width = color.shape
+    # Features scaled by sqrt(log2 e): -|f_p - f_q|^2 is then directly a base-2 log-weight.
+    root_log2_e = math.sqrt(LOG2_E)
+    kernels = _native_kernels(color, scaled_geometry)
+    if kernels is not None:
+        scales = [root_log2_e / (sigma_color * color_sigma_decay ** i) for i in range(iterations)]
+        return kernels.eaw_atrous(color.contiguous(), scaled_geometry.contiguous(), scales, root_log2_e,
+                                  MIN_LOG2_WEIGHT)
     workspace = eaw_workspace(height, width, channels, scaled_geometry.shape[0], workspace)
     radius = (len(B3_SPLINE) - 1) // 2
     centre_h = B3_SPLINE[radius] ** 2
-    # Features scaled by sqrt(log2 e): -|f_p - f_q|^2 is then directly a base-2 log-weight.
-    root_log2_e = math.sqrt(LOG2_E)
     torch.mul(scaled_geometry, root_log2_e, out=workspace["geometry"])
     values, accumulated = workspace["values"], workspace["accumulated"]   # (2, C + 1, H, W) each
     values[:, :channels] = color
@@ -127,6 +143,16 @@ def filter_eaw(color: torch.Tensor, scaled_geometry: torch.Tensor, sigma_color: 
         else:
             color = total[:channels] / total[channels:]
     return color
+
+
+def _native_kernels(color: torch.Tensor, geometry: torch.Tensor) -> ModuleType | None:
+    """The native extension if it is enabled, built and supports these (C, H, W) colour and (G, H, W)
+    geometry images (float32, C = 3, G <= 8), else None."""
+    kernels = native.load()
+    if (kernels is None or color.dtype != torch.float32 or geometry.dtype != torch.float32
+            or color.shape[0] != 3 or geometry.shape[0] > kernels.max_eaw_geometry):
+        return None
+    return kernels
 
 
 def _log2_weight(base: torch.Tensor, workspace: PairWorkspace, name: str, region: PairRegion) -> torch.Tensor:

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
+from denoisers import native
 from denoisers.filters import (B3_SPLINE, LOG2_E, MIN_LOG2_WEIGHT, MIN_LOG_WEIGHT, REC709_LUMINANCE, PairRegion,
                                PairWorkspace, bilinear_footprint, check_sizes, gaussian_blur_3x3, luminance,
                                normalize_vectors, revisited_next_step, sanitize)
@@ -83,7 +84,7 @@ class _GeometryTerms:
         self.workspace = workspace
         self.sigma_depth = svgf.sigma_depth
         self.normal_scale = svgf.sigma_normal * LOG2_E
-        self.cosine_floor = max(NORMAL_COSINE_FLOOR, math.exp(MIN_LOG_WEIGHT / svgf.sigma_normal))
+        self.cosine_floor = _cosine_floor(svgf.sigma_normal)
         for channel in range(3):
             workspace[f"normal{channel}"].copy_(normal[channel:channel + 1])
         workspace["depth"].copy_(depth)
@@ -210,6 +211,8 @@ class SVGF(Denoiser):
         self._history: _History | None = None
         self._workspace: PairWorkspace | None = None
         self._gathered: torch.Tensor | None = None
+        #: Implementation of the a-trous passes in the last ``denoise`` call: "native" or "torch".
+        self.backend = "torch"
 
     def reset(self) -> None:
         self._history = None
@@ -230,23 +233,15 @@ class SVGF(Denoiser):
         gbuffer_depth = sanitize(frame.pixel["gbuffer.depth"])
         gbuffer_normal = normalize_vectors(sanitize(frame.pixel["gbuffer.normal"]))
 
-        # Temporal accumulation.
-        previous, success = self._reproject(frame, gbuffer_depth, gbuffer_normal)
-        if previous is None:
-            length = torch.ones_like(depth)
-            integrated, integrated_moments = illumination, moments
-        else:
-            prev_illumination, prev_moments, prev_length = previous.split([3, 2, 1])
-            # success ? min(prev + 1, MAX) : 1, as arithmetic (torch.where is slow on the CPU).
-            length = (prev_length + 1).clamp_max_(MAX_HISTORY).sub_(1).mul_(success).add_(1)
-            alpha_c = torch.clamp(1.0 / length, min=self.alpha_color)
-            alpha_m = torch.clamp(1.0 / length, min=self.alpha_moments)
-            integrated = torch.lerp(prev_illumination, illumination, alpha_c)
-            integrated_moments = torch.lerp(prev_moments, moments, alpha_m)
+        integrated, integrated_moments, length = self._accumulate(frame, illumination, moments, gbuffer_depth,
+                                                                  gbuffer_normal)
 
         # Variance of the filtered signal: temporal where the history is long enough, spatial elsewhere.
         depth_gradient = _depth_gradient(depth)
-        geometry = _GeometryTerms(self, self._workspace_for(*depth.shape[-2:]), normal, depth, depth_gradient)
+        self.backend = native.backend()
+        # The torch a-trous passes take over geometric terms of the spatial estimate; the native ones need none.
+        geometry = None if self.backend == "native" else _GeometryTerms(self, self._workspace_for(*depth.shape[-2:]),
+                                                                         normal, depth, depth_gradient)
         variance = _moment_variance(integrated_moments, spp)
         if float(length.min()) < self.min_temporal_history:
             short = length < self.min_temporal_history
@@ -283,7 +278,17 @@ class SVGF(Denoiser):
         geometry: this frame's terms when the caller has them (possibly with terms handed over by the
         spatial variance estimate), otherwise made here from normal (3, H, W), depth (1, H, W) and
         gradient (2, H, W).
+
+        With the native kernels (:mod:`denoisers.native`, unless ``MCDN_NATIVE=0``) the same passes run
+        as one fused C++ loop per pass instead, and ``geometry`` is not used.
         """
+        kernels = native.load()
+        if kernels is not None and illumination.dtype == torch.float32:
+            filtered, history = kernels.svgf_atrous(
+                illumination.contiguous(), variance.contiguous(), normal.contiguous(), depth.contiguous(),
+                gradient.contiguous(), self.iterations, self.sigma_luminance, self.sigma_normal, self.sigma_depth,
+                _cosine_floor(self.sigma_normal), LUMINANCE_EPSILON, DEPTH_EPSILON_RELATIVE, MIN_LOG2_WEIGHT)
+            return filtered, history
         _, height, width = illumination.shape
         workspace = self._workspace_for(height, width)
         if geometry is None:
@@ -358,13 +363,49 @@ class SVGF(Denoiser):
             self._workspace = workspace
         return workspace
 
+    def _usable_history(self, frame: Frame, depth: torch.Tensor) -> _History | None:
+        """The history if it continues into ``frame`` (no cut, no gap, same size), else None."""
+        history = self._history
+        if (history is None or frame.camera_cut or frame.index != history.index + 1
+                or history.depth.shape != depth.shape):
+            return None
+        return history
+
+    def _accumulate(self, frame: Frame, illumination: torch.Tensor, moments: torch.Tensor, depth: torch.Tensor,
+                    normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Temporal accumulation of this frame's illumination (3, H, W) and luminance moments (2, H, W), given
+        its G-buffer depth (1, H, W) and unit normal (3, H, W): (integrated illumination, integrated moments,
+        history length (1, H, W) in frames), all (C, H, W).
+
+        Reprojects the history (:meth:`_reproject`) and blends with weight max(alpha, 1 / length); without
+        a usable history the frame starts one. With the native kernels (:mod:`denoisers.native`) the same
+        runs as one C++ pass over the pixels.
+        """
+        history = self._usable_history(frame, depth)
+        if history is None:
+            return illumination, moments, torch.ones_like(depth)
+        kernels = native.load()
+        if kernels is not None:
+            integrated, integrated_moments, length = kernels.svgf_temporal(
+                history.state, frame.pixel["motion"].float().contiguous(), frame.pixel["valid"].float().contiguous(),
+                depth.contiguous(), normal.contiguous(), illumination.contiguous(), moments.contiguous(),
+                self.reprojection_depth_tolerance, self.reprojection_normal_cos, self.alpha_color,
+                self.alpha_moments, MIN_REPROJECTION_WEIGHT, MAX_HISTORY)
+            return integrated, integrated_moments, length
+        previous, success = self._reproject(frame, depth, normal)
+        prev_illumination, prev_moments, prev_length = previous.split([3, 2, 1])
+        # success ? min(prev + 1, MAX) : 1, as arithmetic (torch.where is slow on the CPU).
+        length = (prev_length + 1).clamp_max_(MAX_HISTORY).sub_(1).mul_(success).add_(1)
+        alpha_c = torch.clamp(1.0 / length, min=self.alpha_color)
+        alpha_m = torch.clamp(1.0 / length, min=self.alpha_moments)
+        return torch.lerp(prev_illumination, illumination, alpha_c), torch.lerp(prev_moments, moments, alpha_m), length
+
     def _reproject(self, frame: Frame, depth: torch.Tensor, normal: torch.Tensor
                    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """Previous [illumination, moments, length] (6, H, W) at this frame's pixels and the (1, H, W)
         success mask (float 1 / 0), or (None, None) when there is no usable history."""
-        history = self._history
-        if (history is None or frame.camera_cut or frame.index != history.index + 1
-                or history.depth.shape != depth.shape):
+        history = self._usable_history(frame, depth)
+        if history is None:
             return None, None
         motion = sanitize(frame.pixel["motion"])
         valid = sanitize(frame.pixel["valid"])
@@ -480,6 +521,12 @@ class SVGF(Denoiser):
             return [(projections[direction] * (self.sigma_depth * length)).add_(floor).reciprocal_()]
 
         return scales
+
+
+def _cosine_floor(sigma_normal: float) -> float:
+    """Floor of n_p . n_q before its log: below exp(MIN_LOG_WEIGHT / sigma_n) the weight is clamped anyway
+    (see :class:`_GeometryTerms`)."""
+    return max(NORMAL_COSINE_FLOOR, math.exp(MIN_LOG_WEIGHT / sigma_normal))
 
 
 def _moment_variance(moments: torch.Tensor, spp: int) -> torch.Tensor:
