@@ -14,6 +14,7 @@ from denoisers.losses import (PAPER_FRAME_WEIGHTS_7, frame_weights, gradient_l1,
                               rae_loss, spatial_l1, temporal_l1)
 from denoisers.methods.rae import RecurrentAutoencoderDenoiser
 from denoisers.nets import build_net, count_parameters, net_spec
+from denoisers.nets import rae as rae_net
 from denoisers.nets.rae import (PAPER_PARAMETER_COUNT, RAEConfig, RAETask, RecurrentAutoencoder, conv_flops,
                                 decode_color, encode_color, parameter_report, prepare_inputs, world_to_view)
 from denoisers.training.data import SequenceConfig, SequenceDataset, SequencePlan
@@ -94,6 +95,38 @@ def test_recurrent_state_carries_information_between_frames() -> None:
             torch.testing.assert_close(out, carried[:, t])
         for t in range(3):
             torch.testing.assert_close(model.step(x[:, t])[0], reset[:, t])
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["onednn-fused", "fallback"])
+def test_inference_step_matches_the_plain_forward_and_leaves_training_intact(fused: bool, monkeypatch) -> None:
+    """The fast inference path (channels-last, oneDNN convolution with fused leaky ReLU, or its fallback
+    without the fused op) computes the same frames as the plain eager step, state carried over 3 frames.
+    Tolerance: the channels-last kernels sum the 3 x 3 x C_in products in another order, which moves
+    outputs of magnitude ~1 by a few 1e-6 (measured <= 5e-6 here); atol 2e-5 + rtol 1e-4 allows that
+    rounding and nothing larger."""
+    monkeypatch.setattr(rae_net, "_FUSED_CONV", fused and rae_net.fused_conv_available())
+    torch.manual_seed(1)
+    model = RecurrentAutoencoder(RAEConfig(width=0.5, levels=3)).eval()           # real channel counts, 3 levels
+    frames = [torch.rand(1, 7, 37, 50) * 2 - 0.5 for _ in range(3)]             # padded to 40 x 56 inside
+    plain_state = fast_state = None
+    for x in frames:
+        with torch.no_grad():
+            plain, plain_state = model.step(x, plain_state)
+        fast, fast_state = model.inference_step(x, fast_state)
+        assert fast.shape == plain.shape == (1, 3, 37, 50) and fast.is_contiguous()
+        torch.testing.assert_close(fast, plain, rtol=1e-4, atol=2e-5)
+        for a, b in zip(fast_state, plain_state):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=2e-5)
+    # Either path continues from the other's state.
+    torch.testing.assert_close(model.inference_step(frames[0], plain_state)[0],
+                               model.step(frames[0], plain_state)[0].detach(), rtol=1e-4, atol=2e-5)
+    # The model is untouched: autograd through the plain path still works after inference.
+    model.train()
+    out, _ = model(torch.rand(1, 2, 7, 16, 16, requires_grad=True))
+    out.square().mean().backward()
+    grads = [p.grad for p in model.parameters()]
+    assert all(g is not None and bool(torch.isfinite(g).all()) for g in grads)
+    assert all(p.is_contiguous() for p in model.parameters())
 
 
 # ------------------------------------------------------------------------------------------ inputs
@@ -258,9 +291,10 @@ def test_method_registration_checkpoint_and_errors(tmp_path: Path) -> None:
     no_camera.meta = {}
     with pytest.raises(ValueError, match="camera"):
         RecurrentAutoencoderDenoiser.from_model(tiny_model()).denoise(no_camera)
-    # The evaluation's default method list does not include the RAE (it needs a trained model).
+    # The default config's RAE rows name a model the training section defines.
     config = yaml.safe_load((REPO_ROOT / "config" / "config.yaml").read_text())
-    assert "rae" not in [m["method"] for m in config["evaluation"]["methods"]]
+    rows = [m for m in config["evaluation"]["methods"] if m["method"] == "rae"]
+    assert rows and all(m["params"]["model"] in [t["id"] for t in config["training"]["models"]] for m in rows)
 
 
 def test_a_trained_checkpoint_drives_the_method(tmp_path: Path) -> None:

@@ -127,6 +127,32 @@ def _conv(in_channels: int, out_channels: int) -> nn.Conv2d:
     return nn.Conv2d(in_channels, out_channels, kernel_size=3, padding=1)
 
 
+def fused_conv_available() -> bool:
+    """Whether this torch build has oneDNN's convolution with a fused pointwise post-op (the fast inference path)."""
+    return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
+
+
+def conv_act(conv: nn.Conv2d, x: torch.Tensor, negative_slope: float | None, fast: bool = False) -> torch.Tensor:
+    """leaky_relu(conv(x)) (plain conv(x) when ``negative_slope`` is None).
+
+    ``fast`` (inference only, no autograd): float32 CPU tensors go through oneDNN's convolution with the
+    leaky ReLU as a post-op, so the activation is applied while the output tile is still in cache instead
+    of in a second pass over memory; otherwise the activation is applied in place.
+    """
+    if fast and x.device.type == "cpu" and x.dtype == torch.float32 and _FUSED_CONV:
+        act = negative_slope is not None
+        return torch.ops.mkldnn._convolution_pointwise(
+            x, conv.weight, conv.bias, list(conv.padding), list(conv.stride), list(conv.dilation), conv.groups,
+            "leaky_relu" if act else "none", [negative_slope] if act else [], "" if act else None)
+    y = conv(x)
+    if negative_slope is None:
+        return y
+    return F.leaky_relu_(y, negative_slope) if fast else F.leaky_relu(y, negative_slope)
+
+
+_FUSED_CONV = fused_conv_available()
+
+
 class RecurrentBlock(nn.Module):
     """h_i = C(C(C(x_i) ^ h_{i-1})) with leaky ReLU after each convolution (§4.2). (N, C, H, W) -> (N, C, H, W)."""
 
@@ -138,13 +164,16 @@ class RecurrentBlock(nn.Module):
         self.mix_conv = _conv(2 * channels, channels)
         self.output_conv = _conv(channels, channels)
 
-    def forward(self, x: torch.Tensor, hidden: torch.Tensor | None) -> torch.Tensor:
-        act = lambda t: F.leaky_relu(t, self.negative_slope)  # noqa: E731
-        if hidden is None:
+    def forward(self, x: torch.Tensor, hidden: torch.Tensor | None, fast: bool = False) -> torch.Tensor:
+        """``fast``: the inference path of :meth:`RecurrentAutoencoder.inference_step` (see :func:`conv_act`)."""
+        slope = self.negative_slope
+        if hidden is None and fast:
+            hidden = torch.zeros_like(x, memory_format=torch.channels_last)  # x: (N, channels, H, W) too
+        elif hidden is None:
             hidden = x.new_zeros(x.shape[0], self.channels, *x.shape[-2:])
-        y = act(self.input_conv(x))
-        y = act(self.mix_conv(torch.cat([y, hidden], dim=1)))
-        return act(self.output_conv(y))
+        y = conv_act(self.input_conv, x, slope, fast)
+        y = conv_act(self.mix_conv, torch.cat([y, hidden], dim=1), slope, fast)
+        return conv_act(self.output_conv, y, slope, fast)
 
 
 class RecurrentAutoencoder(nn.Module):
@@ -197,11 +226,25 @@ class RecurrentAutoencoder(nn.Module):
         """Frame sizes are padded to a multiple of this."""
         return 2**self.config.levels
 
-    def _act(self, x: torch.Tensor) -> torch.Tensor:
-        return F.leaky_relu(x, self.config.negative_slope)
-
     def step(self, x: torch.Tensor, state: State | None = None) -> tuple[torch.Tensor, State]:
         """One frame: x (N, in_channels, H, W), state of the previous frame -> (output (N, 3, H, W), new state)."""
+        return self._step(x, state, fast=False)
+
+    def inference_step(self, x: torch.Tensor, state: State | None = None) -> tuple[torch.Tensor, State]:
+        """:meth:`step` for inference: the same results up to float rounding, under ``torch.inference_mode``
+        (no autograd; the outputs cannot be used in training).
+
+        Activations are kept channels-last (NHWC), which oneDNN convolves directly with its brgemm kernels
+        (with the default NCHW layout, ONEDNN_VERBOSE shows every convolution reordering its input to a
+        blocked layout and its output back), and the leaky ReLU is fused into each convolution
+        (:func:`conv_act`). Weights may be in either layout (channels-last saves a copy per call). The state
+        it returns is channels-last too; either step accepts the other's state. ``benchmarks/rae_speed.py``
+        measures the gain.
+        """
+        with torch.inference_mode():
+            return self._step(x, state, fast=True)
+
+    def _step(self, x: torch.Tensor, state: State | None, fast: bool) -> tuple[torch.Tensor, State]:
         if x.dim() != 4 or x.shape[1] != self.config.in_channels:
             raise ValueError(f"rae: expected input (N, {self.config.in_channels}, H, W), got {tuple(x.shape)}")
         height, width = x.shape[-2:]
@@ -209,27 +252,30 @@ class RecurrentAutoencoder(nn.Module):
         pad_h, pad_w = (-height) % m, (-width) % m
         if pad_h or pad_w:
             x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
+        if fast:
+            x = x.contiguous(memory_format=torch.channels_last)
         n_blocks = self.config.levels + 1
         if state is not None and len(state) != n_blocks:
             raise ValueError(f"rae: state has {len(state)} tensors, expected {n_blocks}")
         hidden = list(state) if state is not None else [None] * n_blocks
+        slope = self.config.negative_slope
         new_state: State = []
         skips = []
         for k, (convs, block) in enumerate(zip(self.encoder_convs, self.encoder_blocks)):
             for conv in convs:
-                x = self._act(conv(x))
-            x = block(x, hidden[k])
+                x = conv_act(conv, x, slope, fast)
+            x = block(x, hidden[k], fast=fast)
             new_state.append(x)
             skips.append(x)
             x = F.max_pool2d(x, 2)
-        x = self.bottleneck_block(self._act(self.bottleneck_conv(x)), hidden[-1])
+        x = self.bottleneck_block(conv_act(self.bottleneck_conv, x, slope, fast), hidden[-1], fast=fast)
         new_state.append(x)
         for (first, second), skip in zip(self.decoder_convs, reversed(skips)):
             x = F.interpolate(x, scale_factor=2, mode="nearest")
-            x = self._act(first(torch.cat([x, skip], dim=1)))
-            x = self._act(second(x))
-        out = self.output_conv(x)
-        return out[..., :height, :width], new_state
+            x = conv_act(first, torch.cat([x, skip], dim=1), slope, fast)
+            x = conv_act(second, x, slope, fast)
+        out = conv_act(self.output_conv, x, None, fast)[..., :height, :width]
+        return (out.contiguous() if fast else out), new_state
 
     def forward(self, x: torch.Tensor, state: State | None = None,
                 reset_every_frame: bool = False) -> tuple[torch.Tensor, State | None]:
