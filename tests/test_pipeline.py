@@ -105,7 +105,7 @@ def pipeline(tmp_path_factory) -> PipelineRun:
 
 def test_scenes_stage_target_produces_only_scenes(pipeline: PipelineRun) -> None:
     scenes = scene_ids(pipeline.cfg)
-    assert len(scenes) == 2
+    assert len(scenes) == 3   # two training scenes (one held out for validation) and one test scene
     produced = {Path(path).parts[0] for path in pipeline.after_scenes}
     # Besides scenes, a stage run may only leave bookkeeping (resolved config, logs, benchmarks).
     assert "scenes" in produced and "renders" not in produced
