@@ -151,8 +151,7 @@ def load_custom_frame_scene(manifest: dict, frame: int, *, width: int, height: i
     """The XML scene's shapes and emitters with the project's integrator and ``frame``'s sensor."""
     import mitsuba as mi
 
-    from scenegen.mitsuba_scene import sensor_dict
-    from scenegen.render import _attach_face_attributes
+    from scenegen.mitsuba_scene import attach_face_attributes, sensor_dict
 
     xml = Path(manifest["xml"])
     scene = _load_xml(xml)
@@ -162,7 +161,7 @@ def load_custom_frame_scene(manifest: dict, frame: int, *, width: int, height: i
                   "sensor": sensor_dict(manifest, frame, width=width, height=height, sampler=sampler)}
     for index, shape in enumerate(scene.shapes()):
         if isinstance(shape, mi.Mesh) and not shape.has_attribute("face_ident"):
-            _attach_face_attributes(shape, {"index": index}, _material_record(shape.bsdf()))
+            attach_face_attributes(shape, {"index": index}, _material_record(shape.bsdf()))
         scene_dict[f"shape_{index:03d}"] = shape
     for index, emitter in enumerate(scene.emitters()):
         if emitter.get_shape() is None:  # area emitters come with their shapes

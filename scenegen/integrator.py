@@ -22,8 +22,8 @@ Per sample it returns, as AOVs (Isik et al. 2021, Sec. 3.1):
 A vertex counts as specular when its BSDF is purely Dirac (smooth mirror, glass) or is a
 non-diffuse material with linear roughness below ``specular_roughness`` (0.1, as Isik et al.).
 Material facts that Mitsuba's BSDF interface does not expose are read from per-face mesh
-attributes written by ``scenegen.render``: ``face_material`` = (roughness, metallic, transmissive)
-and ``face_ident`` = (shape index, specular-like, 0).
+attributes written by ``scenegen.mitsuba_scene.attach_face_attributes``: ``face_material`` =
+(roughness, metallic, transmissive) and ``face_ident`` = (shape index, specular-like, 0).
 
 With ``mode="gbuffer"`` the integrator returns only the primary hit (position, shading normal,
 depth, shape index; -1 on a miss) and no light transport, for motion vectors.

@@ -2,7 +2,8 @@
 
 `camera_matrices`, `project_to_pixels` and `object_to_world` are pure numpy (no Mitsuba variant
 needed); `build_scene_dict` imports mitsuba lazily and expects a variant to be set
-(`scenegen.mitsuba_env.init_mitsuba()`).
+(`scenegen.mitsuba_env.init_mitsuba()`). `attach_face_attributes` writes the per-face material
+attributes the feature integrator reads onto a loaded mesh (procedural and custom scenes alike).
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from scenegen.camera import camera_to_pixel_matrix, look_at_matrix
 
 DEFAULT_INTEGRATOR = {"type": "path", "max_depth": 8}
 DEFAULT_SAMPLER = {"type": "independent", "sample_count": 1}
+SPECULAR_LIKE_ROUGHNESS = 0.1  # Isik et al. 2021, Sec. 3.1: alpha below this is treated as specular
 
 
 # ---------------------------------------------------------------------------------------------
@@ -187,6 +189,40 @@ def build_scene_dict(manifest: dict, scene_dir: pathlib.Path, frame: int, *, wid
         else:
             raise ValueError(f"unknown emitter type {emitter['type']!r}")
     return scene
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-face attributes of loaded meshes
+# ---------------------------------------------------------------------------------------------
+
+def _material_is_specular_like(material: dict) -> bool:
+    """Smooth Dirac materials, or non-diffuse materials rougher than nothing but below 0.1 alpha."""
+    if material["type"] in ("conductor", "dielectric", "thindielectric"):
+        return True
+    if material["type"] in ("roughconductor", "roughdielectric"):
+        return float(material.get("roughness", 1.0)) < SPECULAR_LIKE_ROUGHNESS
+    return False
+
+
+def attach_face_attributes(mesh, shape: dict, material: dict | None) -> None:
+    """Store (roughness, metallic, transmissive) and (shape index, specular-like, 0) per face of ``mesh``
+    (a loaded ``mi.Mesh``): the ``face_material`` / ``face_ident`` attributes ``scenegen.integrator`` reads.
+
+    ``shape`` needs its ``index``; ``material`` is a manifest material record (None: diffuse, roughness 1).
+    Used for procedural scenes (``scenegen.render``) and XML meshes (``scenegen.custom``)."""
+    import mitsuba as mi
+
+    n_faces = mesh.face_count()
+    if material is None:
+        mat_row = np.array([1.0, 0.0, 0.0], np.float32)
+        ident_row = np.array([float(shape["index"]), 0.0, 0.0], np.float32)
+    else:
+        mat_row = np.array([float(material.get("roughness", 1.0)), float(bool(material.get("metallic"))),
+                            float(bool(material.get("transmissive")))], np.float32)
+        ident_row = np.array([float(shape["index"]), float(_material_is_specular_like(material)), 0.0],
+                             np.float32)
+    mesh.add_attribute("face_material", 3, mi.Float(np.tile(mat_row, n_faces)))
+    mesh.add_attribute("face_ident", 3, mi.Float(np.tile(ident_row, n_faces)))
 
 
 def preview_mean_luminance(manifest: dict, scene_dir: pathlib.Path, *, frame: int = 0, width: int = 32,

@@ -21,7 +21,6 @@ SAMPLE_BUFFER_SIZES: dict[str, int] = {
     "radiance": 3, "diffuse": 3, "specular": 3, "albedo": 3, "normal": 3,
     "depth": 1, "roughness": 1, "flags": 4, "position": 3,
 }
-SPECULAR_LIKE_ROUGHNESS = 0.1  # Isik et al. 2021, Sec. 3.1: alpha below this is treated as specular
 
 
 @dataclass
@@ -59,32 +58,6 @@ class NonFiniteCounter:
         return array
 
 
-def _material_is_specular_like(material: dict) -> bool:
-    """Smooth Dirac materials, or non-diffuse materials rougher than nothing but below 0.1 alpha."""
-    if material["type"] in ("conductor", "dielectric", "thindielectric"):
-        return True
-    if material["type"] in ("roughconductor", "roughdielectric"):
-        return float(material.get("roughness", 1.0)) < SPECULAR_LIKE_ROUGHNESS
-    return False
-
-
-def _attach_face_attributes(mesh, shape: dict, material: dict | None) -> None:
-    """Store (roughness, metallic, transmissive) and (shape index, specular-like, 0) per face."""
-    import mitsuba as mi
-
-    n_faces = mesh.face_count()
-    if material is None:
-        mat_row = np.array([1.0, 0.0, 0.0], np.float32)
-        ident_row = np.array([float(shape["index"]), 0.0, 0.0], np.float32)
-    else:
-        mat_row = np.array([float(material.get("roughness", 1.0)), float(bool(material.get("metallic"))),
-                            float(bool(material.get("transmissive")))], np.float32)
-        ident_row = np.array([float(shape["index"]), float(_material_is_specular_like(material)), 0.0],
-                             np.float32)
-    mesh.add_attribute("face_material", 3, mi.Float(np.tile(mat_row, n_faces)))
-    mesh.add_attribute("face_ident", 3, mi.Float(np.tile(ident_row, n_faces)))
-
-
 def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: RenderSettings,
                      *, mode: str = "samples"):
     """Load the Mitsuba scene of ``frame`` with the feature integrator and per-face attributes."""
@@ -92,7 +65,7 @@ def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: Rend
     import mitsuba as mi
 
     import scenegen.integrator  # noqa: F401 -- registers "mcdn_features"
-    from scenegen.mitsuba_scene import build_scene_dict
+    from scenegen.mitsuba_scene import attach_face_attributes, build_scene_dict
 
     integrator = {"type": "mcdn_features", "max_depth": settings.max_depth,
                   "rr_depth": settings.rr_depth, "mode": mode}
@@ -107,7 +80,7 @@ def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: Rend
         key = f"shape_{shape['index']:03d}"
         mesh = mi.load_dict(scene_dict[key])
         material = manifest["materials"][shape["material"]] if shape.get("material") is not None else None
-        _attach_face_attributes(mesh, shape, material)
+        attach_face_attributes(mesh, shape, material)
         scene_dict[key] = mesh
     return mi.load_dict(scene_dict)
 

@@ -19,7 +19,7 @@ def build_test_scene_dict(tmp_dir: Path, *, width: int = 32, height: int = 32, i
                           materials: bool = True) -> tuple[dict, dict[str, dict]]:
     """A closed room with glass, mirror, rough metal, plastic and diffuse objects, an area light and a
     point light. Returns (scene dict with PLY shapes, {shape key: material record}) -- the material
-    records are what ``scenegen.render._attach_face_attributes`` needs."""
+    records are what ``scenegen.mitsuba_scene.attach_face_attributes`` needs."""
     import mitsuba as mi
     import trimesh
 
@@ -81,12 +81,12 @@ def load_with_attributes(scene_dict: dict, records: dict[str, dict]):
     """Load the scene dict after attaching the per-face attributes the feature integrator reads."""
     import mitsuba as mi
 
-    from scenegen.render import _attach_face_attributes
+    from scenegen.mitsuba_scene import attach_face_attributes
 
     scene_dict = dict(scene_dict)
     for key, record in records.items():
         mesh = mi.load_dict(scene_dict[key])
-        _attach_face_attributes(mesh, {"index": record["index"]}, record)
+        attach_face_attributes(mesh, {"index": record["index"]}, record)
         scene_dict[key] = mesh
     return mi.load_dict(scene_dict)
 

@@ -18,10 +18,11 @@ import copy
 import hashlib
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from denoisers.training.spec import ModelSpec
+from denoisers.training.tasks import task_problems
 from scenegen.config import SCENE_SPLITS, load_schema, scene_ids
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
@@ -31,28 +32,6 @@ MODEL_FILES: tuple[str, ...] = (MODEL_FILE, "curves.csv", "curves.png", "summary
                                 "settings.json")
 #: Ablation ids the report knows how to read (Chaitanya et al. 2017 Fig. 3 and §4.4).
 INPUT_ABLATION, LOSS_ABLATION = "rae_inputs", "rae_loss"
-
-
-@dataclass(frozen=True)
-class ModelSpec:
-    """One trained model: its id, method and fully resolved settings."""
-
-    id: str
-    method: str
-    seed: int
-    net: dict[str, Any] = field(hash=False, compare=False)
-    loss: dict[str, Any] = field(hash=False, compare=False)
-    data: dict[str, Any] = field(hash=False, compare=False)
-    optimizer: dict[str, Any] = field(hash=False, compare=False)
-    budget: dict[str, Any] = field(hash=False, compare=False)
-    ablation: str | None = None
-    variant: str | None = None
-
-    def settings(self) -> dict[str, Any]:
-        """Everything that determines the trained weights (with the data), for digests and settings.json."""
-        return {"id": self.id, "method": self.method, "seed": self.seed, "net": self.net, "loss": self.loss,
-                "data": self.data, "optimizer": self.optimizer, "budget": self.budget,
-                "ablation": self.ablation, "variant": self.variant}
 
 
 def _schema_defaults(definition: str, value: Mapping[str, Any] | None) -> dict[str, Any]:
@@ -176,8 +155,6 @@ def training_problems(cfg: dict) -> list[str]:
                             f"training does not define; allowed: {ids or 'none (training.models is empty)'}")
     if not specs:
         return problems
-    from denoisers.training.tasks import task_problems
-
     train, validation = training_split(cfg)
     if not train or not validation:
         problems.append(f"training needs at least one training and one validation scene: scenes.n_train = "

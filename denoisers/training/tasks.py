@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from denoisers.training.models import ModelSpec
+from denoisers.training.spec import ModelSpec
 
 
 @dataclass(frozen=True)
