@@ -113,17 +113,18 @@ def _run(args: argparse.Namespace) -> int:
         record = evaluate.denoise_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
                                        threads=args.threads, results=args.results)
         log.info("%s %s spp %d: %.2f ms/frame (%.3g Mpix/s), +%.0f MB peak RSS, %d non-finite inputs, "
-                 "%d non-finite outputs", record["method_id"], args.scene, args.spp, record["mean_seconds"] * 1e3,
-                 record["mpix_per_s"], record["peak_memory_mb"], record["nonfinite_inputs"],
-                 record["nonfinite_outputs"])
+                 "%d non-finite outputs, %d out-of-range outputs", record["method_id"], args.scene, args.spp,
+                 record["mean_seconds"] * 1e3, record["mpix_per_s"], record["peak_memory_mb"],
+                 record["nonfinite_inputs"], record["nonfinite_outputs"], record["out_of_range_outputs"])
     elif args.command == "evaluate":
         table = evaluate.evaluate_clip(cfg, args.denoised, args.render_dir, args.out)
         log.info("%s: %d frames, mean PSNR %.2f dB", args.denoised, len(table), table["psnr"].mean())
     elif args.command == "robustness":
         summary = evaluate.robustness_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
                                            threads=args.threads, results=args.results)
-        log.info("robustness %s %s: injected %s, %d non-finite outputs, mean PSNR %.2f dB", args.method_id,
-                 args.scene, summary["injected"], summary["nonfinite_outputs"], summary["mean_psnr"])
+        log.info("robustness %s %s: injected %s, %d non-finite outputs, %d out-of-range outputs, mean PSNR "
+                 "%.2f dB", args.method_id, args.scene, summary["injected"], summary["nonfinite_outputs"],
+                 summary["out_of_range_outputs"], summary["mean_psnr"])
     elif args.command == "report":
         from denoisers.report import build_report
 

@@ -51,13 +51,24 @@ class EvaluationError(ValueError):
 # Config-level helpers (no torch)
 # ---------------------------------------------------------------------------------------------------
 
+#: MethodSpec.role of the rows of ``evaluation.methods`` and of the rows added for ablation variants.
+METHOD_ROLE, ABLATION_ROLE = "method", "ablation"
+#: Default of ``evaluation.out_of_range_factor`` (the schema's default).
+OUT_OF_RANGE_FACTOR = 10.0
+
+
 @dataclass(frozen=True)
 class MethodSpec:
-    """One row of ``evaluation.methods``: row name, registry name, constructor parameters."""
+    """One evaluation row: row name, registry name, constructor parameters, the sample counts it is
+    evaluated at, whether it runs in the spike/NaN scenario, and its role: ``"method"`` for a row of
+    ``evaluation.methods``, ``"ablation"`` for a row added for a trained ablation variant."""
 
     id: str
     method: str
     params: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+    spp: tuple[int, ...] = ()
+    robustness: bool = True
+    role: str = METHOD_ROLE
 
     @property
     def label(self) -> str:
@@ -65,18 +76,45 @@ class MethodSpec:
         return self.id if self.id == self.method else f"{self.id} ({self.method})"
 
 
+def _row_spp(cfg: dict, wanted: Sequence[int] | None) -> tuple[int, ...]:
+    """The evaluated spp (``evaluation.spp`` order) that are in ``wanted`` (all of them when None);
+    values outside ``evaluation.spp`` are dropped here and reported by :func:`evaluation_problems`."""
+    evaluated = [int(s) for s in cfg["evaluation"]["spp"]]
+    if wanted is None:
+        return tuple(evaluated)
+    wanted = set(wanted)
+    return tuple(s for s in evaluated if s in wanted)
+
+
+def ablation_method_specs(cfg: dict) -> list[MethodSpec]:
+    """Rows evaluating every trained ablation variant (denoisers.training.models.model_specs with
+    ``ablation`` set): id and ``params.model`` = the model id, at ``evaluation.ablation_spp`` (default
+    [1]; [] = none), not in the robustness scenario. Empty when ``ablation_spp`` is empty."""
+    from denoisers.training.models import model_specs
+
+    spp = _row_spp(cfg, cfg["evaluation"].get("ablation_spp", [1]))
+    if not spp:
+        return []
+    return [MethodSpec(model.id, model.method, {"model": model.id}, spp, robustness=False, role=ABLATION_ROLE)
+            for model in model_specs(cfg) if model.ablation]
+
+
 def method_specs(cfg: dict) -> list[MethodSpec]:
-    """The evaluated methods in table order."""
-    return [MethodSpec(entry["id"], entry["method"], dict(entry.get("params") or {}))
-            for entry in cfg["evaluation"]["methods"]]
+    """The evaluation rows in table order: ``evaluation.methods`` (spp default: every evaluated spp;
+    robustness default: true), then one row per trained ablation variant (:func:`ablation_method_specs`)."""
+    configured = [MethodSpec(entry["id"], entry["method"], dict(entry.get("params") or {}),
+                             _row_spp(cfg, entry.get("spp")), bool(entry.get("robustness", True)), METHOD_ROLE)
+                  for entry in cfg["evaluation"]["methods"]]
+    return configured + ablation_method_specs(cfg)
 
 
 def method_spec(cfg: dict, method_id: str) -> MethodSpec:
-    """The spec of row ``method_id``; KeyError listing the configured ids otherwise."""
-    for spec in method_specs(cfg):
+    """The spec of row ``method_id`` (configured or ablation row); KeyError listing the ids otherwise."""
+    specs = method_specs(cfg)
+    for spec in specs:
         if spec.id == method_id:
             return spec
-    known = ", ".join(spec.id for spec in method_specs(cfg))
+    known = ", ".join(spec.id for spec in specs)
     raise KeyError(f"no evaluation method with id {method_id!r}; configured ids: {known}")
 
 
@@ -99,15 +137,36 @@ def evaluation_problems(cfg: dict) -> list[str]:
     evaluation, render = cfg["evaluation"], cfg["render"]
     problems = []
     layers = render["spp"] + render["extra_radiance_spp"]
-    too_many = [spp for spp in evaluation["spp"] if spp > layers]
+    evaluated = list(evaluation["spp"])
+    too_many = [spp for spp in evaluated if spp > layers]
     if too_many:
         problems.append(f"config key 'evaluation.spp' = {evaluation['spp']!r} has values {too_many} above the "
                         f"rendered sample layers; allowed: each <= render.spp + render.extra_radiance_spp = {layers}")
     ids = [entry["id"] for entry in evaluation["methods"]]
     for method_id in sorted({i for i in ids if ids.count(i) > 1}):
         problems.append(f"config key 'evaluation.methods' has the id {method_id!r} more than once; allowed: unique ids")
+    for index, entry in enumerate(evaluation["methods"]):
+        outside = [spp for spp in entry.get("spp") or [] if spp not in evaluated]
+        if outside:
+            problems.append(f"config key 'evaluation.methods[{index}].spp' (row {entry['id']!r}) = {entry['spp']!r} "
+                            f"has values {outside} that are not in 'evaluation.spp' = {evaluated!r}; allowed: "
+                            "values of evaluation.spp")
+    from denoisers.training.models import model_specs
+
+    variants = [model.id for model in model_specs(cfg) if model.ablation]
+    ablation_spp = list(evaluation.get("ablation_spp", [1]))
+    outside = [spp for spp in ablation_spp if spp not in evaluated]
+    if variants and outside:
+        problems.append(f"config key 'evaluation.ablation_spp' = {ablation_spp!r} has values {outside} that are not in "
+                        f"'evaluation.spp' = {evaluated!r}; allowed: values of evaluation.spp, or [] to not "
+                        "evaluate the ablation variants")
+    if variants and ablation_spp:
+        for method_id in sorted(set(ids) & set(variants)):
+            problems.append(f"config key 'evaluation.methods' has the id {method_id!r}, which is the id of the row "
+                            "added for that trained ablation variant (evaluation.ablation_spp); allowed: ids other "
+                            f"than the ablation variants {variants}, or evaluation.ablation_spp: []")
     robustness = evaluation["robustness"]
-    if robustness["enabled"] and robustness["spp"] not in evaluation["spp"]:
+    if robustness["enabled"] and robustness["spp"] not in evaluated:
         problems.append(f"config key 'evaluation.robustness.spp' = {robustness['spp']} is not one of "
                         f"'evaluation.spp' = {evaluation['spp']!r}; allowed: one of the evaluated spp")
     return problems
@@ -132,17 +191,17 @@ class Run:
         return self.spp * self.samples_factor
 
 
-def plan_runs(cfg: dict, spps: Sequence[int] | None = None) -> list[Run]:
-    """Every (method, spp) of the config, in table order, marked not runnable when it needs more
-    sample layers than were rendered (e.g. path tracing at k x spp). Builds each method once to
-    read its declared inputs and samples_factor (constructors must be cheap)."""
+def _plan(cfg: dict, specs: Sequence[MethodSpec], spps_of) -> list[Run]:
     from denoisers import registry
 
     available = rendered_layers(cfg)
     runs = []
-    for spec in method_specs(cfg):
+    for spec in specs:
+        spps = spps_of(spec)
+        if not spps:
+            continue
         method = registry.build(spec.method, resolve_method_params(cfg, spec.params))
-        for spp in spps if spps is not None else cfg["evaluation"]["spp"]:
+        for spp in spps:
             layers = spp * method.samples_factor
             short = [buffer for buffer in method.info.inputs if available[buffer] < layers]
             reason = ""
@@ -153,10 +212,22 @@ def plan_runs(cfg: dict, spps: Sequence[int] | None = None) -> list[Run]:
     return runs
 
 
+def plan_runs(cfg: dict, spps: Sequence[int] | None = None, rows: Sequence[MethodSpec] | None = None) -> list[Run]:
+    """Every (row, spp) of the config (or of ``rows``), in table order: each row at its own ``spp``
+    (MethodSpec.spp), intersected with ``spps`` when given. A run is marked not runnable when it needs
+    more sample layers than were rendered (e.g. path tracing at k x spp). Builds each planned method
+    once to read its declared inputs and samples_factor (constructors must be cheap)."""
+    return _plan(cfg, method_specs(cfg) if rows is None else rows,
+                 lambda spec: [s for s in (spps if spps is not None else spec.spp) if s in spec.spp])
+
+
 def robustness_runs(cfg: dict) -> list[Run]:
-    """The runs of the spike/NaN scenario: every method at ``evaluation.robustness.spp`` (none if disabled)."""
+    """The runs of the spike/NaN scenario: every row with ``robustness`` true (the ablation rows never)
+    at ``evaluation.robustness.spp``, whatever the row's evaluated spp; none if the scenario is disabled."""
     robustness = cfg["evaluation"]["robustness"]
-    return plan_runs(cfg, [robustness["spp"]]) if robustness["enabled"] else []
+    if not robustness["enabled"]:
+        return []
+    return _plan(cfg, [spec for spec in method_specs(cfg) if spec.robustness], lambda spec: [robustness["spp"]])
 
 
 def denoised_dir(results: Path, method_id: str, scene: str, spp: int) -> Path:
@@ -272,6 +343,11 @@ class MethodOutput:
     peak_rss_extra_mb: float
     peak_rss_mb: float
     maxrss_delta_mb: float
+    # per frame: finite output values with |value| > factor x the largest finite |radiance sample| of the
+    # frame's input (all 0 when the method reads no radiance: out_of_range_checked False)
+    out_of_range_outputs: list[int] = field(default_factory=list)
+    out_of_range_checked: bool = True
+    out_of_range_factor: float = OUT_OF_RANGE_FACTOR
 
 
 def _load_method_clip(render_dir: Path, spec: MethodSpec, method, layers: int, reference: bool):
@@ -289,19 +365,47 @@ def _load_method_clip(render_dir: Path, spec: MethodSpec, method, layers: int, r
         raise MissingInputError(spec.label, buffer, f"{layers} sample layers needed: {error}") from error
 
 
-def run_method(method, frames: Sequence, threads: int) -> MethodOutput:
+def input_radiance_bound(frame) -> float | None:
+    """Largest finite |value| among the frame's radiance samples (0.0 if none is finite); None when the
+    frame carries no radiance buffer (the method does not read it)."""
+    import torch
+
+    radiance = frame.samples.get("radiance")
+    if radiance is None:
+        return None
+    magnitude = torch.where(torch.isfinite(radiance), radiance.abs(), torch.zeros((), dtype=radiance.dtype))
+    return float(magnitude.amax()) if magnitude.numel() else 0.0
+
+
+def count_out_of_range(output, bound: float | None, factor: float) -> int:
+    """Finite values of ``output`` with |value| > factor x ``bound`` (0 when ``bound`` is None). A denoiser
+    averages samples, so an output far above every input sample is an artefact (e.g. an exploding network)."""
+    import torch
+
+    if bound is None:
+        return 0
+    return int((torch.isfinite(output) & (output.abs() > factor * bound)).sum().item())
+
+
+def run_method(method, frames: Sequence, threads: int,
+               out_of_range_factor: float = OUT_OF_RANGE_FACTOR) -> MethodOutput:
     """reset(), then denoise() every frame in order, timing each call (frames are built beforehand, so
-    no I/O or data preparation is timed)."""
+    no I/O or data preparation is timed). Counts non-finite inputs and outputs per frame, and finite
+    outputs above ``out_of_range_factor`` x the frame's largest finite input radiance sample (measured
+    before denoise(), which may modify its inputs; not timed)."""
     import torch
 
     torch.set_num_threads(max(1, int(threads)))
-    outputs, seconds, inputs_bad, outputs_bad = [], [], [], []
+    outputs, seconds, inputs_bad, outputs_bad, out_of_range = [], [], [], [], []
+    checked = True
     maxrss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     method.reset()
     with torch.no_grad(), PeakRSS() as memory:
         for frame in frames:
             inputs_bad.append(int(sum((~torch.isfinite(t)).sum().item()
                                       for t in (*frame.samples.values(), *frame.pixel.values()))))
+            bound = input_radiance_bound(frame)
+            checked = checked and bound is not None
             start = time.perf_counter()
             result = method.denoise(frame)
             seconds.append(time.perf_counter() - start)
@@ -311,10 +415,12 @@ def run_method(method, frames: Sequence, threads: int) -> MethodOutput:
                 raise EvaluationError(f"method {method.info.name!r} returned shape {tuple(result.shape)} "
                                       f"for frame {frame.index}; expected {expected} (3, H, W)")
             outputs_bad.append(int((~torch.isfinite(result)).sum().item()))
+            out_of_range.append(count_out_of_range(result, bound, out_of_range_factor))
             outputs.append(result.numpy())
     maxrss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return MethodOutput(np.stack(outputs), seconds, inputs_bad, outputs_bad, memory.extra_mb, memory.peak_mb,
-                        (maxrss_after - maxrss_before) / 1024.0)  # ru_maxrss is in KiB on Linux
+                        (maxrss_after - maxrss_before) / 1024.0,  # ru_maxrss is in KiB on Linux
+                        out_of_range, checked, float(out_of_range_factor))
 
 
 def timing_summary(seconds: Sequence[float], width: int, height: int) -> dict[str, Any]:
@@ -328,6 +434,14 @@ def timing_summary(seconds: Sequence[float], width: int, height: int) -> dict[st
         "median_seconds": float(np.median(timed)),
         "mpix_per_s": width * height / mean / 1e6 if mean > 0 else float("inf"),
     }
+
+
+def out_of_range_record(result: MethodOutput) -> dict[str, Any]:
+    """timing.json / summary.json keys of the out-of-range count (totals; per frame added by the caller)."""
+    return {"out_of_range_outputs": int(sum(result.out_of_range_outputs)),
+            "out_of_range_factor": result.out_of_range_factor,
+            # False: the method reads no radiance samples, so there is no input range and nothing was counted.
+            "out_of_range_checked": result.out_of_range_checked}
 
 
 def _prepare(cfg: dict, method_id: str, spp: int, results: Path | str = "results"):
@@ -361,7 +475,7 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
     spec, method, layers = _prepare(cfg, method_id, spp, results)
     clip = _load_method_clip(Path(render_dir), spec, method, layers, reference=False)
     frames = _frames(clip, method, layers)
-    result = run_method(method, frames, threads)
+    result = run_method(method, frames, threads, cfg["evaluation"]["out_of_range_factor"])
     height, width = result.radiance.shape[-2:]
     # Steady-state cost of one path sample with every feature buffer: the reference renders' rate
     # (large batches); the noisy frames' rate also carries per-frame scene loading.
@@ -379,6 +493,8 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
         "nonfinite_inputs": int(sum(result.nonfinite_inputs)),
         "nonfinite_outputs": int(sum(result.nonfinite_outputs)),
         "nonfinite_outputs_per_frame": result.nonfinite_outputs,
+        **out_of_range_record(result),
+        "out_of_range_outputs_per_frame": result.out_of_range_outputs,
         # Cost of rendering one sample with every buffer (for the equal-time view of the report).
         "render_samples_per_s": float(np.mean(render_rates)) if render_rates else None,
     }
@@ -534,15 +650,18 @@ def robustness_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir:
                                  spike_fraction=settings["spike_fraction"],
                                  spike_max_factor=settings["spike_max_factor"],
                                  nonfinite_fraction=settings["nonfinite_fraction"])
-    result = run_method(method, _frames(clip, method, layers), threads)
+    result = run_method(method, _frames(clip, method, layers), threads,
+                        cfg["evaluation"]["out_of_range_factor"])
     cuts = [bool(m.get("camera_cut", False)) for m in clip.meta]
     scores = score_sequence(result.radiance, clip.reference["radiance"], cuts, cfg["evaluation"]["warmup_frames"])
     table = pd.DataFrame({"frame": clip.frames, **scores, "camera_cut": cuts,
-                          "nonfinite_input": result.nonfinite_inputs, "nonfinite_output": result.nonfinite_outputs})
+                          "nonfinite_input": result.nonfinite_inputs, "nonfinite_output": result.nonfinite_outputs,
+                          "out_of_range_output": result.out_of_range_outputs})
     summary = {"method_id": spec.id, "method": spec.method, "scene": scene, "spp": spp,
                "settings": dict(settings), "injected": injected,
                "nonfinite_inputs": int(sum(result.nonfinite_inputs)),
                "nonfinite_outputs": int(sum(result.nonfinite_outputs)),
+               **out_of_range_record(result),
                "mean_psnr": float(np.nanmean(scores["psnr"]))}
     with atomic_directory(out_dir) as staging:
         (staging / ROBUSTNESS_CSV).write_text(table.to_csv(index=False), encoding="utf-8")

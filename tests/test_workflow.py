@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from denoisers.evaluate import plan_runs, robustness_runs
+from denoisers.evaluate import ABLATION_ROLE, method_specs, plan_runs, robustness_runs
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.training.models import method_model, model_specs, training_split
@@ -89,9 +89,11 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     """{rule: job count} of a --forceall dry run of ``target``, derived from the config.
 
     Renders cover every scene; the evaluation only the test scenes, with one denoise and one evaluate
-    job per (test scene, runnable (method, spp) pair) and one robustness job per (test scene, runnable
-    method at evaluation.robustness.spp). Which pairs are runnable (those needing no more sample layers
-    than were rendered) is decided by the workflow's own planning, denoisers.evaluate.plan_runs.
+    job per (test scene, runnable (row, spp) pair) and one robustness job per (test scene, runnable
+    row with robustness at evaluation.robustness.spp). The rows are evaluation.methods (each at its own
+    spp) plus one per trained ablation variant (at evaluation.ablation_spp). Which pairs are planned and
+    runnable (those needing no more sample layers than were rendered) is decided by the workflow's own
+    planning, denoisers.evaluate.plan_runs / robustness_runs.
     """
     scenes, test_scenes = scene_ids(cfg), evaluated_scene_ids(cfg)
     evaluated = len(test_scenes) * sum(run.runnable for run in plan_runs(cfg))
@@ -100,7 +102,8 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     # models its rows name, the report and the default target every configured model.
     train_scenes = sum(training_split(cfg), [])
     all_models = len(model_specs(cfg))
-    used_models = len({method_model(entry.get("params") or {}) for entry in cfg["evaluation"]["methods"]} - {None})
+    # The models the evaluated rows name: the configured rows' and the ablation rows' (one per variant).
+    used_models = len({method_model(spec.params) for spec in method_specs(cfg)} - {None})
 
     def renders(noisy: list[str], reference: list[str]) -> dict[str, int]:
         ids = set(noisy) | set(reference)
@@ -147,7 +150,8 @@ def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_cop
     cfg = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
     cfg["scenes"]["n_test"] = 2
     cfg["render"].update(spp=4, extra_radiance_spp=0)
-    cfg["evaluation"].update(spp=[1, 2, 4], methods=[
+    # ablation_spp []: only the rows below (the ablation rows: test_ablation_variants_are_evaluated_...).
+    cfg["evaluation"].update(spp=[1, 2, 4], ablation_spp=[], methods=[
         {"id": "noisy", "method": "noisy"},
         {"id": "path_x2", "method": "path_tracing", "params": {"factor": 2}},
         {"id": "path_x4", "method": "path_tracing", "params": {"factor": 4}},
@@ -161,6 +165,82 @@ def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_cop
     assert {rule: counts.get(rule) for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
         "denoise_clip": 12, "evaluate_clip": 12, "robustness_clip": 4}
     assert counts == expected_jobs(load_config(workflow_copy / "layers.yaml"))
+
+
+def dry_run_jobs(*args: str, cwd: Path) -> list[tuple[str, dict[str, str]]]:
+    """(rule, {'input': ..., 'output': ..., ...}) of every job a dry run lists."""
+    result = run_snakemake("-n", *args, cwd=cwd)
+    jobs: list[tuple[str, dict[str, str]]] = []
+    for line in (result.stdout + result.stderr).splitlines():
+        rule = re.match(r"^(?:local)?rule (\w+):$", line.strip())
+        if rule:
+            jobs.append((rule.group(1), {}))
+        elif jobs and re.match(r"^\s+\w+: ", line):
+            key, value = line.strip().split(": ", 1)
+            jobs[-1][1][key] = value
+    return jobs
+
+
+def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Path) -> None:
+    cfg = load_config(workflow_copy / "config/smoke.yaml")
+    variants = [spec.id for spec in model_specs(cfg) if spec.ablation]
+    ablation_spp = cfg["evaluation"]["ablation_spp"]
+    assert len(variants) == 8 and ablation_spp == [1] and cfg["evaluation"]["spp"] == [1, 2]
+    # The rows come after the configured ones, at ablation_spp only, and not in the robustness scenario.
+    specs = method_specs(cfg)
+    assert [spec.id for spec in specs] == [entry["id"] for entry in cfg["evaluation"]["methods"]] + variants
+    assert {(run.spec.id, run.spp) for run in plan_runs(cfg) if run.spec.role == ABLATION_ROLE} == \
+        {(variant, spp) for variant in variants for spp in ablation_spp}
+    assert not {run.spec.id for run in robustness_runs(cfg)} & set(variants)
+
+    jobs = dry_run_jobs("evaluate", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
+    test_scenes = evaluated_scene_ids(cfg)
+    for variant in variants:
+        denoise = {job["output"]: job["input"].split(", ") for rule, job in jobs if rule == "denoise_clip"
+                   and job["output"].startswith(f"results/denoised/{variant}/")}
+        assert set(denoise) == {f"results/denoised/{variant}/{scene}/spp{spp}" for scene in test_scenes
+                                for spp in ablation_spp}
+        assert all(f"results/models/{variant}" in inputs for inputs in denoise.values())
+        assert not [job for rule, job in jobs if rule == "robustness_clip" and f"/{variant}/" in job["output"]]
+    trained = {job["output"] for rule, job in jobs if rule == "train_denoiser"}
+    assert {f"results/models/{variant}" for variant in variants} <= trained
+
+
+def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path) -> None:
+    cfg = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
+    cfg["evaluation"].update(spp=[1, 2], ablation_spp=[2], methods=[
+        {"id": "noisy", "method": "noisy"},
+        {"id": "eaw", "method": "eaw", "spp": [2], "robustness": False},
+        {"id": "path_x2", "method": "path_tracing", "params": {"factor": 2}, "spp": []},
+    ])
+    (workflow_copy / "rows.yaml").write_text(yaml.safe_dump(cfg))
+    counts = dry_run("denoise", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
+    # Hand count, one test scene: noisy at 1 and 2 spp, eaw at 2, path_x2 at none, the 8 ablation variants
+    # at 2: 11 denoise jobs, which need the 8 variant models (no row uses the base model rae).
+    assert counts["denoise_clip"] == 11 and counts["train_denoiser"] == 8
+    counts = dry_run("evaluate", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
+    # Robustness: noisy and path_x2 (its evaluated spp do not matter), not eaw or the variants.
+    assert {rule: counts[rule] for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
+        "denoise_clip": 11, "evaluate_clip": 11, "robustness_clip": 2}
+    assert counts == expected_jobs(load_config(workflow_copy / "rows.yaml"), "evaluate")
+
+    cfg["evaluation"]["ablation_spp"] = []
+    (workflow_copy / "no_ablation.yaml").write_text(yaml.safe_dump(cfg))
+    counts = dry_run("denoise", "--forceall", "--configfile", "no_ablation.yaml", cwd=workflow_copy)
+    assert counts["denoise_clip"] == 3 and "train_denoiser" not in counts
+
+
+def test_ablation_spp_outside_the_evaluated_spp_fails_the_dry_run(workflow_copy: Path, tmp_path: Path) -> None:
+    cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
+    cfg["evaluation"]["ablation_spp"] = [4]  # smoke evaluates [1, 2]
+    cfg["evaluation"]["methods"][2]["spp"] = [2, 3]
+    bad_config = tmp_path / "bad_ablation_spp.yaml"
+    bad_config.write_text(yaml.safe_dump(cfg))
+    result = run_snakemake("-n", "--configfile", str(bad_config), cwd=workflow_copy, check=False)
+    output = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert "evaluation.ablation_spp" in output and "[4]" in output
+    assert "evaluation.methods[2].spp" in output and "[3]" in output
 
 
 @pytest.mark.parametrize("target", STAGE_TARGETS)

@@ -17,7 +17,7 @@ from scenegen.config import (
     scene_ids,
 )
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
-from denoisers.evaluate import evaluation_problems, method_spec, robustness_dir, evaluated_scene_ids
+from denoisers.evaluate import evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids
 from denoisers.report import report_outputs
 from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, settings_digest,
                                        training_problems, training_split)
@@ -152,12 +152,26 @@ def render_digest(kind: str):
 # ---------------------------------------------------------------------------------------------
 # Evaluation (workflow/rules/evaluate.smk): which (method, test scene, spp) jobs exist.
 #
-# Only test_* scenes are evaluated. A (method, spp) pair that needs more sample layers than were
-# rendered (e.g. path tracing at 2 x 4 spp with 4 layers) is left out of the DAG; the report lists
-# it as "not run" with the reason. Planning builds every configured method (importing torch), so
-# it happens on first use, i.e. only when an evaluation target is part of the DAG.
+# Only test_* scenes are evaluated. The rows are evaluation.methods (each at its own `spp`, in the
+# robustness scenario if its `robustness` is true) followed by one row per trained ablation variant
+# (at evaluation.ablation_spp, not in the robustness scenario); see denoisers.evaluate.method_specs.
+# A (row, spp) pair that needs more sample layers than were rendered (e.g. path tracing at 2 x 4 spp
+# with 4 layers) is left out of the DAG; the report lists it as "not run" with the reason. Planning
+# builds every planned method (importing torch), so it happens on first use, i.e. only when an
+# evaluation target is part of the DAG.
 # ---------------------------------------------------------------------------------------------
 TEST_SCENES = evaluated_scene_ids(config)
+# Row id -> denoisers.evaluate.MethodSpec, resolved once (the ablation rows need the training models).
+METHOD_SPECS = {spec.id: spec for spec in method_specs(config)}
+
+
+def method_spec(method_id: str):
+    """The evaluation row (configured or ablation row) of a job's {method} wildcard."""
+    if method_id not in METHOD_SPECS:
+        raise WorkflowError(f"no evaluation row with id {method_id!r}; rows: {', '.join(METHOD_SPECS)}")
+    return METHOD_SPECS[method_id]
+
+
 REPORT_OUTPUTS = report_outputs(config)
 _planned_runs = {}
 
@@ -229,7 +243,7 @@ def train_digest(wildcards) -> str:
 
 def method_model_dir(wildcards) -> list[str]:
     """Input function: the trained model an evaluation row uses (params.model), or nothing."""
-    model = method_model(method_spec(config, wildcards.method).params)
+    model = method_model(method_spec(wildcards.method).params)
     return [str(model_dir("results", model))] if model else []
 
 
@@ -258,13 +272,14 @@ def report_input(wildcards) -> dict[str, list[str]]:
 
 
 def _method_settings(wildcards) -> dict:
-    spec = method_spec(config, wildcards.method)
+    spec = method_spec(wildcards.method)
     return {"method": spec.method, "params": spec.params}
 
 
 def denoise_digest(wildcards) -> str:
     """Param: digest of what a denoised clip depends on besides its input files (rerun trigger)."""
-    return config_digest({**_method_settings(wildcards), "threads": config["evaluation"]["threads"]})
+    settings = {key: config["evaluation"][key] for key in ("threads", "out_of_range_factor")}
+    return config_digest({**_method_settings(wildcards), **settings})
 
 
 def evaluate_digest(wildcards) -> str:
@@ -272,7 +287,8 @@ def evaluate_digest(wildcards) -> str:
 
 
 def robustness_digest(wildcards) -> str:
-    settings = {key: config["evaluation"][key] for key in ("robustness", "warmup_frames", "threads")}
+    settings = {key: config["evaluation"][key]
+                for key in ("robustness", "warmup_frames", "threads", "out_of_range_factor")}
     return config_digest({**_method_settings(wildcards), **settings, "seed": config["seed"]})
 
 
