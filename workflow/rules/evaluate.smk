@@ -4,7 +4,8 @@
 #   evaluate_clip:   results/metrics/{method}/{scene}/spp{spp}.csv (per-frame metrics)
 #   robustness_clip: results/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected)
 #   build_report:    results/tables/, results/figures/, results/REPORT.md
-# {method} is a row id of evaluation.methods; only test_* scenes are requested by the targets.
+# {method} is a row id: of evaluation.methods, or a trained ablation variant's model id (evaluated at
+# evaluation.ablation_spp, not in the robustness scenario); only test_* scenes are requested by the targets.
 
 
 rule denoise_clip:
@@ -99,6 +100,8 @@ rule build_report:
         summary=report(REPORT_OUTPUTS["markdown"], caption="../report/summary.rst", category="Summary"),
         training=report(REPORT_OUTPUTS["training_tables"] + REPORT_OUTPUTS["training_figures"],
                         caption="../report/training.rst", category="Training"),
+        papers=report(REPORT_OUTPUTS["paper_tables"] + REPORT_OUTPUTS["paper_figures"],
+                      caption="../report/papers.rst", category="Papers"),
     params:
         config_file=resolved_config_file,
         config_digest=report_digest,

@@ -1,0 +1,257 @@
+"""Collecting what the report is computed from: per-frame metric CSVs, timing.json, the robustness
+scenario (rules evaluate_clip, denoise_clip, robustness_clip) and the trained models (train_denoiser).
+
+Nothing here computes a verdict; :class:`Results` only answers lookups (which rows ran, per-scene
+values of a column, rows whose outputs were flagged as non-finite or absurd).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from denoisers.evaluate import (
+    ALL_METRICS,
+    ROBUSTNESS_CSV,
+    ROBUSTNESS_SUMMARY,
+    TIMING_FILE,
+    MethodSpec,
+    denoised_dir,
+    evaluated_scene_ids,
+    method_specs,
+    metrics_csv,
+    robustness_dir,
+)
+from denoisers.report.stats import pooled_psnr
+from denoisers.training.models import ModelSpec, model_dir, model_specs
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+#: Timing columns aggregated like metrics (from timing.json).
+TIMING_COLUMNS: tuple[str, ...] = ("ms_per_frame", "mpix_per_s", "peak_memory_mb")
+#: Per-scene columns derived from the per-frame metrics (Isik et al. 2021 Eq. 14: MSE pooled over frames).
+DERIVED_METRICS: tuple[str, ...] = ("video_psnr",)
+#: Fraction of logged training steps whose mean is a model's final training loss.
+FINAL_FRACTION = 0.2
+
+
+# ------------------------------------------------------------------------------------- trained models
+@dataclass
+class TrainedModel:
+    """A complete model directory: summary.json, curves.csv (per logged step), validation.csv (per sequence)."""
+
+    spec: ModelSpec
+    summary: dict[str, Any]
+    curves: pd.DataFrame
+    validation: pd.DataFrame
+
+    def final_training_loss(self) -> float:
+        """Mean train_loss over the last FINAL_FRACTION of the logged steps."""
+        rows = self.curves.dropna(subset=["train_loss"]) if "train_loss" in self.curves else self.curves.iloc[0:0]
+        if not len(rows):
+            return math.nan
+        tail = max(1, int(math.ceil(len(rows) * FINAL_FRACTION)))
+        return float(rows["train_loss"].iloc[-tail:].mean())
+
+    def describe(self) -> str:
+        s = self.summary
+        width = s.get("net", {}).get("config", {}).get("width")
+        width_text = f"width {width:g}, " if isinstance(width, (int, float)) else ""
+        return (f"{self.spec.id}: {width_text}{s.get('parameters', 0):,} parameters, {s.get('steps')} steps "
+                f"({s.get('elapsed_seconds', 0) / 60:.0f} min) on {len(s.get('train_scenes', []))} scenes")
+
+
+@dataclass
+class TrainedModels:
+    specs: list[ModelSpec]
+    models: dict[str, TrainedModel] = field(default_factory=dict)   # models whose directory is complete
+
+    def variants(self, ablation: str) -> dict[str, TrainedModel]:
+        return {m.spec.variant: m for m in self.models.values() if m.spec.ablation == ablation}
+
+    @property
+    def missing(self) -> list[str]:
+        return [spec.id for spec in self.specs if spec.id not in self.models]
+
+
+def collect_models(cfg: dict, results_dir: Path) -> TrainedModels:
+    """Every configured model whose directory holds summary.json, curves.csv and validation.csv."""
+    import pandas as pd
+
+    found = TrainedModels(model_specs(cfg))
+    for spec in found.specs:
+        folder = model_dir(results_dir, spec.id)
+        files = [folder / name for name in ("summary.json", "curves.csv", "validation.csv")]
+        if all(path.is_file() for path in files):
+            found.models[spec.id] = TrainedModel(spec, json.loads(files[0].read_text()), pd.read_csv(files[1]),
+                                                 pd.read_csv(files[2]))
+    return found
+
+
+# ------------------------------------------------------------------------------------------ results
+@dataclass
+class Results:
+    """Everything the report is computed from."""
+
+    cfg: dict
+    specs: list[MethodSpec]                   # every evaluation row (configured rows, then ablation rows)
+    scenes: list[str]                         # evaluated scenes: the units of every comparison
+    runs: list[dict]                          # every planned (row, spp): id, method, spp, status, reason
+    frames: pd.DataFrame                      # per-frame metrics of runs that exist: method_id, spp, scene, frame, ...
+    per_scene: pd.DataFrame                   # per (method_id, spp, scene): frame means, video PSNR, timing, counts
+    robustness: pd.DataFrame | None = None    # per (method_id, scene): spiked metrics and counts
+    results_dir: Path = field(default_factory=lambda: Path("results"))
+    models: TrainedModels | None = None
+
+    @property
+    def main_specs(self) -> list[MethodSpec]:
+        """Configured rows (the ones in the cross-paper tables, chart and grids); ablation rows excluded."""
+        return [spec for spec in self.specs if spec.role == "method"]
+
+    def ran(self, method_id: str | None, spp: int) -> bool:
+        return method_id is not None and any(
+            r["id"] == method_id and r["spp"] == spp and r["status"] == "ran" for r in self.runs)
+
+    def rows_of(self, method: str, role: str = "method", **params: Any) -> list[str]:
+        """Row ids of ``role`` whose registry method is ``method`` (and whose params include ``params``) that
+        produced results at some spp; the params value None matches a missing or false key."""
+        def matches(spec: MethodSpec) -> bool:
+            return spec.role == role and spec.method == method and all(
+                (not spec.params.get(key)) if value is None else spec.params.get(key) == value
+                for key, value in params.items())
+
+        return [spec.id for spec in self.specs if matches(spec)
+                and any(r["id"] == spec.id and r["status"] == "ran" for r in self.runs)]
+
+    def row_of(self, method: str, role: str = "method", **params: Any) -> str | None:
+        rows = self.rows_of(method, role, **params)
+        return rows[0] if rows else None
+
+    def spec(self, method_id: str) -> MethodSpec:
+        return next(spec for spec in self.specs if spec.id == method_id)
+
+    def scene_values(self, method_id: str, spp: int, column: str) -> pd.Series:
+        """Per-scene values of one column, indexed by scene."""
+        rows = self.per_scene[(self.per_scene.method_id == method_id) & (self.per_scene.spp == spp)]
+        return rows.set_index("scene")[column]
+
+    def flag(self, method_id: str, spp: int) -> str:
+        """'' or why this row's outputs are suspect: non-finite values or values far outside the input range."""
+        rows = self.per_scene[(self.per_scene.method_id == method_id) & (self.per_scene.spp == spp)]
+        parts = []
+        nonfinite = rows["nonfinite_outputs"].sum() if "nonfinite_outputs" in rows else 0
+        absurd = rows["out_of_range_outputs"].sum() if "out_of_range_outputs" in rows else 0
+        if nonfinite > 0:
+            parts.append(f"{int(nonfinite):,} non-finite output values")
+        if absurd > 0:
+            factor = rows["out_of_range_factor"].max()
+            parts.append(f"{int(absurd):,} output values beyond {factor:g}x the largest input sample")
+        return f"{method_id} @ {spp} spp: " + ", ".join(parts) if parts else ""
+
+    def model_of(self, method_id: str) -> TrainedModel | None:
+        model_id = self.spec(method_id).params.get("model")
+        return self.models.models.get(model_id) if self.models and model_id else None
+
+
+def _plan_status(cfg: dict) -> dict[tuple[str, int], str]:
+    """(row id, spp) -> '' if runnable, else the not-run reason (unregistered methods included)."""
+    from denoisers.evaluate import plan_runs
+
+    status = {}
+    for spec in method_specs(cfg):
+        try:
+            for run in plan_runs(cfg, rows=[spec]):
+                status[(spec.id, run.spp)] = run.not_run
+        except (KeyError, TypeError, ValueError) as error:
+            for spp in spec.spp:
+                status[(spec.id, spp)] = f"not run (method unavailable: {error})"
+    return status
+
+
+def _timing_row(spec: MethodSpec, scene: str, spp: int, timing: dict) -> dict[str, Any]:
+    return {"method_id": spec.id, "spp": spp, "scene": scene,
+            "ms_per_frame": timing["mean_seconds"] * 1e3, "mpix_per_s": timing["mpix_per_s"],
+            "peak_memory_mb": timing["peak_memory_mb"], "nonfinite_inputs": timing["nonfinite_inputs"],
+            "nonfinite_outputs": timing["nonfinite_outputs"],
+            # Older timing files carry no range check: unknown, not zero.
+            "out_of_range_outputs": timing.get("out_of_range_outputs", math.nan),
+            "out_of_range_factor": timing.get("out_of_range_factor", math.nan),
+            "samples_factor": timing.get("samples_factor", 1),
+            "render_samples_per_s": timing.get("render_samples_per_s") or math.nan,
+            "pixels": timing["width"] * timing["height"]}
+
+
+def collect(cfg: dict, results_dir: Path) -> Results:
+    """Read every metrics CSV and timing.json of the configured runs on the evaluated scenes."""
+    import pandas as pd
+
+    results_dir = Path(results_dir)
+    specs, scenes = method_specs(cfg), evaluated_scene_ids(cfg)
+    plan = None
+    runs, frame_tables, timing_rows = [], [], []
+    for spec in specs:
+        for spp in spec.spp:
+            missing = [s for s in scenes if not metrics_csv(results_dir, spec.id, s, spp).is_file()
+                       or not (denoised_dir(results_dir, spec.id, s, spp) / TIMING_FILE).is_file()]
+            if scenes and not missing:
+                runs.append({"id": spec.id, "method": spec.method, "role": spec.role, "spp": spp, "status": "ran",
+                             "reason": ""})
+                for scene in scenes:
+                    table = pd.read_csv(metrics_csv(results_dir, spec.id, scene, spp))
+                    table.insert(0, "scene", scene)
+                    table.insert(0, "spp", spp)
+                    table.insert(0, "method_id", spec.id)
+                    frame_tables.append(table)
+                    timing = json.loads((denoised_dir(results_dir, spec.id, scene, spp) / TIMING_FILE).read_text())
+                    timing_rows.append(_timing_row(spec, scene, spp, timing))
+                continue
+            plan = _plan_status(cfg) if plan is None else plan
+            reason = plan.get((spec.id, spp), "")
+            if not reason:
+                reason = (f"not run (results missing for {', '.join(missing)})" if scenes
+                          else "not run (no evaluated scenes)")
+            runs.append({"id": spec.id, "method": spec.method, "role": spec.role, "spp": spp, "status": "not run",
+                         "reason": reason})
+
+    metric_columns = [*ALL_METRICS, "reference_psnr_halves"]
+    if frame_tables:
+        frames = pd.concat(frame_tables, ignore_index=True)
+        grouped = frames.groupby(["method_id", "spp", "scene"], sort=False)
+        per_scene = grouped[metric_columns].mean().reset_index()
+        per_scene["video_psnr"] = grouped["psnr"].agg(pooled_psnr).to_numpy()
+        per_scene = per_scene.merge(pd.DataFrame(timing_rows), on=["method_id", "spp", "scene"], how="left")
+    else:
+        frames = pd.DataFrame(columns=["method_id", "spp", "scene", "frame", *metric_columns, "camera_cut"])
+        per_scene = pd.DataFrame(columns=["method_id", "spp", "scene", *metric_columns, *DERIVED_METRICS,
+                                          *TIMING_COLUMNS, "nonfinite_outputs", "out_of_range_outputs"])
+    robustness = _collect_robustness(cfg, results_dir, specs, scenes) \
+        if cfg["evaluation"]["robustness"]["enabled"] else None
+    return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir,
+                   collect_models(cfg, results_dir))
+
+
+def _collect_robustness(cfg: dict, results_dir: Path, specs: list[MethodSpec], scenes: list[str]) -> pd.DataFrame:
+    import pandas as pd
+
+    spp = cfg["evaluation"]["robustness"]["spp"]
+    rows = []
+    for spec in specs:
+        for scene in scenes:
+            folder = robustness_dir(results_dir, spec.id, scene, spp)
+            if not (folder / ROBUSTNESS_CSV).is_file():
+                continue
+            table = pd.read_csv(folder / ROBUSTNESS_CSV)
+            summary = json.loads((folder / ROBUSTNESS_SUMMARY).read_text())
+            rows.append({"method_id": spec.id, "scene": scene, "spp": spp,
+                         **{f"{m}_spiked": table[m].mean() for m in ALL_METRICS},
+                         "nonfinite_inputs": summary["nonfinite_inputs"],
+                         "nonfinite_outputs": summary["nonfinite_outputs"],
+                         "out_of_range_outputs": summary.get("out_of_range_outputs", math.nan),
+                         "spikes": summary["injected"]["spikes"], "nan_values": summary["injected"]["nan_values"],
+                         "inf_values": summary["injected"]["inf_values"]})
+    return pd.DataFrame(rows, columns=["method_id", "scene", "spp", *[f"{m}_spiked" for m in ALL_METRICS],
+                                       "nonfinite_inputs", "nonfinite_outputs", "out_of_range_outputs", "spikes",
+                                       "nan_values", "inf_values"])

@@ -1,0 +1,268 @@
+"""Cross-paper figures: quality versus speed, per-frame error curves, image grids with crops and error
+maps, training curves. Matplotlib is imported inside the functions (Agg backend)."""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from denoisers.evaluate import (
+    REFERENCE_METHODS,
+    ROBUSTNESS_LAST_EXR,
+    EvaluationError,
+    MethodSpec,
+    denoised_dir,
+    read_frame_files,
+    read_radiance_exr,
+    robustness_dir,
+)
+from denoisers.report.collect import Results, TrainedModels
+from denoisers.report.tables import summary_lookup
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+
+def pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _colours(specs: Sequence[MethodSpec]) -> dict[str, Any]:
+    cmap = pyplot().get_cmap("tab10")
+    return {spec.id: cmap(i % 10) for i, spec in enumerate(specs)}
+
+
+def smoothed(values: Any, window: int) -> np.ndarray:
+    """Running mean over ``window`` points (the first value repeated before the start)."""
+    values = np.asarray(values, dtype=float)
+    if window <= 1 or len(values) < window:
+        return values
+    padded = np.concatenate([np.full(window - 1, values[0]), values])
+    return np.convolve(padded, np.ones(window) / window, mode="valid")
+
+
+def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[Path]) -> None:
+    """PSNR against denoiser throughput (Mpix/s, log x), a point per method and spp with 95 % CI bars;
+    the non-denoising rows (noisy input, plain path tracing) are horizontal reference lines."""
+    plt = pyplot()
+    lookup = summary_lookup(summary)
+    colours = _colours(res.main_specs)
+    fig, ax = plt.subplots(figsize=(7.5, 5.0))
+    xs = []
+    for spec in res.main_specs:
+        spps = [s for s in res.cfg["evaluation"]["spp"] if res.ran(spec.id, s)]
+        if not spps or spec.method in REFERENCE_METHODS:
+            continue
+        x = [lookup[(spec.id, s, "mpix_per_s")][0] for s in spps]
+        y = [lookup[(spec.id, s, "psnr")] for s in spps]
+        err = [[0 if math.isnan(v[1]) else v[0] - v[1] for v in y], [0 if math.isnan(v[2]) else v[2] - v[0] for v in y]]
+        ax.errorbar(x, [v[0] for v in y], yerr=err, marker="o", color=colours[spec.id], label=spec.id, capsize=3)
+        for xi, yi, s in zip(x, y, spps):
+            ax.annotate(f"{spec.id} {s}spp", (xi, yi[0]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        xs += x
+    for spec in res.main_specs:
+        if spec.method not in REFERENCE_METHODS:
+            continue
+        for s in res.cfg["evaluation"]["spp"]:
+            if res.ran(spec.id, s):
+                level = lookup[(spec.id, s, "psnr")][0]
+                ax.axhline(level, color=colours[spec.id], linestyle="--", linewidth=0.8, alpha=0.7)
+                # Noisy rows labelled on the right, path-tracing rows on the left: equal totals coincide.
+                right = spec.method == "noisy"
+                ax.annotate(f"{spec.id} {s}spp", (0.995 if right else 0.005, level),
+                            xycoords=("axes fraction", "data"), ha="right" if right else "left", va="bottom",
+                            fontsize=7, color=colours[spec.id])
+    ax.set_xscale("log")
+    if not xs:
+        ax.set_xlim(0.1, 10)
+    ax.set_xlabel("throughput (Mpix/s, denoising only, log scale)")
+    ax.set_ylabel("PSNR (dB, tonemapped)")
+    ax.set_title(f"Quality vs speed ({len(res.scenes)} scene(s), mean ± 95 % CI)")
+    ax.grid(True, which="both", alpha=0.3)
+    if xs:
+        ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    for path in paths:
+        fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+def plot_frame_curves(res: Results, scene: str, path: Path) -> None:
+    """Per-frame relMSE (log), 1 - SSIM and tPSNR of every method, one row per spp, camera cuts dotted."""
+    plt = pyplot()
+    from matplotlib.ticker import MaxNLocator
+
+    spps = res.cfg["evaluation"]["spp"]
+    colours = _colours(res.main_specs)
+    panels = (("relmse", "rMSE (log)"), ("ssim", "1 − SSIM"), ("tpsnr", "tPSNR (dB)"))
+    fig, axes = plt.subplots(len(spps), len(panels), figsize=(12, 2.6 * len(spps)), squeeze=False)
+    data = res.frames[res.frames.scene == scene]
+    for row, spp in enumerate(spps):
+        for col, (metric, label) in enumerate(panels):
+            ax = axes[row][col]
+            for spec in res.main_specs:
+                part = data[(data.method_id == spec.id) & (data.spp == spp)].sort_values("frame")
+                if part.empty:
+                    continue
+                values = 1.0 - part[metric] if metric == "ssim" else part[metric]
+                ax.plot(part["frame"], values, marker=".", color=colours[spec.id], label=spec.id)
+                for t in part.loc[part.camera_cut.astype(bool), "frame"]:
+                    ax.axvline(t, color="grey", linestyle=":", linewidth=0.8)
+            if metric == "relmse" and ax.has_data():
+                ax.set_yscale("log")
+            ax.set_title(f"{label}, {spp} spp", fontsize=9)
+            ax.set_xlabel("frame")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+            ax.grid(True, alpha=0.3)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=8)
+    fig.suptitle(f"{scene}: per-frame error (lower rMSE / 1−SSIM, higher tPSNR is better)", fontsize=10)
+    fig.tight_layout(rect=(0, 0.06, 1, 0.97))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _grid_frame(cfg: dict, frames: Sequence[int]) -> int:
+    return list(frames)[int(cfg["evaluation"]["grid_frame"]) % len(frames)] if frames else 0
+
+
+def _crop_window(error: np.ndarray, size: int) -> tuple[int, int]:
+    """Top-left (y, x) of the size x size window with the largest summed error (integral image)."""
+    height, width = error.shape
+    size = min(size, height, width)
+    integral = np.pad(error.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    sums = (integral[size:, size:] - integral[:-size, size:] - integral[size:, :-size] + integral[:-size, :-size])
+    y, x = np.unravel_index(np.argmax(sums), sums.shape)
+    return int(y), int(x)
+
+
+def image_grid(columns: Sequence[tuple[str, np.ndarray]], reference: np.ndarray, path: Path, title: str) -> None:
+    """Columns of (label, (3, H, W) radiance) plus the reference: full frame with the crop marked, the crop
+    enlarged, and the error map |tonemap(x) - tonemap(ref)| (channel mean, common colour scale)."""
+    from denoisers import metrics
+    from denoisers.evaluate import preview_rgb8
+
+    plt = pyplot()
+    from matplotlib.patches import Rectangle
+
+    ref_tm = np.asarray(metrics.tonemap(reference))
+    errors = [np.abs(np.asarray(metrics.tonemap(np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0))) - ref_tm)
+              .mean(axis=0) for _, img in columns]
+    size = max(8, min(reference.shape[1:]) // 4)
+    y, x = _crop_window(errors[0] if errors else np.zeros(reference.shape[1:]), size)
+    vmax = float(np.percentile(errors[0], 99)) if errors else 1.0
+    vmax = vmax if vmax > 0 else 1.0
+    panels = [*columns, ("reference", reference)]
+    fig, axes = plt.subplots(3, len(panels), figsize=(1.9 * len(panels), 6.0), squeeze=False)
+    for col, (label, img) in enumerate(panels):
+        rgb = preview_rgb8(img)
+        is_ref = col == len(panels) - 1
+        psnr = "" if is_ref else f"\n{float(metrics.psnr(np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), reference)):.2f} dB"
+        axes[0][col].imshow(rgb, interpolation="nearest")
+        axes[0][col].add_patch(Rectangle((x - 0.5, y - 0.5), size, size, fill=False, edgecolor="cyan", linewidth=1))
+        axes[0][col].set_title(f"{label}{psnr}", fontsize=8)
+        axes[1][col].imshow(rgb[y:y + size, x:x + size], interpolation="nearest")
+        if is_ref:
+            axes[2][col].imshow(np.zeros_like(ref_tm[0]), cmap="inferno", vmin=0, vmax=vmax)
+        else:
+            axes[2][col].imshow(errors[col], cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
+        for row in range(3):
+            axes[row][col].set_xticks([])
+            axes[row][col].set_yticks([])
+    axes[1][0].set_ylabel("crop", fontsize=8)
+    axes[2][0].set_ylabel(f"|error| (0..{vmax:.2f})", fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def placeholder(path: Path, text: str) -> None:
+    """A small figure that only says why there is nothing to show."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(4, 1.5))
+    ax.text(0.5, 0.5, text, ha="center", va="center")
+    ax.set_axis_off()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _reference_frame(render_dir: Path, frame: int) -> np.ndarray:
+    from scenegen.dataset import find_frames, load_reference_frame
+
+    found = find_frames(Path(render_dir) / "reference")
+    if frame not in found:
+        raise EvaluationError(f"{render_dir}/reference: frame {frame} missing (needed for the image grid)")
+    return load_reference_frame(found[frame], ["radiance"])[0]["radiance"]
+
+
+def plot_grids(res: Results, figures: Path) -> list[Path]:
+    """One image grid per test scene at the lowest evaluated spp, plus the robustness grid."""
+    written = []
+    spp = min(res.cfg["evaluation"]["spp"])
+    for scene in res.scenes:
+        columns, frame = [], None
+        for spec in res.main_specs:
+            if not res.ran(spec.id, spp):
+                continue
+            files = read_frame_files(denoised_dir(res.results_dir, spec.id, scene, spp))
+            frame = _grid_frame(res.cfg, sorted(files)) if frame is None else frame
+            columns.append((spec.id, read_radiance_exr(files[frame])))
+        frame = frame if frame is not None else 0
+        path = figures / f"grid_{scene}.png"
+        reference = _reference_frame(res.results_dir / "renders" / scene, frame)
+        image_grid(columns, reference, path, f"{scene}, frame {frame}, {spp} spp")
+        written.append(path)
+    robustness = res.cfg["evaluation"]["robustness"]
+    path = figures / "robustness_grid.png"
+    if not (robustness["enabled"] and res.scenes):
+        placeholder(path, "robustness scenario disabled" if res.scenes else "no test scenes")
+        written.append(path)
+    else:
+        scene, columns = res.scenes[0], []
+        for spec in res.main_specs:
+            exr = robustness_dir(res.results_dir, spec.id, scene, robustness["spp"]) / ROBUSTNESS_LAST_EXR
+            if exr.is_file():
+                columns.append((spec.id, read_radiance_exr(exr)))
+        from scenegen.dataset import find_frames
+
+        last = max(find_frames(res.results_dir / "renders" / scene / "reference"), default=0)
+        image_grid(columns, _reference_frame(res.results_dir / "renders" / scene, last), path,
+                   f"{scene}, frame {last}, {robustness['spp']} spp, spikes + NaN/Inf injected")
+        written.append(path)
+    return written
+
+
+def plot_training_curves(models: TrainedModels, path: Path) -> None:
+    """Training and validation loss of the models that are not ablation variants."""
+    main = [m for m in models.models.values() if not m.spec.ablation]
+    if not main:
+        placeholder(path, "no model was trained")
+        return
+    plt = pyplot()
+    figure, axes = plt.subplots(figsize=(7, 4.5))
+    for model in main:
+        train = model.curves.dropna(subset=["train_loss"])
+        line, = axes.plot(train["step"], smoothed(train["train_loss"], 5), label=f"{model.spec.id} training")
+        if "val_loss" in model.curves:
+            val = model.curves.dropna(subset=["val_loss"])
+            axes.plot(val["step"], val["val_loss"], marker="o", linestyle="--", color=line.get_color(),
+                      label=f"{model.spec.id} validation")
+    axes.set_yscale("log")
+    axes.set_xlabel("training step")
+    axes.set_ylabel("loss")
+    axes.set_title("Training curves")
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)

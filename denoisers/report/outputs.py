@@ -1,0 +1,30 @@
+"""The files the report writes, listed while the Snakefile is parsed (no pandas, torch or matplotlib)."""
+from __future__ import annotations
+
+from denoisers.evaluate import evaluated_scene_ids
+from denoisers.reproductions import all_reproductions
+from denoisers.training.models import model_specs
+
+#: Cross-paper tables, written as tables/{name}.csv and tables/{name}.md.
+CORE_TABLES: tuple[str, ...] = ("summary", "per_scene", "timing", "equal_time", "noise_floor", "robustness",
+                                "claims", "runs", "split")
+
+
+def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
+    """Files the report writes, grouped: 'tables' (CSV), 'tables_md', 'quality' (chart PNG + SVG), 'curves'
+    (per-frame error per scene), 'grids', 'markdown', 'training_tables' / 'training_figures' (empty without
+    training) and 'paper_tables' (CSV + Markdown) / 'paper_figures' of the reproduction modules."""
+    scenes = evaluated_scene_ids(cfg)
+    trained = bool(model_specs(cfg))
+    paper_tables = [name for r in all_reproductions() for name in r.tables(cfg)]
+    paper_figures = [name for r in all_reproductions() for name in r.figures(cfg)]
+    return {"tables": [f"{root}/tables/{t}.csv" for t in CORE_TABLES],
+            "tables_md": [f"{root}/tables/{t}.md" for t in CORE_TABLES],
+            "quality": [f"{root}/figures/quality_vs_speed.png", f"{root}/figures/quality_vs_speed.svg"],
+            "curves": [f"{root}/figures/frame_curves_{scene}.png" for scene in scenes],
+            "grids": [f"{root}/figures/grid_{scene}.png" for scene in scenes] + [f"{root}/figures/robustness_grid.png"],
+            "markdown": [f"{root}/REPORT.md"],
+            "training_tables": [f"{root}/tables/training.{ext}" for ext in ("csv", "md")] if trained else [],
+            "training_figures": [f"{root}/figures/training_curves.png"] if trained else [],
+            "paper_tables": [f"{root}/tables/{t}.{ext}" for t in paper_tables for ext in ("csv", "md")],
+            "paper_figures": [f"{root}/figures/{f}.png" for f in paper_figures]}

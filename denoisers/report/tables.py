@@ -1,0 +1,220 @@
+"""Cross-paper tables: summary (method x spp x metric), timing, equal-time view, reference noise floor,
+robustness, split, trained models. Paper-specific layouts live in denoisers.reproductions."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from denoisers.evaluate import ALL_METRICS, REFERENCE_METHODS
+from denoisers.report.collect import DERIVED_METRICS, TIMING_COLUMNS, Results, TrainedModels
+from denoisers.report.stats import HIGHER_IS_BETTER, LABELS, fmt_ci, markdown_table, mean_ci
+from scenegen.config import SCENE_SPLITS, scene_ids
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+SUMMARY_METRICS: tuple[str, ...] = (*ALL_METRICS, *DERIVED_METRICS, *TIMING_COLUMNS)
+#: Columns of the Markdown summary (video PSNR is in the Isik layouts).
+SUMMARY_SHOWN: tuple[str, ...] = (*ALL_METRICS, *TIMING_COLUMNS)
+
+
+def summary_table(res: Results) -> pd.DataFrame:
+    """Long table: row x spp x metric -> mean, 95 % CI over evaluated scenes, number of scenes."""
+    import pandas as pd
+
+    rows = []
+    for run in res.runs:
+        if run["status"] != "ran":
+            continue
+        for metric in SUMMARY_METRICS:
+            mean, low, high, n = mean_ci(res.scene_values(run["id"], run["spp"], metric).to_numpy(np.float64))
+            rows.append({"method_id": run["id"], "method": run["method"], "role": run["role"], "spp": run["spp"],
+                         "metric": metric, "higher_is_better": HIGHER_IS_BETTER[metric], "mean": mean,
+                         "ci_low": low, "ci_high": high, "n_scenes": n})
+    return pd.DataFrame(rows, columns=["method_id", "method", "role", "spp", "metric", "higher_is_better", "mean",
+                                       "ci_low", "ci_high", "n_scenes"])
+
+
+def summary_lookup(summary: pd.DataFrame) -> dict[tuple[str, int, str], tuple[float, float, float, int]]:
+    return {(r.method_id, r.spp, r.metric): (r.mean, r.ci_low, r.ci_high, r.n_scenes) for r in summary.itertuples()}
+
+
+def summary_markdown(res: Results, summary: pd.DataFrame) -> str:
+    """One Markdown table per spp: rows = configured methods, columns = metrics as 'mean ± 95 % CI half-width'."""
+    lookup = summary_lookup(summary)
+    arrows = {True: "↑", False: "↓"}
+    parts = []
+    for spp in res.cfg["evaluation"]["spp"]:
+        rows = [[spec.id, *[fmt_ci(*lookup[(spec.id, spp, m)][:3], m) for m in SUMMARY_SHOWN]]
+                for spec in res.main_specs if res.ran(spec.id, spp)]
+        n = max((lookup[k][3] for k in lookup if k[1] == spp), default=0)
+        parts.append(f"### {spp} spp ({n} scene{'s' if n != 1 else ''})\n\n")
+        parts.append(markdown_table(["method", *[f"{LABELS[m]} {arrows[HIGHER_IS_BETTER[m]]}" for m in SUMMARY_SHOWN]],
+                                    rows) if rows else "no method ran at this spp\n")
+        parts.append("\n")
+    return "".join(parts)
+
+
+def timing_table(res: Results) -> pd.DataFrame:
+    """Per row and spp: timing means with CIs and the summed non-finite / out-of-range counts."""
+    import pandas as pd
+
+    rows = []
+    for run in res.runs:
+        if run["status"] != "ran":
+            continue
+        values = {c: res.scene_values(run["id"], run["spp"], c) for c in
+                  (*TIMING_COLUMNS, "nonfinite_inputs", "nonfinite_outputs", "out_of_range_outputs")}
+        out_of_range = values["out_of_range_outputs"]
+        rows.append({"method_id": run["id"], "spp": run["spp"],
+                     **{f"{c}_{part}": value for c in TIMING_COLUMNS
+                        for part, value in zip(("mean", "ci_low", "ci_high"), mean_ci(values[c].to_numpy(float))[:3])},
+                     "nonfinite_inputs": int(values["nonfinite_inputs"].sum()),
+                     "nonfinite_outputs": int(values["nonfinite_outputs"].sum()),
+                     "out_of_range_outputs": int(out_of_range.sum()) if out_of_range.notna().all() else math.nan,
+                     "flag": res.flag(run["id"], run["spp"])})
+    return pd.DataFrame(rows)
+
+
+def equal_time_table(res: Results) -> pd.DataFrame:
+    """For each denoiser and spp: the spp plain path tracing reaches in the same time (render time of
+    spp samples + denoise time, with the renderer's measured samples/s), the plain path-tracing row
+    whose total spp is nearest to it (in log ratio), and which of the two has the higher PSNR."""
+    import pandas as pd
+
+    main = {spec.id for spec in res.main_specs}
+    baselines = []  # (row id, evaluated spp, total spp)
+    for run in res.runs:
+        if run["status"] == "ran" and run["id"] in main and res.spec(run["id"]).method in REFERENCE_METHODS:
+            factor = int(res.scene_values(run["id"], run["spp"], "samples_factor").iloc[0])
+            baselines.append((run["id"], run["spp"], run["spp"] * factor))
+    rows = []
+    for run in res.runs:
+        if run["status"] != "ran" or run["id"] not in main or res.spec(run["id"]).method in REFERENCE_METHODS:
+            continue
+        ms = res.scene_values(run["id"], run["spp"], "ms_per_frame")
+        rate = res.scene_values(run["id"], run["spp"], "render_samples_per_s")
+        pixels = res.scene_values(run["id"], run["spp"], "pixels")
+        equal_spp = float(np.mean(run["spp"] + ms / 1e3 * rate / pixels))
+        row = {"method_id": run["id"], "spp": run["spp"], "denoise_ms_per_frame": float(ms.mean()),
+               "render_msamples_per_s": float(rate.mean() / 1e6), "equal_time_spp": equal_spp,
+               "path_tracing_row": None, "path_tracing_spp": math.nan, "psnr_denoiser": math.nan,
+               "psnr_path_tracing": math.nan, "psnr_diff_mean": math.nan, "psnr_diff_ci_low": math.nan,
+               "psnr_diff_ci_high": math.nan, "better": "no path-tracing row"}
+        if baselines and not math.isnan(equal_spp):
+            best = min(baselines, key=lambda b: (abs(math.log(b[2] / equal_spp)), -b[2]))
+            ours = res.scene_values(run["id"], run["spp"], "psnr")
+            theirs = res.scene_values(best[0], best[1], "psnr")
+            mean, low, high, _ = mean_ci((ours - theirs).dropna().to_numpy(float))
+            better = (run["id"] if low > 0 else "path tracing" if high < 0 else "neither (interval spans 0)") \
+                if not math.isnan(low) else "undecided (fewer than 2 scenes)"
+            row.update({"path_tracing_row": f"{best[0]} @ {best[1]} spp", "path_tracing_spp": best[2],
+                        "psnr_denoiser": float(ours.mean()), "psnr_path_tracing": float(theirs.mean()),
+                        "psnr_diff_mean": mean, "psnr_diff_ci_low": low, "psnr_diff_ci_high": high,
+                        "better": better})
+            if best[2] < equal_spp / 1.5:
+                row["better"] += f" (nearest rendered PT has {best[2]} spp < {equal_spp:.1f})"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def noise_floor_table(res: Results) -> pd.DataFrame:
+    """Per scene: PSNR between the two reference halves and the implied noise floor of the
+    reference (+6.02 dB, docs/data-format.md), beside the best method PSNR at the highest spp."""
+    import pandas as pd
+
+    rows = []
+    top_spp = max(res.cfg["evaluation"]["spp"])
+    main = {spec.id for spec in res.main_specs}
+    for scene in res.scenes:
+        halves = res.frames.loc[res.frames.scene == scene, "reference_psnr_halves"]
+        at_top = res.per_scene[(res.per_scene.scene == scene) & (res.per_scene.spp == top_spp)
+                               & res.per_scene.method_id.isin(main)].dropna(subset=["psnr"])
+        best = at_top.loc[at_top.psnr.idxmax()] if len(at_top) else None
+        floor = float(halves.mean()) + 10 * math.log10(4.0) if len(halves) else math.nan
+        rows.append({"scene": scene, "psnr_halves": float(halves.mean()) if len(halves) else math.nan,
+                     "reference_noise_floor_psnr": floor, "best_method": best.method_id if best is not None else None,
+                     "best_psnr": float(best.psnr) if best is not None else math.nan, "spp": top_spp,
+                     "headroom_db": floor - float(best.psnr) if best is not None else math.nan})
+    return pd.DataFrame(rows)
+
+
+def robustness_table(res: Results) -> pd.DataFrame:
+    """Per row at the robustness spp: PSNR on clean and on spiked input (mean ± CI over scenes), the
+    drop, and the summed counts of injected, non-finite and out-of-range values."""
+    import pandas as pd
+
+    spp = res.cfg["evaluation"]["robustness"]["spp"]
+    rows = []
+    for spec in res.specs:
+        if not spec.robustness:
+            continue
+        spiked = res.robustness[res.robustness.method_id == spec.id].set_index("scene") \
+            if res.robustness is not None else None
+        if spiked is None or spiked.empty:
+            rows.append({"method_id": spec.id, "spp": spp, "status": "not run"})
+            continue
+        clean = res.scene_values(spec.id, spp, "psnr") if res.ran(spec.id, spp) else None
+        drop = (clean - spiked["psnr_spiked"]).dropna() if clean is not None else None
+        row: dict[str, Any] = {"method_id": spec.id, "spp": spp, "status": "ran"}
+        for name, values in (("psnr_clean", clean), ("psnr_spiked", spiked["psnr_spiked"]), ("psnr_drop", drop)):
+            mean, low, high, _ = mean_ci(values.to_numpy(float)) if values is not None else (math.nan,) * 4
+            row.update({f"{name}_mean": mean, f"{name}_ci_low": low, f"{name}_ci_high": high})
+        for count in ("spikes", "nan_values", "inf_values", "nonfinite_inputs", "nonfinite_outputs"):
+            row[count] = int(spiked[count].sum())
+        absurd = spiked["out_of_range_outputs"]
+        row["out_of_range_outputs"] = int(absurd.sum()) if absurd.notna().all() else math.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def split_table(cfg: dict) -> pd.DataFrame:
+    """The seeded train/test split: every scene id, its split and its derived seed."""
+    import pandas as pd
+
+    from denoisers.evaluate import evaluated_scene_ids
+    from scenegen.seeds import scene_seed
+
+    evaluated = set(evaluated_scene_ids(cfg))
+    rows = []
+    for scene in scene_ids(cfg):
+        split = next((s for s in SCENE_SPLITS if scene.startswith(f"{s}_")), "custom")
+        rows.append({"scene": scene, "split": split, "evaluated": scene in evaluated,
+                     "scene_seed": scene_seed(cfg["seed"], scene) if split != "custom" else None})
+    return pd.DataFrame(rows)
+
+
+def training_table(models: TrainedModels) -> pd.DataFrame:
+    """One row per configured model: size, budget used and validation metrics of best.pt."""
+    import pandas as pd
+
+    rows = []
+    for spec in models.specs:
+        model = models.models.get(spec.id)
+        row: dict[str, Any] = {"model": spec.id, "method": spec.method, "ablation": spec.ablation or "",
+                               "variant": spec.variant or "", "status": "trained" if model else "not trained"}
+        if model:
+            s = model.summary
+            validation = model.validation
+            row.update({"parameters": s.get("parameters"), "parameters_full_width": s.get("parameters_full_width"),
+                        "width": s.get("net", {}).get("config", {}).get("width"),
+                        "steps": s.get("steps"), "stopped_by": s.get("stopped_by"),
+                        "train_minutes": s.get("elapsed_seconds", math.nan) / 60.0,
+                        "seconds_per_step": s.get("seconds_per_step"), "best_step": s.get("best_step"),
+                        "final_train_loss": model.final_training_loss(),
+                        **{f"val_{k}": float(validation[k].mean()) for k in ("loss", "ssim", "psnr", "rmse")
+                           if k in validation}})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def write_table(table: pd.DataFrame, folder: Path, name: str, markdown: str | None = None) -> None:
+    """{folder}/{name}.csv and {name}.md (``markdown`` or the table as Markdown), each written atomically."""
+    from denoisers.report.stats import frame_to_markdown
+    from scenegen.atomic import write_text_atomic
+
+    write_text_atomic(folder / f"{name}.csv", table.to_csv(index=False))
+    write_text_atomic(folder / f"{name}.md", markdown if markdown is not None else frame_to_markdown(table))

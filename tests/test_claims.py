@@ -1,0 +1,223 @@
+"""Every claim's decision on synthetic result tables: reproduced, contradicted, inconclusive, not run.
+
+Results are built in memory (no files): per-scene values chosen so that the paired difference of each
+part of a claim is ``d_i`` on the claimed side. The expected outcome follows from the rule written in
+the reproduction targets (95 % Student-t interval of the paired difference wholly on one side of 0,
+n >= 3), recomputed here with scipy where the margin matters.
+"""
+from __future__ import annotations
+
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from scipy import stats
+
+from denoisers import evaluate
+from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED, Part, claims_table,
+                                     evaluate_claim)
+from denoisers.report.collect import Results
+from denoisers.reproductions import all_claims, all_reproductions
+from scenegen.config import validate_config
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+CLEAR = [1.0, 1.2, 0.9, 1.1]              # wholly on the claimed side
+AGAINST = [-1.0, -1.2, -0.9, -1.1]        # wholly on the other side
+SPANNING = [1.5, -1.0, 0.8, -0.2]         # mean > 0, interval spans 0
+ONE_SCENE = [5.0]                         # n = 1: no interval
+TWO_SCENES = [1.0, 1.1]                   # n = 2 < 3
+BASE = {"psnr": 25.0, "ssim": 0.7, "rmse": 0.08, "relmse": 0.05, "smape": 0.1, "flip": 0.2, "tpsnr": 30.0,
+        "trmae": 1.0, "video_psnr": 25.0, "ms_per_frame": 10.0}
+SCALE = {"psnr": 1.0, "ssim": 0.01, "rmse": 0.001, "trmae": 0.01, "ms_per_frame": 0.5}
+# (a, spp, b, spp, metric, claimed) for the claims whose parts compare rows directly.
+PARTS = {
+    "C1.1": [("rae", 1, "eaw", 1, "rmse", "lower"), ("rae", 1, "eaw", 1, "ssim", "higher")],
+    "C1.2": [("rae_inputs_untextured", 1, "rae_inputs_color", 1, "rmse", "lower"),
+             ("rae_inputs_all", 1, "rae_inputs_color", 1, "rmse", "lower")],
+    "C1.3": [("rae_loss_combined", 1, "rae_loss_spatial", 1, "ssim", "higher")],
+    "C1.4": [("rae", 4, "noisy", 4, "rmse", "lower"), ("rae", 4, "noisy", 4, "ssim", "higher")],
+    "C1.5": [("rae", 1, "rae_per_frame", 1, "trmae", "lower")],
+    "C4.1": [("wrls", 2, "svgf", 2, "psnr", "higher"), ("wrls", 2, "svgf", 2, "trmae", "lower")],
+    "C4.4": [("wrls", 2, "rae", 2, "ms_per_frame", "lower")],
+}
+DECIDED = ("C1.1", "C1.2", "C1.3", "C1.4", "C1.5", "C4.1", "C4.2", "C4.3", "C4.4")
+
+
+def claims_config(spp: tuple[int, ...] = (1, 2, 4)) -> dict:
+    cfg = yaml.safe_load((REPO_ROOT / "config" / "config.yaml").read_text())
+    cfg["evaluation"]["spp"] = list(spp)
+    cfg["evaluation"]["robustness"]["spp"] = 2 if 2 in spp else spp[0]
+    return validate_config(cfg)
+
+
+class Table:
+    """Per-scene values {(row, spp): {metric: [per scene]}} with a default for every metric."""
+
+    def __init__(self, cfg: dict, n: int) -> None:
+        self.n = n
+        self.values = {(spec.id, s): {m: [v] * n for m, v in BASE.items()}
+                       for spec in evaluate.method_specs(cfg) for s in spec.spp}
+        self.spiked: dict[str, list[float]] = {}
+
+    def shift(self, a: tuple[str, int], b: tuple[str, int], metric: str, claimed: str, d: list[float]) -> None:
+        """Set a's metric to b's + d_i on the claimed side (scaled to the metric)."""
+        sign = 1.0 if claimed == "higher" else -1.0
+        self.values[a][metric] = [bv + sign * SCALE[metric] * di for bv, di in zip(self.values[b][metric], d)]
+
+
+def build(cfg: dict, table: Table, drop: tuple[tuple[str, int], ...] = (), flagged: tuple[str, int] | None = None,
+          spiked: dict[str, list[float]] | None = None) -> Results:
+    scenes = [f"test_{i:03d}" for i in range(table.n)]
+    rows, runs = [], []
+    for spec in evaluate.method_specs(cfg):
+        for spp in spec.spp:
+            ran = (spec.id, spp) not in drop
+            runs.append({"id": spec.id, "method": spec.method, "role": spec.role, "spp": spp,
+                         "status": "ran" if ran else "not run", "reason": "" if ran else "removed by the test"})
+            if not ran:
+                continue
+            for i, scene in enumerate(scenes):
+                rows.append({"method_id": spec.id, "spp": spp, "scene": scene,
+                             **{m: v[i] for m, v in table.values[(spec.id, spp)].items()},
+                             "nonfinite_outputs": 0, "out_of_range_factor": 10.0,
+                             "out_of_range_outputs": 123 if flagged == (spec.id, spp) else 0})
+    robustness = None
+    if spiked is not None:
+        robustness = pd.DataFrame([{"method_id": m, "scene": s, "spp": 2, "psnr_spiked": v[i]}
+                                   for m, v in spiked.items() for i, s in enumerate(scenes)])
+    return Results(cfg, evaluate.method_specs(cfg), scenes, runs, pd.DataFrame(), pd.DataFrame(rows), robustness)
+
+
+def results_for(claim: str, d: list[float], cfg: dict | None = None, **kwargs) -> Results:
+    """Results where every part of ``claim`` has the paired differences d (positive = as claimed)."""
+    cfg = cfg or claims_config()
+    table = Table(cfg, len(d))
+    spiked = None
+    if claim in PARTS:
+        for a, a_spp, b, b_spp, metric, claimed in PARTS[claim]:
+            table.shift((a, a_spp), (b, b_spp), metric, claimed, d)
+    elif claim == "C4.2":   # spiked PSNR wrls - rls = d; clean PSNR equal, so drop(wrls) - drop(rls) = -d
+        spiked = {"wrls": [20.0 + di for di in d], "rls": [20.0] * len(d)}
+    elif claim == "C4.3":   # wrls above noisy by d at every spp; RAE gain at 4 spp smaller than at 1 spp by d
+        for s in cfg["evaluation"]["spp"]:
+            table.shift(("wrls", s), ("noisy", s), "psnr", "higher", d)
+        table.values[("rae", 1)]["psnr"] = [v + 5.0 for v in table.values[("noisy", 1)]["psnr"]]
+        table.values[("rae", 4)]["psnr"] = [v + 5.0 - di for v, di in zip(table.values[("noisy", 4)]["psnr"], d)]
+    return build(cfg, table, spiked=spiked, **kwargs)
+
+
+CLAIMS = {claim.id: claim for claim in all_claims()}
+
+
+@pytest.mark.parametrize("claim", DECIDED)
+@pytest.mark.parametrize("d, expected", [(CLEAR, REPRODUCED), (AGAINST, CONTRADICTED), (SPANNING, INCONCLUSIVE),
+                                         (ONE_SCENE, INCONCLUSIVE), (TWO_SCENES, INCONCLUSIVE)])
+def test_every_claim_has_each_outcome(claim: str, d: list[float], expected: str) -> None:
+    decision = evaluate_claim(results_for(claim, d), CLAIMS[claim])
+    assert decision.verdict == expected, (claim, [(p.claim_text(), p.interval_text()) for p in decision.parts])
+    assert all(part.n == len(d) for part in decision.parts)
+
+
+def test_spanning_case_is_what_the_rule_calls_inconclusive() -> None:
+    """The fixture's numbers themselves: CLEAR's interval excludes 0, SPANNING's mean is positive and its
+    interval includes 0 (scipy)."""
+    for values, excludes in ((CLEAR, True), (SPANNING, False)):
+        low, high = stats.t.interval(0.95, len(values) - 1, loc=np.mean(values), scale=stats.sem(values))
+        assert np.mean(values) > 0 and (low > 0) == excludes
+
+
+@pytest.mark.parametrize("claim", ["C1.1", "C1.4", "C4.1"])
+def test_a_claim_needs_every_part(claim: str) -> None:
+    cfg = claims_config()
+    (a, a_spp, b, b_spp, m1, c1), (_, _, _, _, m2, c2) = PARTS[claim]
+    for second, expected in ((SPANNING, INCONCLUSIVE), (AGAINST, CONTRADICTED)):
+        table = Table(cfg, 4)
+        table.shift((a, a_spp), (b, b_spp), m1, c1, CLEAR)
+        table.shift((a, a_spp), (b, b_spp), m2, c2, second)
+        decision = evaluate_claim(build(cfg, table), CLAIMS[claim])
+        assert [p.outcome for p in decision.parts] == [REPRODUCED, expected]
+        assert decision.verdict == expected
+
+
+def test_c43_needs_both_halves() -> None:
+    """wRLS above its input at every spp, but RAE's gain does not shrink: contradicted."""
+    results = results_for("C4.3", CLEAR)
+    noisy = results.per_scene[(results.per_scene.method_id == "noisy") & (results.per_scene.spp == 4)]["psnr"]
+    mask = (results.per_scene.method_id == "rae") & (results.per_scene.spp == 4)
+    results.per_scene.loc[mask, "psnr"] = noisy.to_numpy() + 5.0 + np.array(CLEAR)
+    decision = evaluate_claim(results, CLAIMS["C4.3"])
+    assert [p.outcome for p in decision.parts] == [REPRODUCED] * 3 + [CONTRADICTED]
+    assert decision.verdict == CONTRADICTED
+
+
+@pytest.mark.parametrize("claim, spp, stated", [("C1.1", (2, 4), 1), ("C1.4", (1, 2), 4), ("C4.1", (1, 4), 2),
+                                                ("C4.4", (1, 4), 2), ("C1.2", (2, 4), 1)])
+def test_a_claim_at_an_spp_not_evaluated_is_not_run(claim: str, spp: tuple[int, ...], stated: int) -> None:
+    cfg = claims_config(spp)
+    if claim == "C1.2":
+        cfg["evaluation"]["ablation_spp"] = [spp[0]]
+    decision = evaluate_claim(build(cfg, Table(cfg, 4)), CLAIMS[claim])
+    assert decision.verdict == NOT_RUN
+    assert f"stated at {stated} spp" in decision.not_run or f"{stated} spp" in decision.not_run, decision.not_run
+
+
+@pytest.mark.parametrize("claim, row, named", [("C1.1", ("eaw", 1), "eaw"), ("C1.5", ("rae_per_frame", 1), "reset"),
+                                               ("C1.2", ("rae_inputs_all", 1), "rae_inputs_all"),
+                                               ("C4.1", ("svgf", 2), "svgf"), ("C4.3", ("rae", 2), "rae")])
+def test_a_missing_row_makes_the_claim_not_run(claim: str, row: tuple[str, int], named: str) -> None:
+    cfg = claims_config()
+    table = Table(cfg, 4)
+    spec = next(s for s in evaluate.method_specs(cfg) if s.id == row[0])
+    whole_row = tuple((spec.id, s) for s in spec.spp) if named != spec.id or claim != "C4.3" else (row,)
+    decision = evaluate_claim(build(cfg, table, drop=whole_row), CLAIMS[claim])
+    assert decision.verdict == NOT_RUN and named in decision.not_run, decision.not_run
+
+
+def test_unbuilt_papers_name_their_missing_rows() -> None:
+    table = claims_table(results_for("C1.1", CLEAR), all_claims()).set_index("claim")
+    for claim in ("C2.1", "C2.3", "C2.5", "C3.1", "C3.2", "C3.5"):
+        assert table.loc[claim, "verdict"] == NOT_RUN
+        assert table.loc[claim, "note"].startswith("missing rows: ")
+    assert "'ntasd'" in table.loc["C2.1", "note"] and "'kpcn'" in table.loc["C3.1", "note"]
+
+
+def test_facts_are_shown_and_do_not_decide() -> None:
+    table = claims_table(results_for("C4.4", AGAINST), all_claims()).set_index("claim")
+    assert table.loc["C4.4", "verdict"] == CONTRADICTED
+    assert "wRLS needs no training: yes (declared, not measured)" in table.loc["C4.4", "facts"]
+
+
+def test_claims_table_shows_n_interval_and_flags() -> None:
+    cfg = claims_config()
+    table = Table(cfg, 4)
+    for a, a_spp, b, b_spp, metric, claimed in PARTS["C1.1"]:
+        table.shift((a, a_spp), (b, b_spp), metric, claimed, CLEAR)
+    row = claims_table(build(cfg, table, flagged=("rae", 1)), all_claims()).set_index("claim").loc["C1.1"]
+    assert row["verdict"] == REPRODUCED and row["n"] == "4"
+    diffs = -SCALE["rmse"] * np.array(CLEAR)
+    low, high = stats.t.interval(0.95, 3, loc=diffs.mean(), scale=stats.sem(diffs))
+    shown = [float(v) for v in re.match(r"(\S+) \[(\S+), (\S+)\];", row["mean_diff_ci_95"]).groups()]
+    assert shown == pytest.approx([diffs.mean(), low, high], abs=1e-4)   # printed with 4 decimals
+    assert "rae @ 1 spp: 492 output values beyond 10x the largest input sample" in row["flags"]  # 4 x 123
+    assert "rae @ 1 spp − eaw @ 1 spp < 0 (reproduced)" in row["parts"]
+
+
+def test_part_outcomes_at_the_boundary() -> None:
+    a = pd.Series([1.0, 2.0, 3.0], index=["s0", "s1", "s2"])
+    assert Part.paired(a + 1.0, a, "psnr", "a", "b").outcome == REPRODUCED        # zero variance, +1
+    assert Part.paired(a, a, "psnr", "a", "b").outcome == INCONCLUSIVE            # exactly 0
+    assert Part.paired(a - 1.0, a, "rmse", "a", "b").outcome == REPRODUCED        # lower error
+    assert Part.paired(a, a.iloc[:2], "psnr", "a", "b").n == 2                    # paired on common scenes only
+    with pytest.raises(ValueError):
+        Part.paired(a, a, "psnr", "a", "b", claimed="better")
+
+
+def test_every_claim_of_the_targets_is_in_one_paper_module() -> None:
+    ids = [claim.id for claim in all_claims()]
+    expected = [f"C{p}.{i}" for p, n in ((1, 5), (2, 5), (3, 5), (4, 4)) for i in range(1, n + 1)]
+    assert ids == expected
+    assert [r.key for r in all_reproductions()] == ["chaitanya2017", "hasselgren2020", "isik2021", "iglesias2022"]
