@@ -132,6 +132,7 @@ def _as_seed_list(value) -> list[int]:
     return [int(v) for v in value] if isinstance(value, list) else [int(value)]
 
 
+@pytest.mark.slow
 def test_reference_halves_have_own_seeds_and_differ(tiny_cfg: dict, noisy_a: Path, reference_a: Path) -> None:
     n_batches = tiny_cfg["render"]["reference_spp"] // 2 // tiny_cfg["render"]["reference_batch_spp"]
     noisy_seeds = {seed for path in _frames(noisy_a) for seed in _as_seed_list(_meta(path)["seeds"]["layers"])}

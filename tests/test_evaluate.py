@@ -282,12 +282,96 @@ def test_robustness_reports_counts_and_finite_outputs(scene_dir: Path, tmp_path:
     assert (table["nonfinite_output"] == 0).all() and (table["nonfinite_input"] == 6).all()
     assert np.isfinite(evaluate.read_radiance_exr(out / evaluate.ROBUSTNESS_LAST_EXR)).all()
 
-    # A method that does not sanitise passes NaN through: counted, and scored as if it were 0.
+    # The noisy row sanitises its samples (non-finite ones count as 0): nothing non-finite comes out.
+    # Scoring of non-finite outputs: test_nonfinite_outputs_are_counted_and_scored_as_zero.
     noisy = evaluate.robustness_clip(cfg, "noisy", "test_000", 2, scene_dir, tmp_path / "noisy", threads=1)
     table = pd.read_csv(tmp_path / "noisy" / evaluate.ROBUSTNESS_CSV)
-    if noisy["nonfinite_outputs"]:
-        assert table["nonfinite_output"].sum() == noisy["nonfinite_outputs"]
+    assert noisy["nonfinite_outputs"] == 0 and (table["nonfinite_output"] == 0).all()
     assert np.isfinite(table["psnr"]).all()
+
+
+#: (channel, y, x, value) written over the output of NonFiniteOutput, x shifted by the frame index.
+BAD_OUTPUT_VALUES = ((0, 2, 3, np.nan), (1, 2, 3, np.nan), (2, 2, 3, np.nan), (0, 6, 9, np.inf),
+                     (2, 9, 1, -np.inf))
+
+
+def nonfinite_output(frame_index: int, height: int = HEIGHT, width: int = WIDTH) -> np.ndarray:
+    """What NonFiniteOutput returns for a frame: 1.2 x the reference with the values of
+    BAD_OUTPUT_VALUES set, at x + frame_index (so the bad pixels move from frame to frame)."""
+    image = 1.2 * synthetic_reference(height, width)
+    for channel, y, x, value in BAD_OUTPUT_VALUES:
+        image[channel, y, (x + frame_index) % width] = value
+    return image
+
+
+class NonFiniteOutput(Denoiser):
+    """Ignores its input and returns :func:`nonfinite_output`: NaN, +Inf and -Inf at known pixels."""
+
+    def denoise(self, frame: Frame) -> torch.Tensor:
+        return torch.from_numpy(nonfinite_output(frame.index, frame.height, frame.width))
+
+
+@pytest.fixture
+def nonfinite_method() -> Iterator[str]:
+    """Registers NonFiniteOutput as 'test_nonfinite' for one test only (see box_method)."""
+    registry.register("test_nonfinite", inputs=("radiance",), description="test only: NaN/Inf output")(NonFiniteOutput)
+    yield "test_nonfinite"
+    registry._REGISTRY.pop("test_nonfinite", None)
+
+
+def _tau(x: np.ndarray) -> np.ndarray:
+    """Isik 2021 Eq. 15 written out here: (max(x, 0) / (1 + max(x, 0)))^(1/2.4), float64."""
+    x = np.maximum(np.asarray(x, np.float64), 0.0)
+    return (x / (1.0 + x)) ** (1.0 / 2.4)
+
+
+def test_nonfinite_outputs_are_counted_and_scored_as_zero(scene_dir: Path, tmp_path: Path,
+                                                           nonfinite_method: str) -> None:
+    """A method whose output holds NaN/+-Inf: every path that scores it (robustness_clip from the
+    outputs in memory, evaluate_clip from the EXRs denoise_clip wrote) counts the bad values per frame
+    and scores the frame as if they were 0, as score_sequence documents."""
+    cfg = smoke_config(methods=[{"id": "bad", "method": nonfinite_method}, *BASIC_METHODS], warmup_frames=1)
+    reference = synthetic_reference().astype(np.float64)
+    outputs = np.stack([nonfinite_output(t) for t in range(FRAMES)])
+    per_frame = len(BAD_OUTPUT_VALUES)
+    assert (~np.isfinite(outputs)).sum(axis=(1, 2, 3)).tolist() == [per_frame] * FRAMES
+    zeroed = np.where(np.isfinite(outputs), outputs, 0.0)
+    # The expected scores, on the zero-substituted frames: PSNR straight from its definition, and every
+    # metric through denoisers.metrics (which refuses non-finite input, so it must see the zeroed image).
+    mse = ((_tau(zeroed) - _tau(reference)) ** 2).mean(axis=(1, 2, 3))
+    expected_psnr = -10.0 * np.log10(mse)
+    expected = {t: metrics.frame_metrics(zeroed[t], reference) for t in range(FRAMES)}
+    expected_temporal = metrics.temporal_metrics(zeroed, np.stack([reference] * FRAMES), 1)
+    # The substitution matters: the zeroed frames score far from the clean output, from skipping the bad
+    # values (= substituting the reference) and from +Inf -> a huge finite value (tau -> 1).
+    for alternative in (1.2 * np.stack([reference] * FRAMES), np.where(np.isfinite(outputs), outputs, reference),
+                        np.nan_to_num(outputs, nan=0.0, posinf=1e30, neginf=0.0)):
+        other = -10.0 * np.log10(((_tau(alternative) - _tau(reference)) ** 2).mean(axis=(1, 2, 3)))
+        assert np.abs(other - expected_psnr).min() > 0.5
+
+    def check(table: pd.DataFrame) -> None:
+        assert table["nonfinite_output"].tolist() == [per_frame] * FRAMES
+        np.testing.assert_allclose(table["psnr"], expected_psnr, rtol=1e-6)
+        for name in evaluate.FRAME_METRICS:
+            np.testing.assert_allclose(table[name], [expected[t][name] for t in range(FRAMES)], rtol=1e-6,
+                                       err_msg=name)
+        for name in evaluate.TEMPORAL_METRICS:
+            np.testing.assert_allclose(table[name], expected_temporal[name], rtol=1e-6, equal_nan=True, err_msg=name)
+
+    summary = evaluate.robustness_clip(cfg, "bad", "test_000", 2, scene_dir, tmp_path / "robust", threads=1)
+    assert summary["nonfinite_outputs"] == FRAMES * per_frame
+    assert summary["nonfinite_inputs"] > 0  # the corruption was injected; the method ignores it
+    check(pd.read_csv(tmp_path / "robust" / evaluate.ROBUSTNESS_CSV))
+    assert summary["mean_psnr"] == pytest.approx(expected_psnr.mean(), rel=1e-6)
+    last = evaluate.read_radiance_exr(tmp_path / "robust" / evaluate.ROBUSTNESS_LAST_EXR)
+    np.testing.assert_array_equal(last, outputs[-1])  # written as returned, NaN and Inf included
+
+    denoised = tmp_path / "denoised"
+    record = evaluate.denoise_clip(cfg, "bad", "test_000", 2, scene_dir, denoised, threads=1)
+    assert record["nonfinite_outputs"] == FRAMES * per_frame
+    assert record["nonfinite_outputs_per_frame"] == [per_frame] * FRAMES
+    check(evaluate.evaluate_clip(cfg, denoised, scene_dir, tmp_path / "m.csv"))
+    check(pd.read_csv(tmp_path / "m.csv"))
 
 
 def test_cli_prints_one_line_for_missing_inputs(tmp_path: Path, caplog: pytest.LogCaptureFixture,
@@ -303,3 +387,135 @@ def test_cli_prints_one_line_for_missing_inputs(tmp_path: Path, caplog: pytest.L
                  "--render-dir", str(render_dir), "--out", str(tmp_path / "out")])
     assert code == 1
     assert "method 'box (test_box3)' needs buffer 'albedo'" in caplog.text
+
+
+# ---------------------------------------------------------------------------------------------------
+# Rows: their own spp and robustness keys, and the rows of the trained ablation variants
+# ---------------------------------------------------------------------------------------------------
+
+def test_rows_have_their_own_spp_and_ablation_variants_get_rows() -> None:
+    from denoisers.training.models import model_specs
+
+    cfg = smoke_config(methods=[*BASIC_METHODS, {"id": "eaw", "method": "eaw", "spp": [2], "robustness": False}],
+                       spp=[1, 2], ablation_spp=[1])
+    variants = [model for model in model_specs(cfg) if model.ablation]
+    assert len(variants) == 8  # the smoke config's rae_inputs (6) and rae_loss (2) variants
+    specs = evaluate.method_specs(cfg)
+    assert [spec.id for spec in specs] == ["noisy", "path_x2", "eaw", *(model.id for model in variants)]
+    assert specs[0] == evaluate.MethodSpec("noisy", "noisy", {}, (1, 2), True, evaluate.METHOD_ROLE)
+    assert specs[2].spp == (2,) and specs[2].robustness is False and specs[2].role == evaluate.METHOD_ROLE
+    for spec, model in zip(specs[3:], variants):
+        assert (spec.method, spec.params, spec.spp, spec.robustness, spec.role) == (
+            model.method, {"model": model.id}, (1,), False, evaluate.ABLATION_ROLE)
+    assert evaluate.method_spec(cfg, "rae_loss_spatial").params == {"model": "rae_loss_spatial"}
+
+    # Each row at its own spp (intersected with the requested ones); robustness only for rows that ask.
+    ablation_runs = {(model.id, 1) for model in variants}
+    assert {(run.spec.id, run.spp) for run in evaluate.plan_runs(cfg)} == {
+        ("noisy", 1), ("noisy", 2), ("path_x2", 1), ("path_x2", 2), ("eaw", 2), *ablation_runs}
+    assert {(run.spec.id, run.spp) for run in evaluate.plan_runs(cfg, [2])} == {("noisy", 2), ("path_x2", 2),
+                                                                                ("eaw", 2)}
+    assert [(run.spec.id, run.spp) for run in evaluate.robustness_runs(cfg)] == [("noisy", 2), ("path_x2", 2)]
+
+    cfg["evaluation"]["ablation_spp"] = [1, 2]
+    assert {(run.spec.id, run.spp) for run in evaluate.plan_runs(cfg) if run.spec.role == evaluate.ABLATION_ROLE} \
+        == ablation_runs | {(model.id, 2) for model in variants}
+    cfg["evaluation"]["ablation_spp"] = []
+    assert [spec.id for spec in evaluate.method_specs(cfg)] == ["noisy", "path_x2", "eaw"]
+    with pytest.raises(KeyError, match="rae_inputs_color"):
+        evaluate.method_spec(cfg, "rae_inputs_color")
+
+
+def test_evaluation_problems_name_row_spp_ablation_spp_and_ablation_ids() -> None:
+    taken = {"id": "rae_loss_spatial", "method": "rae", "params": {"model": "rae_loss_spatial"}, "spp": [1, 4]}
+    cfg = smoke_config(methods=[*BASIC_METHODS, taken], spp=[1, 2], ablation_spp=[1, 3])
+    problems = "\n".join(evaluate.evaluation_problems(cfg))
+    assert "config key 'evaluation.methods[2].spp' (row 'rae_loss_spatial') = [1, 4] has values [4]" in problems
+    assert "config key 'evaluation.ablation_spp' = [1, 3] has values [3]" in problems
+    assert "config key 'evaluation.methods' has the id 'rae_loss_spatial'" in problems
+    assert "ablation variant" in problems
+    # Without the ablation rows the id is free; without ablation variants ablation_spp is not checked.
+    cfg["evaluation"]["ablation_spp"] = []
+    cfg["evaluation"]["methods"][2]["spp"] = [1]
+    assert evaluate.evaluation_problems(cfg) == []
+    cfg = smoke_config(spp=[2], ablation_spp=[1])
+    assert "'evaluation.ablation_spp' = [1]" in "\n".join(evaluate.evaluation_problems(cfg))
+    cfg["training"]["ablations"] = []
+    assert evaluate.evaluation_problems(cfg) == []
+
+
+# ---------------------------------------------------------------------------------------------------
+# Out-of-range outputs: finite, but above out_of_range_factor x the frame's largest input sample
+# ---------------------------------------------------------------------------------------------------
+
+#: Output pixels (y, x) inside the bright disc of the synthetic clip; Exploding multiplies the first
+#: frame.index + 1 of them by 1e6.
+EXPLODED_PIXELS = ((6, 6), (6, 7), (6, 8), (6, 9))
+
+
+class Exploding(Denoiser):
+    """The sanitised sample mean with the first frame.index + 1 pixels of EXPLODED_PIXELS (all channels)
+    multiplied by 1e6, plus one NaN and one +Inf value (non-finite: counted as such, not as out of range)."""
+
+    def denoise(self, frame: Frame) -> torch.Tensor:
+        out = torch.nan_to_num(frame.samples["radiance"], nan=0.0, posinf=0.0, neginf=0.0).mean(0)
+        for y, x in EXPLODED_PIXELS[:frame.index + 1]:
+            out[:, y, x] *= 1e6
+        out[0, 0, 0], out[1, 0, 1] = float("nan"), float("inf")
+        return out
+
+
+class AlbedoOnly(Denoiser):
+    """Reads no radiance: the albedo mean x 1e6 (no input range to compare with, so nothing is counted)."""
+
+    def denoise(self, frame: Frame) -> torch.Tensor:
+        return frame.mean("albedo") * 1e6
+
+
+@pytest.fixture
+def exploding_methods() -> Iterator[None]:
+    """Registers Exploding ('test_exploding') and AlbedoOnly ('test_albedo_only') for one test only."""
+    registry.register("test_exploding", inputs=("radiance",), description="test only: 1e6 x on pixels")(Exploding)
+    registry.register("test_albedo_only", inputs=("albedo",), description="test only: no radiance")(AlbedoOnly)
+    yield
+    registry._REGISTRY.pop("test_exploding", None)
+    registry._REGISTRY.pop("test_albedo_only", None)
+
+
+def test_out_of_range_outputs_are_counted_per_frame(scene_dir: Path, tmp_path: Path, exploding_methods: None) -> None:
+    cfg = smoke_config(methods=[{"id": "boom", "method": "test_exploding"},
+                                {"id": "albedo", "method": "test_albedo_only"}, *BASIC_METHODS])
+    assert cfg["evaluation"]["out_of_range_factor"] == 10
+    expected = [3 * (t + 1) for t in range(FRAMES)]  # every channel of frame.index + 1 pixels
+    record = evaluate.denoise_clip(cfg, "boom", "test_000", 2, scene_dir, tmp_path / "boom", threads=1)
+    assert record["out_of_range_outputs_per_frame"] == expected
+    assert record["out_of_range_outputs"] == sum(expected) == 30
+    assert record["out_of_range_factor"] == 10 and record["out_of_range_checked"] is True
+    assert record["nonfinite_outputs_per_frame"] == [2] * FRAMES  # NaN / Inf are not out of range
+    assert json.loads((tmp_path / "boom" / evaluate.TIMING_FILE).read_text()) == record
+
+    # The spike/NaN scenario: its inputs carry spikes up to 500 x the frame mean, still far below 1e6 x.
+    summary = evaluate.robustness_clip(cfg, "boom", "test_000", 2, scene_dir, tmp_path / "robust", threads=1)
+    assert summary["out_of_range_outputs"] == 30 and summary["out_of_range_factor"] == 10
+    table = pd.read_csv(tmp_path / "robust" / evaluate.ROBUSTNESS_CSV)
+    assert table["out_of_range_output"].tolist() == expected
+
+    # The factor comes from the config: 1e7 x the largest sample is above every output of Exploding.
+    cfg["evaluation"]["out_of_range_factor"] = 1e7
+    record = evaluate.denoise_clip(cfg, "boom", "test_000", 2, scene_dir, tmp_path / "boom_1e7", threads=1)
+    assert record["out_of_range_outputs"] == 0 and record["out_of_range_factor"] == 1e7
+
+    # A method that reads no radiance has no input range: nothing counted, and the record says so.
+    record = evaluate.denoise_clip(cfg, "albedo", "test_000", 2, scene_dir, tmp_path / "albedo", threads=1)
+    assert record["out_of_range_outputs"] == 0 and record["out_of_range_outputs_per_frame"] == [0] * FRAMES
+    assert record["out_of_range_checked"] is False
+
+
+@pytest.mark.parametrize("method", ["noisy", "eaw"])
+def test_normal_methods_have_no_out_of_range_outputs(scene_dir: Path, tmp_path: Path, method: str) -> None:
+    cfg = smoke_config(methods=[{"id": method, "method": method}])
+    record = evaluate.denoise_clip(cfg, method, "test_000", 4, scene_dir, tmp_path / method, threads=1)
+    assert record["out_of_range_outputs"] == 0 and record["out_of_range_outputs_per_frame"] == [0] * FRAMES
+    assert record["out_of_range_checked"] is True
+    summary = evaluate.robustness_clip(cfg, method, "test_000", 2, scene_dir, tmp_path / "robust", threads=1)
+    assert summary["out_of_range_outputs"] == 0

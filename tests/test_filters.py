@@ -363,6 +363,67 @@ def test_oidn_keeps_a_constant_image_nearly_constant() -> None:
     assert oidn.denoise(make_frame(small, spp=1)).shape == (3, 16, 20)
 
 
+def _oidn_direct(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """OIDN's RT filter called straight through pyoidn (one thread, HDR, quality high), (3, H, W) images."""
+    import pyoidn
+
+    device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
+    device.set_int("numThreads", 1)
+    device.commit()
+    oidn_filter = pyoidn.Filter(device, pyoidn.OIDN_FILTER_TYPE_RT)
+    images = {name: np.ascontiguousarray(image.transpose(1, 2, 0), dtype=np.float32)
+              for name, image in (("color", color), ("albedo", albedo), ("normal", normal))}
+    images["output"] = np.zeros_like(images["color"])
+    for name, image in images.items():
+        oidn_filter.set_image(name, image, pyoidn.OIDN_FORMAT_FLOAT3)
+    oidn_filter.set_bool("hdr", True)
+    oidn_filter.set_int("quality", pyoidn.OIDN_QUALITY_HIGH)
+    oidn_filter.commit()
+    oidn_filter.execute()
+    assert device.get_error() is None
+    output = images["output"].transpose(2, 0, 1).copy()
+    oidn_filter.release()
+    device.release()
+    return output
+
+
+def test_oidn_gets_albedo_and_normal_in_their_own_slots() -> None:
+    """A scene whose edges OIDN can only find in the auxiliary images: a checker texture that exists in
+    the albedo (and in the very noisy colour), and a fold between two planes that exists in the normal.
+    The wrapper must equal OIDN called directly with the mean albedo as albedo and the mean normal as
+    normal, and beat the same call with albedo and normal swapped or with the albedo scaled out of
+    range (summed over the samples instead of averaged: OIDN clips it to 1 and the texture is lost)."""
+    pytest.importorskip("pyoidn")
+    height, width, spp = 48, 64, 4
+    ys, xs = np.mgrid[0:height, 0:width]
+    checker = ((xs // 8 + ys // 8) % 2).astype(np.float64)
+    left = (xs < width // 2)[None]
+    albedo = np.stack([0.15 + 0.7 * checker, 0.15 + 0.6 * checker, 0.1 + 0.5 * checker])
+    normal = np.where(left, np.array([0.0, 0.0, 1.0])[:, None, None], np.array([0.0, 1.0, 0.0])[:, None, None])
+    clean = albedo * np.where(left, 1.0, 0.5)
+    rng = np.random.default_rng(0)
+    radiance = clean[None] * rng.exponential(1.0, (spp, 1, height, width))       # heavy per-sample noise
+    frame = Frame(samples={"radiance": torch.from_numpy(radiance.astype(np.float32)),
+                           "albedo": torch.from_numpy(np.repeat(albedo[None], spp, 0).astype(np.float32)),
+                           "normal": torch.from_numpy(np.repeat(normal[None], spp, 0).astype(np.float32))})
+    out = registry.build("oidn").denoise(frame).numpy()
+
+    color = radiance.astype(np.float32).mean(axis=0)
+    expected = _oidn_direct(color, albedo, normal)
+    wrong = {"swapped": _oidn_direct(color, normal, albedo), "summed albedo": _oidn_direct(color, spp * albedo, normal)}
+
+    def rmse(image: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((image - clean) ** 2)))
+
+    # The auxiliary images decide the result here: the wrong ones are far from the right call (1000x the
+    # tolerance below) and have at least 1.5x its error against the noise-free image.
+    for name, image in wrong.items():
+        assert np.abs(image - expected).max() > 0.1, name
+        assert 1.5 * rmse(expected) < rmse(image), (name, rmse(expected), rmse(image))
+    np.testing.assert_allclose(out, expected, atol=1e-4)     # the inputs differ by float32 rounding only
+    assert 1.5 * rmse(out) < min(rmse(image) for image in wrong.values()) and rmse(out) < 0.25 * rmse(color)
+
+
 # -------------------------------------------------------------------------------------------------
 # Robustness and the registry
 # -------------------------------------------------------------------------------------------------

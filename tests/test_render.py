@@ -41,6 +41,7 @@ def scene(test_scene_dir):
     return load_with_attributes(scene_dict, records)
 
 
+@pytest.mark.slow
 def test_mean_converges_to_mitsuba_path(scene):
     """Block means of the per-sample layers agree with ``path`` within their joint standard error,
     and the error against a high-spp ``path`` image falls as the sample count grows."""
@@ -87,12 +88,56 @@ def test_sample_layers_buffers(scene):
     assert sum(counter.counts.values()) == 0
 
 
+def _ratio_of_sums(numerator: np.ndarray, denominator: np.ndarray) -> tuple[float, float]:
+    """sum(numerator) / sum(denominator) over pixels and its delta-method standard error, treating the
+    pixels as independent: SE = sqrt(sum (a - r b)^2) / sum b."""
+    ratio = float(numerator.sum() / denominator.sum())
+    return ratio, float(np.sqrt(((numerator - ratio * denominator) ** 2).sum()) / denominator.sum())
+
+
 def test_radiance_layers_are_deterministic_and_independent(scene):
-    a = render_sample_layers(scene, n_layers=2, n_radiance_only=0, seed=7, counter=NonFiniteCounter())
-    b = render_sample_layers(scene, n_layers=2, n_radiance_only=0, seed=7, counter=NonFiniteCounter())
+    """Same seed, same layers; and the layers of a frame behave as independent samples of each pixel:
+    adjacent layers are uncorrelated, the variance of the mean of k layers falls as 1/k, and the means of
+    two renders with neighbouring seeds differ by exactly their own noise (nothing shared between them)."""
+    n_layers = 64
+
+    def render(seed: int) -> dict[str, np.ndarray]:
+        return render_sample_layers(scene, n_layers=n_layers, n_radiance_only=0, seed=seed,
+                                    counter=NonFiniteCounter())
+
+    a, b, other = render(7), render(7), render(8)
     for name in a:
         np.testing.assert_array_equal(a[name], b[name])
-    assert not np.array_equal(a["radiance"][0], a["radiance"][1])
+    rec709 = np.array([0.2126, 0.7152, 0.0722])
+    x = np.einsum("c,kcp->kp", rec709, a["radiance"].reshape(n_layers, 3, -1))       # (layers, pixels)
+    y = np.einsum("c,kcp->kp", rec709, other["radiance"].reshape(n_layers, 3, -1))
+    var = x.var(axis=0, ddof=1)
+    noisy = var > 0
+    n_pixels = int(noisy.sum())
+    assert n_pixels > 0.9 * x.shape[1]
+
+    # 1. Adjacent layers are uncorrelated. Per pixel, z_k = (x_k - mean) / std over the layers; for
+    #    independent (exchangeable) layers E[z_i z_j] = -1/K exactly (sum_k z_k = 0, sum_k z_k^2 = K - 1),
+    #    and mean_p z_i z_j has standard deviation about 1/sqrt(N) (|z_i z_j| ~ 1). A layer repeated or
+    #    leaking into the next gives mean_p z_i z_j near its correlation instead.
+    z = (x[:, noisy] - x[:, noisy].mean(axis=0)) / np.sqrt(var[noisy])
+    adjacent = (z[:-1] * z[1:]).mean(axis=1) + 1.0 / n_layers
+    worst = int(np.abs(adjacent).argmax())
+    assert abs(adjacent[worst]) < 4.0 / np.sqrt(n_pixels), \
+        f"layers {worst}, {worst + 1}: r + 1/K = {adjacent[worst]:.3f}"
+
+    # 2. The variance of the mean of k layers is var / k: k x (variance across the K/k block means)
+    #    against the per-pixel variance of single layers, pooled over pixels, within 4 standard errors.
+    for k in (2, 4, 8):
+        block_var = x.reshape(n_layers // k, k, -1).mean(axis=1).var(axis=0, ddof=1)
+        ratio, se = _ratio_of_sums(k * block_var, var)
+        assert abs(ratio - 1.0) < 4.0 * se, f"k = {k}: k Var(mean of k) / Var(layer) = {ratio:.3f} +- {se:.3f}"
+
+    # 3. Layers of another seed share nothing with these: E (mean_a - mean_b)^2 = (var_a + var_b) / K.
+    #    A component common to all layers of a frame, or seeds whose layer streams overlap (seed s, layer k
+    #    = seed s + 1, layer k - 1), would show up here, not within one frame.
+    ratio, se = _ratio_of_sums((x.mean(axis=0) - y.mean(axis=0)) ** 2, (var + y.var(axis=0, ddof=1)) / n_layers)
+    assert abs(ratio - 1.0) < 4.0 * se, f"(mean_7 - mean_8)^2 / ((var_7 + var_8) / K) = {ratio:.3f} +- {se:.3f}"
 
 
 def test_nonfinite_samples_are_replaced_and_counted():

@@ -157,6 +157,7 @@ def test_ply_has_uvs_and_normals_in_mitsuba(mix_scenes):
         assert mesh.has_vertex_texcoords() and mesh.has_vertex_normals()
 
 
+@pytest.mark.slow
 def test_scenes_load_and_render_in_mitsuba(mix_scenes, animated_scenes):
     scenes = []
     for manifest, scene_dir in [*mix_scenes, animated_scenes[0]]:

@@ -128,11 +128,13 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     return {rule: count for rule, count in {**jobs, target: 1}.items() if count}
 
 
+@pytest.mark.slow
 def test_lint_is_clean(workflow_copy: Path) -> None:
     result = run_snakemake("--lint", cwd=workflow_copy)
     assert "Lints for" not in result.stdout + result.stderr
 
 
+@pytest.mark.slow
 def test_smoke_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
     # --forceall: list every job even if outputs exist.
     counts = dry_run("--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
@@ -140,12 +142,14 @@ def test_smoke_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
     assert set(counts) == {*JOB_RULES, "all"}
 
 
+@pytest.mark.slow
 def test_default_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
     counts = dry_run("--forceall", cwd=workflow_copy)
     assert counts == expected_jobs(load_config(workflow_copy / "config/config.yaml"))
     assert set(counts) == {*JOB_RULES, "all"}
 
 
+@pytest.mark.slow
 def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_copy: Path) -> None:
     cfg = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
     cfg["scenes"]["n_test"] = 2
@@ -181,6 +185,7 @@ def dry_run_jobs(*args: str, cwd: Path) -> list[tuple[str, dict[str, str]]]:
     return jobs
 
 
+@pytest.mark.slow
 def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Path) -> None:
     cfg = load_config(workflow_copy / "config/smoke.yaml")
     variants = [spec.id for spec in model_specs(cfg) if spec.ablation]
@@ -206,6 +211,7 @@ def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Pat
     assert {f"results/models/{variant}" for variant in variants} <= trained
 
 
+@pytest.mark.slow
 def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path) -> None:
     cfg = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
     cfg["evaluation"].update(spp=[1, 2], ablation_spp=[2], methods=[
@@ -243,12 +249,14 @@ def test_ablation_spp_outside_the_evaluated_spp_fails_the_dry_run(workflow_copy:
     assert "evaluation.methods[2].spp" in output and "[3]" in output
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("target", STAGE_TARGETS)
 def test_stage_targets_select_their_jobs(workflow_copy: Path, target: str) -> None:
     counts = dry_run(target, "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
     assert counts == expected_jobs(load_config(workflow_copy / "config/smoke.yaml"), target)
 
 
+@pytest.mark.slow
 def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> None:
     result = run_snakemake("-n", "-p", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
     cfg = load_config(workflow_copy / "config/smoke.yaml")
@@ -343,6 +351,7 @@ def smoke_variant(workdir: Path, section: str, key: str, value: object) -> str:
     return path.name
 
 
+@pytest.mark.slow
 def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> None:
     work = stub_workflow
     assert (work / "results/renders/test_000/reference/chunk_001/stub.txt").is_file()
@@ -382,6 +391,7 @@ out.mkdir(parents=True)
 STUB_DENOISERS_INIT = f"__path__.append({str(REPO_ROOT / 'denoisers')!r})\n"
 
 
+@pytest.mark.slow
 def test_training_reruns_only_when_its_settings_or_data_change(stub_workflow: Path) -> None:
     work = stub_workflow
     package = work / "denoisers"
