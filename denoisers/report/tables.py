@@ -48,12 +48,16 @@ def summary_markdown(res: Results, summary: pd.DataFrame) -> str:
     arrows = {True: "↑", False: "↓"}
     parts = []
     for spp in res.cfg["evaluation"]["spp"]:
-        rows = [[spec.id, *[fmt_ci(*lookup[(spec.id, spp, m)][:3], m) for m in SUMMARY_SHOWN]]
+        rows = [[spec.id, *[fmt_ci(*lookup[(spec.id, spp, m)][:3], m) for m in SUMMARY_SHOWN],
+                 "⚠" if res.flag(spec.id, spp) else "ok"]
                 for spec in res.main_specs if res.ran(spec.id, spp)]
+        flags = [res.flag(spec.id, spp) for spec in res.main_specs if res.ran(spec.id, spp)]
         n = max((lookup[k][3] for k in lookup if k[1] == spp), default=0)
         parts.append(f"### {spp} spp ({n} scene{'s' if n != 1 else ''})\n\n")
-        parts.append(markdown_table(["method", *[f"{LABELS[m]} {arrows[HIGHER_IS_BETTER[m]]}" for m in SUMMARY_SHOWN]],
+        parts.append(markdown_table(["method", *[f"{LABELS[m]} {arrows[HIGHER_IS_BETTER[m]]}" for m in SUMMARY_SHOWN],
+                                     "outputs"],
                                     rows) if rows else "no method ran at this spp\n")
+        parts += [f"\n⚠ {flag}\n" for flag in flags if flag]
         parts.append("\n")
     return "".join(parts)
 

@@ -18,8 +18,6 @@ from scenegen.atomic import write_text_atomic
 if TYPE_CHECKING:
     import pandas as pd
 
-#: Tables also shown in the HTML report of ``snakemake --report``.
-REPORT_TABLES: tuple[str, ...] = ("summary", "claims", "equal_time", "robustness", "timing", "noise_floor")
 TRAINING_COLUMNS = ("train_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim", "val_psnr",
                     "val_rmse")
 CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "mean_diff_ci_95", "parts", "measured", "facts", "flags", "note"]
