@@ -214,8 +214,13 @@ def test_second_run_has_nothing_to_do(pipeline: PipelineRun) -> None:
 def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun) -> None:
     frames = list(range(pipeline.cfg["scenes"]["frames"]))
     runs = pipeline.runs()
-    # The smoke config renders enough layers for every configured (method, spp).
-    assert len(runs) == len(pipeline.cfg["evaluation"]["methods"]) * len(pipeline.cfg["evaluation"]["spp"])
+    # The smoke config renders enough layers for every configured (method, spp), and every trained
+    # ablation variant is evaluated at evaluation.ablation_spp.
+    variants = [spec.id for spec in model_specs(pipeline.cfg) if spec.ablation]
+    assert len(runs) == (len(pipeline.cfg["evaluation"]["methods"]) * len(pipeline.cfg["evaluation"]["spp"])
+                         + len(variants) * len(pipeline.cfg["evaluation"]["ablation_spp"]))
+    assert {(v, s) for v in variants for s in pipeline.cfg["evaluation"]["ablation_spp"]} <= \
+        {(run.spec.id, run.spp) for run in runs}
     for scene in evaluated_scene_ids(pipeline.cfg):
         for run in runs:
             folder = denoised_dir(pipeline.results, run.spec.id, scene, run.spp)
@@ -224,6 +229,7 @@ def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun
             timing = json.loads((folder / TIMING_FILE).read_text())
             assert timing["spp"] == run.spp and timing["threads"] == pipeline.cfg["evaluation"]["threads"]
             assert timing["mean_seconds"] > 0 and timing["nonfinite_outputs"] == 0, (folder, timing)
+            assert timing["out_of_range_outputs"] == sum(timing["out_of_range_outputs_per_frame"]), folder
             table = pd.read_csv(metrics_csv(pipeline.results, run.spec.id, scene, run.spp))
             assert list(table["frame"]) == frames
             assert set(ALL_METRICS) <= set(table.columns)
@@ -271,7 +277,8 @@ def test_every_configured_baseline_is_in_the_main_table(pipeline: PipelineRun) -
     psnr = summary[summary["metric"] == "psnr"]
     expected = {(run.spec.id, run.spp) for run in pipeline.runs()}
     assert set(zip(psnr["method_id"], psnr["spp"])) == expected
-    assert set(psnr["method_id"]) == {method["id"] for method in pipeline.cfg["evaluation"]["methods"]}
+    configured = psnr[psnr["role"] == "method"]
+    assert set(configured["method_id"]) == {method["id"] for method in pipeline.cfg["evaluation"]["methods"]}
     assert np.isfinite(psnr["mean"]).all()
     assert (psnr["n_scenes"] == len(evaluated_scene_ids(pipeline.cfg))).all()
     # The Markdown summary (also embedded in REPORT.md) has one row per method at every spp.
@@ -297,6 +304,9 @@ def test_every_configured_model_is_trained_and_reported(pipeline: PipelineRun) -
     training = pd.read_csv(tables / "training.csv")
     assert list(training["model"]) == [spec.id for spec in specs] and set(training["status"]) == {"trained"}
     assert len(pd.read_csv(tables / "rae_inputs.csv")) == 6 and len(pd.read_csv(tables / "rae_loss.csv")) == 2
+    # Each ablation variant is scored on the test scene (what C1.2 / C1.3 are decided on).
+    for name in ("rae_inputs", "rae_loss"):
+        assert np.isfinite(pd.read_csv(tables / f"{name}.csv")["test_rmse_mean"]).all(), name
     # RAE is in the Fig. 8 table, the timing table and the quality-versus-speed chart (matplotlib keeps
     # every text label as a comment in the SVG).
     fig8 = pd.read_csv(tables / "chaitanya_fig8.csv")

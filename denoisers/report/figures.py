@@ -49,6 +49,21 @@ def smoothed(values: Any, window: int) -> np.ndarray:
     return np.convolve(padded, np.ones(window) / window, mode="valid")
 
 
+def save_step_plot(figure: Any, axes: Any, path: Path, ylabel: str, title: str, log_y: bool = False,
+                   legend_size: int | None = None) -> None:
+    """Label a plot against training step (grid, legend), write it to ``path`` and close it."""
+    if log_y:
+        axes.set_yscale("log")
+    axes.set_xlabel("training step")
+    axes.set_ylabel(ylabel)
+    axes.set_title(title)
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=legend_size)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    pyplot().close(figure)
+
+
 def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[Path]) -> None:
     """PSNR against denoiser throughput (Mpix/s, log x), a point per method and spp with 95 % CI bars;
     the non-denoising rows (noisy input, plain path tracing) are horizontal reference lines."""
@@ -257,12 +272,4 @@ def plot_training_curves(models: TrainedModels, path: Path) -> None:
             val = model.curves.dropna(subset=["val_loss"])
             axes.plot(val["step"], val["val_loss"], marker="o", linestyle="--", color=line.get_color(),
                       label=f"{model.spec.id} validation")
-    axes.set_yscale("log")
-    axes.set_xlabel("training step")
-    axes.set_ylabel("loss")
-    axes.set_title("Training curves")
-    axes.grid(True, which="both", alpha=0.3)
-    axes.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    save_step_plot(figure, axes, path, "loss", "Training curves", log_y=True)

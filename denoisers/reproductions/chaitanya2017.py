@@ -238,7 +238,7 @@ def _ablation_markdown(table: pd.DataFrame) -> str:
 # ----------------------------------------------------------------------------------------- figures
 def plot_input_ablation(res: Results, path: Path) -> None:
     """Fig. 3: training loss against step for every input set (log y, running mean over 5 logged points)."""
-    from denoisers.report.figures import placeholder, pyplot, smoothed
+    from denoisers.report.figures import placeholder, pyplot, save_step_plot, smoothed
 
     variants = res.models.variants(INPUT_ABLATION) if res.models else {}
     if not variants:
@@ -249,20 +249,13 @@ def plot_input_ablation(res: Results, path: Path) -> None:
     for variant in [v for v in INPUT_VARIANT_ORDER if v in variants] + sorted(set(variants) - set(INPUT_VARIANT_ORDER)):
         curves = variants[variant].curves.dropna(subset=["train_loss"])
         axes.plot(curves["step"], smoothed(curves["train_loss"], 5), label=INPUT_VARIANT_LABELS.get(variant, variant))
-    axes.set_yscale("log")
-    axes.set_xlabel("training step")
-    axes.set_ylabel("training loss (running mean; colour only in a different space)")
-    axes.set_title("RAE input ablation (Chaitanya et al. 2017, Fig. 3)")
-    axes.grid(True, which="both", alpha=0.3)
-    axes.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    save_step_plot(figure, axes, path, "training loss (running mean; colour only in a different space)",
+                   "RAE input ablation (Chaitanya et al. 2017, Fig. 3)", log_y=True)
 
 
 def plot_loss_ablation(res: Results, path: Path) -> None:
     """§4.4: validation SSIM against step for each loss."""
-    from denoisers.report.figures import placeholder, pyplot
+    from denoisers.report.figures import placeholder, pyplot, save_step_plot
 
     variants = res.models.variants(LOSS_ABLATION) if res.models else {}
     if not variants:
@@ -273,14 +266,8 @@ def plot_loss_ablation(res: Results, path: Path) -> None:
     for variant, model in sorted(variants.items()):
         curves = model.curves.dropna(subset=["val_ssim"]) if "val_ssim" in model.curves else model.curves.iloc[0:0]
         axes.plot(curves["step"], curves["val_ssim"], marker=".", label=f"{variant} ({json.dumps(model.spec.loss)})")
-    axes.set_xlabel("training step")
-    axes.set_ylabel("validation SSIM")
-    axes.set_title("RAE loss ablation (Chaitanya et al. 2017, §4.4)")
-    axes.grid(True, alpha=0.3)
-    axes.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    save_step_plot(figure, axes, path, "validation SSIM", "RAE loss ablation (Chaitanya et al. 2017, §4.4)",
+                   legend_size=8)
 
 
 # ------------------------------------------------------------------------------------ registration
