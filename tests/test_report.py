@@ -252,6 +252,7 @@ def test_every_output_and_link_exists(built: tuple[Path, dict]) -> None:
     for link in links:
         assert (root / link).is_file(), link
     assert "| C4.1 |" in text and "reproduced" in text
+    assert "Provenance of this report" in text and "logical cores" in text
 
 
 def test_report_from_real_evaluation_outputs(tmp_path: Path) -> None:

@@ -138,6 +138,7 @@ def test_a_training_job_publishes_the_model_and_is_deterministic(tmp_path: Path,
     assert {p.name for p in out.iterdir()} == {"best.pt", "curves.csv", "curves.png", "summary.json",
                                                 "validation.csv", "settings.json"}
     assert summary["steps"] == 3 and summary["stopped_by"] == "max_steps"
+    assert summary["provenance"]["threads"] == {"training": 1} and "torch" in summary["provenance"]["packages"]
     assert summary["train_scenes"] == ["train_000"] and summary["validation_scenes"] == ["train_001"]
     assert summary["parameters_full_width"] == parameter_count(RAEConfig(levels=2))      # width 1, same design
     assert summary["parameters"] == parameter_count(RAEConfig(width=0.125, levels=2))

@@ -36,6 +36,9 @@ TIMING_COLUMNS: tuple[str, ...] = ("ms_per_frame", "mpix_per_s", "peak_memory_mb
 DERIVED_METRICS: tuple[str, ...] = ("video_psnr",)
 #: Fraction of logged training steps whose mean is a model's final training loss.
 FINAL_FRACTION = 0.2
+#: A row whose model trained fewer steps is flagged (e.g. the smoke config's few-step models): its
+#: numbers test the budget, not the method.
+MIN_TRAINING_STEPS = 100
 
 
 # ------------------------------------------------------------------------------------- trained models
@@ -149,9 +152,15 @@ class Results:
         if absurd > 0:
             factor = rows["out_of_range_factor"].max()
             parts.append(f"{int(absurd):,} output values beyond {factor:g}x the largest input sample")
+        model = self.model_of(method_id)
+        steps = model.summary.get("steps") if model else None
+        if steps is not None and steps < MIN_TRAINING_STEPS:
+            parts.append(f"model {model.spec.id} trained only {steps} steps")
         return f"{method_id} @ {spp} spp: " + ", ".join(parts) if parts else ""
 
     def model_of(self, method_id: str) -> TrainedModel | None:
+        if not any(spec.id == method_id for spec in self.specs):
+            return None
         model_id = self.spec(method_id).params.get("model")
         return self.models.models.get(model_id) if self.models and model_id else None
 

@@ -209,6 +209,8 @@ def training_table(models: TrainedModels) -> pd.DataFrame:
                         "train_minutes": s.get("elapsed_seconds", math.nan) / 60.0,
                         "seconds_per_step": s.get("seconds_per_step"), "best_step": s.get("best_step"),
                         "final_train_loss": model.final_training_loss(),
+                        "commit": (s.get("provenance", {}).get("commit") or "")[:12],
+                        "dirty": s.get("provenance", {}).get("dirty"),
                         **{f"val_{k}": float(validation[k].mean()) for k in ("loss", "ssim", "psnr", "rmse")
                            if k in validation}})
         rows.append(row)

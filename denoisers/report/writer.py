@@ -6,10 +6,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from denoisers.evaluate import ALL_METRICS, EvaluationError
+from denoisers.provenance import describe, provenance
 from denoisers.report import figures as fig
 from denoisers.report import tables as tab
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, MIN_UNITS, NOT_RUN, REPRODUCED, claims_table
-from denoisers.report.collect import Results, collect
+from denoisers.report.collect import MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.outputs import report_outputs
 from denoisers.report.stats import LABELS, formatted, frame_to_markdown, markdown_table, with_ci_columns
 from denoisers.reproductions import all_claims, all_reproductions
@@ -39,7 +40,10 @@ def _setup_lines(res: Results) -> list[str]:
         "the 95 % Student-t confidence interval over per-scene means (absent with one scene).",
         f"- Timing: in-process seconds per `denoise()` call with {cfg['evaluation']['threads']} torch thread(s), "
         "first frame (warm-up) and all I/O excluded; Mpix/s = pixels / mean seconds. Peak memory: RSS sampled "
-        "with psutil every 5 ms during the denoise loop, minus the RSS before it.", ""]
+        "with psutil every 5 ms during the denoise loop, minus the RSS before it.", "",
+        "Provenance of this report (each trained model records its own in summary.json; see the training table):",
+        "", *describe(provenance({"evaluation": cfg["evaluation"]["threads"],
+                                  "training": cfg.get("training", {}).get("threads", 0)})), ""]
 
 
 def _claims_section(claims: pd.DataFrame) -> list[str]:
@@ -52,7 +56,9 @@ def _claims_section(claims: pd.DataFrame) -> list[str]:
             f"(always with fewer than {MIN_UNITS} scenes); a claim needs every part, and any contradicted part "
             "contradicts it. **not run**: a row, spp or model it needs is missing (a claim stated at an spp that was "
             "not evaluated is never moved to another). Facts (declared, not measured) do not decide. Flags name "
-            "rows whose outputs held non-finite values or values far outside the input's range.", "",
+            "rows whose outputs held non-finite values or values far outside the input's range, and rows whose "
+            f"model trained fewer than {MIN_TRAINING_STEPS} steps (their numbers test the budget, not the method).",
+            "",
             f"Verdicts: {tally}.", "", frame_to_markdown(claims[CLAIMS_SHOWN]), "",
             "[claims (CSV)](tables/claims.csv)", ""]
 

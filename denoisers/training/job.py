@@ -22,6 +22,7 @@ from typing import Any
 
 from scenegen.atomic import atomic_directory, write_text_atomic
 
+from denoisers.provenance import provenance
 from denoisers.training.models import ModelSpec, model_spec, settings_digest, training_split
 
 log = logging.getLogger(__name__)
@@ -125,7 +126,8 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
     summary.update({"model_id": model_id, "method": spec.method, "ablation": spec.ablation, "variant": spec.variant,
                     "train_scenes": train_scenes, "validation_scenes": validation_scenes, "stopped_by": stopped_by,
                     "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
-                    "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1)})
+                    "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1),
+                    "provenance": provenance({"training": int(threads)})})
     if hasattr(task, "config") and hasattr(task.config, "width"):
         from denoisers.nets import build_net, count_parameters
 
