@@ -177,6 +177,18 @@ def test_a_missing_row_makes_the_claim_not_run(claim: str, row: tuple[str, int],
     assert decision.verdict == NOT_RUN and named in decision.not_run, decision.not_run
 
 
+def test_c13_without_a_variant_and_c42_without_the_scenario_are_not_run() -> None:
+    cfg = claims_config()
+    decision = evaluate_claim(build(cfg, Table(cfg, 4), drop=(("rae_loss_spatial", 1),)), CLAIMS["C1.3"])
+    assert decision.verdict == NOT_RUN and "rae_loss_spatial" in decision.not_run, decision.not_run
+    decision = evaluate_claim(build(cfg, Table(cfg, 4)), CLAIMS["C4.2"])        # no robustness results
+    assert decision.verdict == NOT_RUN and "robustness" in decision.not_run, decision.not_run
+    results = results_for("C4.2", CLEAR)
+    results.robustness = results.robustness[results.robustness.method_id != "rls"]
+    decision = evaluate_claim(results, CLAIMS["C4.2"])
+    assert decision.verdict == NOT_RUN and "rls" in decision.not_run, decision.not_run
+
+
 def test_unbuilt_papers_name_their_missing_rows() -> None:
     table = claims_table(results_for("C1.1", CLEAR), all_claims()).set_index("claim")
     for claim in ("C2.1", "C2.3", "C2.5", "C3.1", "C3.2", "C3.5"):
