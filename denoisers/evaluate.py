@@ -165,6 +165,10 @@ def evaluation_problems(cfg: dict) -> list[str]:
             problems.append(f"config key 'evaluation.methods' has the id {method_id!r}, which is the id of the row "
                             "added for that trained ablation variant (evaluation.ablation_spp); allowed: ids other "
                             f"than the ablation variants {variants}, or evaluation.ablation_spp: []")
+    frames, grid_frame = cfg["scenes"]["frames"], evaluation["grid_frame"]
+    if not -frames <= grid_frame < frames:
+        problems.append(f"config key 'evaluation.grid_frame' = {grid_frame} is outside the clips' frames; allowed: "
+                        f"{-frames}..{frames - 1} (scenes.frames = {frames}; negative counts from the end)")
     robustness = evaluation["robustness"]
     if robustness["enabled"] and robustness["spp"] not in evaluated:
         problems.append(f"config key 'evaluation.robustness.spp' = {robustness['spp']} is not one of "

@@ -426,6 +426,17 @@ def test_rows_have_their_own_spp_and_ablation_variants_get_rows() -> None:
         evaluate.method_spec(cfg, "rae_inputs_color")
 
 
+@pytest.mark.parametrize("grid_frame, ok", [(-1, True), (0, True), (3, True), (-4, True), (4, False), (99, False),
+                                             (-5, False)])
+def test_grid_frame_must_index_a_frame(grid_frame: int, ok: bool) -> None:
+    cfg = smoke_config(grid_frame=grid_frame)            # the smoke clips have 4 frames
+    assert cfg["scenes"]["frames"] == 4
+    problems = [p for p in evaluate.evaluation_problems(cfg) if "grid_frame" in p]
+    assert (problems == []) == ok, problems
+    if not ok:
+        assert f"'evaluation.grid_frame' = {grid_frame}" in problems[0] and "-4..3" in problems[0]
+
+
 def test_evaluation_problems_name_row_spp_ablation_spp_and_ablation_ids() -> None:
     taken = {"id": "rae_loss_spatial", "method": "rae", "params": {"model": "rae_loss_spatial"}, "spp": [1, 4]}
     cfg = smoke_config(methods=[*BASIC_METHODS, taken], spp=[1, 2], ablation_spp=[1, 3])

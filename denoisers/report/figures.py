@@ -147,7 +147,9 @@ def plot_frame_curves(res: Results, scene: str, path: Path) -> None:
 
 
 def _grid_frame(cfg: dict, frames: Sequence[int]) -> int:
-    return list(frames)[int(cfg["evaluation"]["grid_frame"]) % len(frames)] if frames else 0
+    """The frame shown in the grids: evaluation.grid_frame indexes the clip's frames (range checked with the
+    config, so it never wraps around)."""
+    return list(frames)[int(cfg["evaluation"]["grid_frame"])] if frames else 0
 
 
 def _crop_window(error: np.ndarray, size: int) -> tuple[int, int]:
