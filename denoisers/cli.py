@@ -91,12 +91,17 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "methods":
+        import inspect
+
         from denoisers import registry
 
         for name in registry.available():
             info = registry.get(name).info
             print(f"{name:16s} inputs={','.join(info.inputs)} pixel={','.join(info.pixel_inputs) or '-'} "
                   f"temporal={info.temporal} trainable={info.trainable}  {info.description}")
+            params = ", ".join(f"{key}" + ("" if default is inspect.Parameter.empty else f"={default!r}")
+                               for key, default in registry.parameters(name).items())
+            print(f"{'':16s} parameters: {params or 'none'}")
         return 0
 
     cfg = load_evaluation_config(args.config)

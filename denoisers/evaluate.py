@@ -204,7 +204,7 @@ def _plan(cfg: dict, specs: Sequence[MethodSpec], spps_of) -> list[Run]:
         spps = spps_of(spec)
         if not spps:
             continue
-        method = registry.build(spec.method, resolve_method_params(cfg, spec.params))
+        method = registry.build(spec.method, resolve_method_params(cfg, spec.params), row=spec.id)
         for spp in spps:
             layers = spp * method.samples_factor
             short = [buffer for buffer in method.info.inputs if available[buffer] < layers]
@@ -452,7 +452,7 @@ def _prepare(cfg: dict, method_id: str, spp: int, results: Path | str = "results
     from denoisers import registry
 
     spec = method_spec(cfg, method_id)
-    method = registry.build(spec.method, resolve_method_params(cfg, spec.params, results))
+    method = registry.build(spec.method, resolve_method_params(cfg, spec.params, results), row=spec.id)
     return spec, method, spp * method.samples_factor
 
 

@@ -139,9 +139,33 @@ def get(name: str) -> type[Denoiser]:
     return _REGISTRY[name]
 
 
-def build(name: str, params: dict[str, Any] | None = None) -> Denoiser:
-    """Instantiate method ``name`` with its parameters from the config."""
-    return get(name)(**(params or {}))
+def parameters(name: str) -> dict[str, Any]:
+    """Constructor parameters of method ``name`` and their defaults (``inspect.Parameter.empty`` if required)."""
+    import inspect
+
+    signature = inspect.signature(get(name).__init__)
+    return {p.name: p.default for p in list(signature.parameters.values())[1:]
+            if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+
+
+def build(name: str, params: dict[str, Any] | None = None, row: str | None = None) -> Denoiser:
+    """Instantiate method ``name`` with its parameters from the config; an unknown parameter is a
+    ValueError naming the row, the method, the allowed parameters and the closest one."""
+    import difflib
+
+    import inspect
+
+    params = dict(params or {})
+    allowed = parameters(name)
+    open_ended = any(p.kind == p.VAR_KEYWORD for p in inspect.signature(get(name).__init__).parameters.values())
+    unknown = [] if open_ended else [key for key in params if key not in allowed]
+    if unknown:
+        where = f"evaluation row {row!r} (method {name!r})" if row else f"method {name!r}"
+        hints = [f"{key!r}" + (f" (did you mean {close[0]!r}?)" if (close := difflib.get_close_matches(
+            key, list(allowed), n=1)) else "") for key in unknown]
+        raise ValueError(f"{where}: unknown parameter(s) {', '.join(hints)}; allowed: "
+                         f"{', '.join(allowed) or 'none'}")
+    return get(name)(**params)
 
 
 def check_inputs(info: MethodInfo, sample_buffers: Sequence[str], pixel_buffers: Sequence[str],

@@ -426,6 +426,17 @@ def test_rows_have_their_own_spp_and_ablation_variants_get_rows() -> None:
         evaluate.method_spec(cfg, "rae_inputs_color")
 
 
+def test_a_misspelled_method_parameter_names_row_method_and_allowed_keys() -> None:
+    cfg = smoke_config(methods=[{"id": "eaw_soft", "method": "eaw", "params": {"sigma_colour": 4.0}}],
+                       ablation_spp=[])
+    with pytest.raises(ValueError) as error:
+        evaluate.plan_runs(cfg)
+    message = str(error.value)
+    assert "evaluation row 'eaw_soft' (method 'eaw')" in message and "'sigma_colour'" in message
+    assert "did you mean 'sigma_color'?" in message and "allowed: sigma_color, sigma_normal" in message
+    assert registry.build("eaw", {"sigma_color": 4.0}).info.name == "eaw"       # a correct one still builds
+
+
 @pytest.mark.parametrize("grid_frame, ok", [(-1, True), (0, True), (3, True), (-4, True), (4, False), (99, False),
                                              (-5, False)])
 def test_grid_frame_must_index_a_frame(grid_frame: int, ok: bool) -> None:
