@@ -7,7 +7,6 @@ ablation variants, ``evaluation.ablation_spp``). Training-loss curves stay as fi
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -48,6 +47,11 @@ RAE = RowNeed("rae", "RAE carrying its recurrent state", (("reset_state_every_fr
 RAE_PER_FRAME = RowNeed("rae", "RAE with params.reset_state_every_frame: true", (("reset_state_every_frame", True),))
 EAW = RowNeed("eaw", "EAW")
 NOISY = RowNeed("noisy", "noisy input")
+
+
+def loss_text(weights: dict[str, float]) -> str:
+    """Loss weights as 'spatial 0.8 + gradient 0.1 + temporal 0.1' (zero terms left out)."""
+    return " + ".join(f"{name} {value:g}" for name, value in weights.items() if value) or "no loss"
 
 
 def _row(res: Results, need: RowNeed) -> str | None:
@@ -206,7 +210,7 @@ def ablation_table(res: Results, ablation: str, order: tuple[str, ...] = ()) -> 
     for variant in [v for v in order if v in variants] + sorted(set(variants) - set(order)):
         model = variants[variant]
         row: dict[str, Any] = {"variant": variant, "inputs": INPUT_VARIANT_LABELS.get(variant, variant)
-                               if ablation == INPUT_ABLATION else json.dumps(model.spec.loss),
+                               if ablation == INPUT_ABLATION else loss_text(model.spec.loss),
                                "model": model.spec.id, "steps": model.summary.get("steps"),
                                "final_train_loss": model.final_training_loss()}
         for column in ("loss", "rmse", "ssim"):
@@ -265,7 +269,7 @@ def plot_loss_ablation(res: Results, path: Path) -> None:
     figure, axes = plt.subplots(figsize=(7, 4.5))
     for variant, model in sorted(variants.items()):
         curves = model.curves.dropna(subset=["val_ssim"]) if "val_ssim" in model.curves else model.curves.iloc[0:0]
-        axes.plot(curves["step"], curves["val_ssim"], marker=".", label=f"{variant} ({json.dumps(model.spec.loss)})")
+        axes.plot(curves["step"], curves["val_ssim"], marker=".", label=f"{variant} ({loss_text(model.spec.loss)})")
     save_step_plot(figure, axes, path, "validation SSIM", "RAE loss ablation (Chaitanya et al. 2017, §4.4)",
                    legend_size=8)
 
