@@ -401,15 +401,15 @@ def run_method(method, frames: Sequence, threads: int,
 
     torch.set_num_threads(max(1, int(threads)))
     outputs, seconds, inputs_bad, outputs_bad, out_of_range = [], [], [], [], []
-    checked = True
+    # Input bounds before the memory measurement (their temporaries are not the method's memory).
+    bounds = [input_radiance_bound(frame) for frame in frames]
+    checked = all(bound is not None for bound in bounds)
     maxrss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     method.reset()
     with torch.no_grad(), PeakRSS() as memory:
-        for frame in frames:
+        for frame, bound in zip(frames, bounds):
             inputs_bad.append(int(sum((~torch.isfinite(t)).sum().item()
                                       for t in (*frame.samples.values(), *frame.pixel.values()))))
-            bound = input_radiance_bound(frame)
-            checked = checked and bound is not None
             start = time.perf_counter()
             result = method.denoise(frame)
             seconds.append(time.perf_counter() - start)
