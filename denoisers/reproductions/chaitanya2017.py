@@ -240,38 +240,32 @@ def _ablation_markdown(table: pd.DataFrame) -> str:
 
 
 # ----------------------------------------------------------------------------------------- figures
-def plot_input_ablation(res: Results, path: Path) -> None:
-    """Fig. 3: training loss against step for every input set (log y, running mean over 5 logged points)."""
+#: Per ablation: curve column, running-mean window, log y, y label, title.
+ABLATION_PLOTS = {
+    INPUT_ABLATION: ("train_loss", 5, True, "training loss (running mean; colour only in a different space)",
+                     "RAE input ablation (Chaitanya et al. 2017, Fig. 3)"),
+    LOSS_ABLATION: ("val_ssim", 1, False, "validation SSIM", "RAE loss ablation (Chaitanya et al. 2017, §4.4)"),
+}
+
+
+def plot_ablation(res: Results, ablation: str, path: Path) -> None:
+    """Fig. 3 (training loss of every input set) or §4.4 (validation SSIM of each loss) against step."""
     from denoisers.report.figures import placeholder, pyplot, save_step_plot, smoothed
 
-    variants = res.models.variants(INPUT_ABLATION) if res.models else {}
+    column, window, log_y, ylabel, title = ABLATION_PLOTS[ablation]
+    variants = res.models.variants(ablation) if res.models else {}
     if not variants:
-        placeholder(path, f"no {INPUT_ABLATION} model was trained")
+        placeholder(path, f"no {ablation} model was trained")
         return
-    plt = pyplot()
-    figure, axes = plt.subplots(figsize=(7, 4.5))
-    for variant in [v for v in INPUT_VARIANT_ORDER if v in variants] + sorted(set(variants) - set(INPUT_VARIANT_ORDER)):
-        curves = variants[variant].curves.dropna(subset=["train_loss"])
-        axes.plot(curves["step"], smoothed(curves["train_loss"], 5), label=INPUT_VARIANT_LABELS.get(variant, variant))
-    save_step_plot(figure, axes, path, "training loss (running mean; colour only in a different space)",
-                   "RAE input ablation (Chaitanya et al. 2017, Fig. 3)", log_y=True)
-
-
-def plot_loss_ablation(res: Results, path: Path) -> None:
-    """§4.4: validation SSIM against step for each loss."""
-    from denoisers.report.figures import placeholder, pyplot, save_step_plot
-
-    variants = res.models.variants(LOSS_ABLATION) if res.models else {}
-    if not variants:
-        placeholder(path, f"no {LOSS_ABLATION} model was trained")
-        return
-    plt = pyplot()
-    figure, axes = plt.subplots(figsize=(7, 4.5))
-    for variant, model in sorted(variants.items()):
-        curves = model.curves.dropna(subset=["val_ssim"]) if "val_ssim" in model.curves else model.curves.iloc[0:0]
-        axes.plot(curves["step"], curves["val_ssim"], marker=".", label=f"{variant} ({loss_text(model.spec.loss)})")
-    save_step_plot(figure, axes, path, "validation SSIM", "RAE loss ablation (Chaitanya et al. 2017, §4.4)",
-                   legend_size=8)
+    figure, axes = pyplot().subplots(figsize=(7, 4.5))
+    order = INPUT_VARIANT_ORDER if ablation == INPUT_ABLATION else ()
+    for variant in [v for v in order if v in variants] + sorted(set(variants) - set(order)):
+        model = variants[variant]
+        curves = model.curves.dropna(subset=[column]) if column in model.curves else model.curves.iloc[0:0]
+        label = INPUT_VARIANT_LABELS.get(variant, variant) if ablation == INPUT_ABLATION \
+            else f"{variant} ({loss_text(model.spec.loss)})"
+        axes.plot(curves["step"], smoothed(curves[column], window), marker="." if window == 1 else None, label=label)
+    save_step_plot(figure, axes, path, ylabel, title, log_y=log_y, legend_size=8)
 
 
 # ------------------------------------------------------------------------------------ registration
@@ -298,14 +292,13 @@ def write(res: Results, tables: Path, figures: Path) -> str:
     lines = ["### Fig. 8: RMSE and SSIM per scene at 1 spp", "",
              fig8_md if FIG8_SPP in res.cfg["evaluation"]["spp"] else "not run: 1 spp was not evaluated\n"]
     ablations = _ablations(res.cfg)
-    plots = {INPUT_ABLATION: (plot_input_ablation, "Input ablation (Fig. 3)", INPUT_VARIANT_ORDER),
-             LOSS_ABLATION: (plot_loss_ablation, "Loss ablation (§4.4)", ())}
+    titles = {INPUT_ABLATION: ("Input ablation (Fig. 3)", INPUT_VARIANT_ORDER), LOSS_ABLATION: ("Loss ablation (§4.4)", ())}
     for name in ablations:
-        plot, title, order = plots[name]
+        title, order = titles[name]
         table = ablation_table(res, name, order)
         markdown = _ablation_markdown(table)
         write_table(table, tables, name, markdown)
-        plot(res, figures / f"{name}_curves.png")
+        plot_ablation(res, name, figures / f"{name}_curves.png")
         lines += [f"### {title}", "",
                   "Same data, seed and budget for every variant. Validation: ± over validation sequences; "
                   "scenes: each variant's output on the evaluated scenes, ± over scenes (what C1.2/C1.3 are "
