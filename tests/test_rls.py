@@ -299,7 +299,7 @@ def test_registry_declarations_and_clip_frames() -> None:
         assert get(name) is cls
         assert cls.info.temporal and not cls.info.trainable
         assert cls.info.inputs == ("radiance",) and set(cls.info.pixel_inputs) == {"motion", "valid"}
-    with pytest.raises(TypeError):
+    with pytest.raises(ValueError, match="did you mean 'blend_bandwidth'"):
         build("rls", {"bandwidth": 0.5})                     # RLS has no weights
     rng = np.random.default_rng(8)
     frames, height, width = 4, 12, 10
