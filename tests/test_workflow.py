@@ -236,15 +236,20 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
     assert counts["denoise_clip"] == 3 and "train_denoiser" not in counts
 
 
+def failing_dry_run(workflow_copy: Path, tmp_path: Path, cfg: dict) -> str:
+    """Dry-run the workflow with ``cfg`` written to a file; assert it fails and return its output."""
+    bad_config = tmp_path / "bad_config.yaml"
+    bad_config.write_text(yaml.safe_dump(cfg))
+    result = run_snakemake("-n", "--configfile", str(bad_config), cwd=workflow_copy, check=False)
+    assert result.returncode != 0
+    return result.stdout + result.stderr
+
+
 def test_ablation_spp_outside_the_evaluated_spp_fails_the_dry_run(workflow_copy: Path, tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
     cfg["evaluation"]["ablation_spp"] = [4]  # smoke evaluates [1, 2]
     cfg["evaluation"]["methods"][2]["spp"] = [2, 3]
-    bad_config = tmp_path / "bad_ablation_spp.yaml"
-    bad_config.write_text(yaml.safe_dump(cfg))
-    result = run_snakemake("-n", "--configfile", str(bad_config), cwd=workflow_copy, check=False)
-    output = result.stdout + result.stderr
-    assert result.returncode != 0
+    output = failing_dry_run(workflow_copy, tmp_path, cfg)
     assert "evaluation.ablation_spp" in output and "[4]" in output
     assert "evaluation.methods[2].spp" in output and "[3]" in output
 
@@ -285,11 +290,7 @@ def test_invalid_config_fails_the_dry_run_naming_the_key(workflow_copy: Path, tm
     cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
     cfg["render"]["varient"] = cfg["render"].pop("variant")
     cfg["scenes"]["camera_paths"] = ["orbit", "crane"]
-    bad_config = tmp_path / "bad.yaml"
-    bad_config.write_text(yaml.safe_dump(cfg))
-    result = run_snakemake("-n", "--configfile", str(bad_config), cwd=workflow_copy, check=False)
-    output = result.stdout + result.stderr
-    assert result.returncode != 0
+    output = failing_dry_run(workflow_copy, tmp_path, cfg)
     assert "render.varient" in output and "did you mean 'variant'" in output
     assert "scenes.camera_paths[1]" in output and "dolly, orbit, pan, spline" in output
 
@@ -297,11 +298,7 @@ def test_invalid_config_fails_the_dry_run_naming_the_key(workflow_copy: Path, tm
 def test_evaluated_spp_above_the_rendered_layers_fails_the_dry_run(workflow_copy: Path, tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
     cfg["evaluation"]["spp"] = [1, 2, 8]  # smoke renders 4 layers
-    bad_config = tmp_path / "bad_spp.yaml"
-    bad_config.write_text(yaml.safe_dump(cfg))
-    result = run_snakemake("-n", "--configfile", str(bad_config), cwd=workflow_copy, check=False)
-    output = result.stdout + result.stderr
-    assert result.returncode != 0
+    output = failing_dry_run(workflow_copy, tmp_path, cfg)
     assert "evaluation.spp" in output and "[8]" in output
 
 
