@@ -227,12 +227,17 @@ def attach_face_attributes(mesh, shape: dict, material: dict | None) -> None:
 
 def preview_mean_luminance(manifest: dict, scene_dir: pathlib.Path, *, frame: int = 0, width: int = 32,
                            height: int = 32, spp: int = 4, max_depth: int = 6, seed: int = 0) -> float:
-    """Render a tiny preview of `frame` and return its mean Rec.709 luminance (usable as luminance_check)."""
+    """Render a tiny preview of `frame` and return its mean Rec.709 luminance (usable as luminance_check).
+
+    Loaded with `optimize=False`: Mitsuba merges meshes that share a BSDF in a varying order, which
+    changes the emitter/shape order and so the preview's noise realisation from load to load -- and
+    with it whether a scene near the luminance bounds is accepted or redrawn.
+    """
     import mitsuba as mi
 
     scene = mi.load_dict(build_scene_dict(
         manifest, scene_dir, frame, width=width, height=height,
         integrator={"type": "path", "max_depth": max_depth},
-        sampler={"type": "independent", "sample_count": spp}))
+        sampler={"type": "independent", "sample_count": spp}), optimize=False)
     image = np.asarray(mi.render(scene, seed=seed), dtype=np.float64)[..., :3]
     return float((image @ np.array([0.2126, 0.7152, 0.0722])).mean())
