@@ -1,6 +1,7 @@
 """Command line of the evaluation stages (``python -m denoisers <command>``); the workflow's rules call it.
 
   train       one configured model on the training scenes          -> results/models/{model}/
+  tune        grid search of a baseline's parameters on training scenes -> results/tuning/{method}.json
   denoise     one configured method on one test clip at one spp  -> results/denoised/{method}/{scene}/spp{spp}/
   evaluate    per-frame metrics of a denoised clip               -> results/metrics/{method}/{scene}/spp{spp}.csv
   robustness  one method on a clip with injected spikes/NaN/Inf  -> results/robustness/{method}/{scene}/spp{spp}/
@@ -42,6 +43,14 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--out", type=Path, required=True, help="model directory results/models/{model} (atomic)")
     train.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
 
+    tune = sub.add_parser("tune", help="grid-search a baseline's parameters on the training scenes (tuning.methods)")
+    tune.add_argument("--config", type=Path, required=True, help="resolved config YAML")
+    tune.add_argument("--method", required=True, help="registered method name with a tuning.methods entry")
+    tune.add_argument("--render-dirs", type=Path, nargs="+", required=True,
+                      help="results/renders/train_NNN directories (training scenes only)")
+    tune.add_argument("--out", type=Path, required=True, help="results/tuning/{method}.json (written atomically)")
+    tune.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+
     evaluate = sub.add_parser("evaluate", help="per-frame metrics of a denoised clip against its reference")
     evaluate.add_argument("--config", type=Path, required=True)
     evaluate.add_argument("--denoised", type=Path, required=True, help="results/denoised/{method}/{scene}/spp{spp}")
@@ -61,10 +70,11 @@ def load_evaluation_config(path: Path) -> dict:
     """Load and validate a config, including the cross-key checks of the evaluation section."""
     from denoisers.evaluate import evaluation_problems
     from denoisers.training.models import training_problems
+    from denoisers.tuning import tuning_problems
     from scenegen.config import ConfigError, load_config
 
     cfg = load_config(path)
-    problems = evaluation_problems(cfg) + training_problems(cfg)
+    problems = evaluation_problems(cfg) + training_problems(cfg) + tuning_problems(cfg)
     if problems:
         raise ConfigError(f"{path}: invalid configuration:\n  - " + "\n  - ".join(problems))
     return cfg
@@ -77,13 +87,14 @@ def main(argv: list[str] | None = None) -> int:
     from denoisers.evaluate import EvaluationError
     from denoisers.registry import MissingInputError
     from denoisers.training.loop import CheckpointError, NonFiniteLossError
+    from denoisers.tuning import TuningError
     from scenegen.config import ConfigError
     from scenegen.dataset import DatasetError
 
     try:
         return _run(args)
     except (MissingInputError, EvaluationError, DatasetError, ConfigError, CheckpointError,
-            NonFiniteLossError) as error:
+            NonFiniteLossError, TuningError) as error:
         # Expected failures get one clear line (the workflow prints the job's log), not a traceback.
         log.error("%s", error)
         return 1
@@ -121,6 +132,15 @@ def _run(args: argparse.Namespace) -> int:
                  "%d non-finite outputs, %d out-of-range outputs", record["method_id"], args.scene, args.spp,
                  record["mean_seconds"] * 1e3, record["mpix_per_s"], record["peak_memory_mb"],
                  record["nonfinite_inputs"], record["nonfinite_outputs"], record["out_of_range_outputs"])
+    elif args.command == "tune":
+        import json
+
+        from denoisers.tuning import format_result, tune_method
+        from scenegen.atomic import write_text_atomic
+
+        result = tune_method(cfg, args.method, {path.name: path for path in args.render_dirs}, threads=args.threads)
+        print(format_result(result))
+        write_text_atomic(args.out, json.dumps(result, indent=1) + "\n")
     elif args.command == "evaluate":
         table = evaluate.evaluate_clip(cfg, args.denoised, args.render_dir, args.out)
         log.info("%s: %d frames, mean PSNR %.2f dB", args.denoised, len(table), table["psnr"].mean())

@@ -452,7 +452,8 @@ def _prepare(cfg: dict, method_id: str, spp: int, results: Path | str = "results
     from denoisers import registry
 
     spec = method_spec(cfg, method_id)
-    method = registry.build(spec.method, resolve_method_params(cfg, spec.params, results), row=spec.id)
+    method = registry.build(spec.method, resolve_method_params(cfg, spec.params, results, method=spec.method),
+                            row=spec.id)
     return spec, method, spp * method.samples_factor
 
 

@@ -63,6 +63,9 @@ def make_frame(scene: dict[str, torch.Tensor], index: int = 0, spp: int = 1, noi
     samples = {"radiance": radiance}
     for buffer in ("albedo", "normal", "position", "depth"):
         samples[buffer] = scene[buffer][None].repeat(spp, 1, 1, 1)
+    # flags: (emissive, metallic, transmissive, specular bounce); all surfaces unless the scene says so
+    flags = scene.get("flags", torch.zeros(4, height, width))
+    samples["flags"] = flags[None].repeat(spp, 1, 1, 1)
     if isinstance(valid, bool):
         valid = torch.full((1, height, width), float(valid and index > 0))
     pixel = {"motion": torch.zeros(2, height, width) if motion is None else motion, "valid": valid,
@@ -222,6 +225,23 @@ def test_eaw_denoises_and_keeps_the_edge() -> None:
     # The edge between columns W/2 - 1 and W/2 keeps at least 90 % of its contrast.
     step = float(out[:, :, W // 2].mean() - out[:, :, W // 2 - 1].mean())
     assert step > 0.9 * 0.8
+
+
+def test_eaw_colour_scale_ignores_a_bright_environment() -> None:
+    # 80 % of the frame sees a bright environment (emissive flag set, radiance 100); the surface strip
+    # (radiance 0.5, noisy) must still be denoised: a colour sigma scaled by the whole frame's mean
+    # luminance (about 80) would be wide enough to blur the environment into the surface.
+    scene = two_planes(textured=False, ramp=0.0)
+    environment = torch.arange(W) < (4 * W) // 5
+    scene["radiance"] = torch.where(environment, 100.0, 0.5).expand(3, H, W).clone()
+    scene["flags"] = torch.zeros(4, H, W)
+    scene["flags"][0] = environment.float().expand(H, W)
+    frame = make_frame(scene, spp=1, noise=0.5, seed=6)
+    surface = ~environment.expand(H, W)
+    out = registry.build("eaw").denoise(frame)
+    noisy_error = float((frame.mean("radiance") - scene["radiance"]).abs()[:, surface].mean())
+    eaw_error = float((out - scene["radiance"]).abs()[:, surface].mean())
+    assert eaw_error < 0.5 * noisy_error, (eaw_error, noisy_error)
 
 
 def test_eaw_output_scales_with_exposure() -> None:
@@ -460,6 +480,8 @@ def _clip(omit_sample: tuple[str, ...] = (), omit_gbuffer: tuple[str, ...] = (),
 
     samples = {b: np.repeat(over_time(scene[b])[:, None], 2, axis=1)
                for b in ("radiance", "albedo", "normal", "position", "depth") if b not in omit_sample}
+    if "flags" not in omit_sample:
+        samples["flags"] = np.zeros((frames, 2, 4, 16, 20), np.float32)
     gbuffer = {key: over_time(scene[key]) for key in ("depth", "normal", "position") if key not in omit_gbuffer}
     gbuffer["object"] = np.zeros((frames, 1, 16, 20), np.float32)
     valid = np.ones((frames, 1, 16, 20), bool)

@@ -14,7 +14,7 @@ from denoisers.filters import (B3_SPLINE, LOG2_E, MIN_LOG2_WEIGHT, PairRegion, P
 from denoisers.registry import Denoiser, Frame, register
 
 
-@register("eaw", inputs=("radiance", "normal", "position"),
+@register("eaw", inputs=("radiance", "normal", "position", "flags"),
           description="edge-avoiding a-trous wavelet filter (Dammertz et al. 2010)")
 class EdgeAvoidingATrous(Denoiser):
     """Edge-avoiding a-trous wavelet filter on the box-filtered radiance, single frame.
@@ -24,24 +24,29 @@ class EdgeAvoidingATrous(Denoiser):
     current iterate c_i, I_n the normal and I_x the world position buffer (Dammertz et al. 2010);
     the output is the last iterate (the wavelet detail coefficients are dropped).
 
-    Parameters (the paper gives the form of each term; its values are set per scene, so ours were
-    picked by a coarse grid search on the two smoke-test scenes, 48x48, 1 and 4 spp, mean PSNR):
+    Parameters (the paper gives the form of each term; its values are set per scene). The defaults
+    below are starting values; the shipped configs choose sigma_color, sigma_normal and sigma_position
+    by the grid search of ``denoisers.tuning`` on the training scenes (rule tune_method, rows with
+    ``params: {tuned: true}``), which prints and records the chosen values:
 
     - ``sigma_color`` (8.0): sigma_rt of the colour term in the first pass, in units of the frame's mean
-      luminance (our choice: the scenes' exposure spans two orders of magnitude, so an absolute sigma
-      would filter dark and bright scenes completely differently). Large, because 1-4 spp inputs are
-      dominated by fireflies that a small sigma would keep.
+      surface luminance (our choice: the scenes' exposure spans two orders of magnitude, so an absolute
+      sigma would filter dark and bright scenes completely differently). The mean is taken over pixels
+      whose samples mostly end on a surface rather than on an emitter or the environment (the
+      ``flags`` buffer's emissive channel), so a bright sky or light panel filling much of the frame
+      does not inflate the sigma. Large, because 1-4 spp inputs are dominated by fireflies that a small
+      sigma would keep.
     - ``color_sigma_decay`` (0.5): sigma_rt at pass i is sigma_rt * decay^i -- the paper's 2^-i, so
       later, wider passes do not blur the features that earlier passes kept.
     - ``sigma_normal`` (0.5): sigma_n on the difference of (sample-mean) world-space normals; a 90
       degree crease (|dn|^2 = 2) gets weight exp(-8), facets of a tessellated sphere pass.
     - ``sigma_position`` (0.25): sigma_x in metres on world-position differences (0.1 and 0.5 gave
-      1-2.5 dB lower mean PSNR on the smoke scenes). Being in metres, the best value depends on the
-      resolution (pixel footprint) and scene scale; it was picked at 48x48.
+      1-2.5 dB lower mean PSNR on 48x48 scenes). Being in metres, the best value depends on the
+      resolution (pixel footprint) and scene scale, hence the tuning per config.
     - ``iterations`` (5): 5 passes with doubling step (issue text), a 125x125 pixel footprint.
 
-    Inputs: mean over the frame's samples of radiance, normal and position (first non-specular vertex).
-    No albedo: texture edges are kept only by the colour term.
+    Inputs: mean over the frame's samples of radiance, normal and position (first non-specular vertex);
+    the emissive flag only for the colour scale. No albedo: texture edges are kept only by the colour term.
     """
 
     def __init__(self, sigma_color: float = 8.0, sigma_normal: float = 0.5, sigma_position: float = 0.25,
@@ -73,13 +78,32 @@ class EdgeAvoidingATrous(Denoiser):
         else:
             self.backend = "torch"
             self._workspace = eaw_workspace(height, width, color.shape[0], geometry.shape[0], self._workspace)
-        return filter_eaw(color, geometry, self.sigma_color * mean_luminance_scale(color),
+        scale = surface_luminance_scale(color, sanitize(frame.mean("flags"))[EMISSIVE_FLAG])
+        return filter_eaw(color, geometry, self.sigma_color * scale,
                           self.iterations, self.color_sigma_decay, self._workspace)
 
 
 def mean_luminance_scale(color: torch.Tensor) -> float:
     """Mean absolute luminance of a (3, H, W) image, floored so that black frames give a usable scale."""
     return max(float(luminance(color).abs().mean()), 1e-6)
+
+
+EMISSIVE_FLAG = 0
+"""Channel of the ``flags`` buffer that is 1 where a sample's first non-specular vertex is an emitter
+or the path escaped to the environment (scenegen.integrator)."""
+MIN_SURFACE_FRACTION = 0.01
+"""Below this fraction of surface pixels the scale falls back to the whole frame."""
+
+
+def surface_luminance_scale(color: torch.Tensor, emissive: torch.Tensor) -> float:
+    """Mean absolute luminance of a (3, H, W) image over its surface pixels: those whose samples end on an
+    emitter or the environment in at most half the cases (``emissive``: (H, W) fraction of such samples).
+    The whole frame when fewer than 1 % of the pixels are surface pixels; floored like
+    :func:`mean_luminance_scale`."""
+    surface = emissive <= 0.5
+    if float(surface.float().mean()) < MIN_SURFACE_FRACTION:
+        return mean_luminance_scale(color)
+    return max(float(luminance(color).abs().reshape(emissive.shape)[surface].mean()), 1e-6)
 
 
 def filter_eaw(color: torch.Tensor, scaled_geometry: torch.Tensor, sigma_color: float, iterations: int,

@@ -116,9 +116,16 @@ def settings_digest(spec: ModelSpec, extra: Mapping[str, Any] | None = None) -> 
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
-def resolve_method_params(cfg: dict, params: Mapping[str, Any], results: Path | str = "results") -> dict[str, Any]:
-    """Constructor parameters of an evaluation row: ``model: <id>`` becomes ``checkpoint: <model dir>/best.pt``."""
+def resolve_method_params(cfg: dict, params: Mapping[str, Any], results: Path | str = "results", *,
+                          method: str | None = None) -> dict[str, Any]:
+    """Constructor parameters of an evaluation row: ``model: <id>`` becomes ``checkpoint: <model dir>/best.pt``;
+    ``tuned: true`` adds ``method``'s parameters from <results>/tuning/{method}.json (the row's own params
+    win). With ``method`` None (planning, before any tuning ran) ``tuned`` is dropped without reading."""
+    from denoisers.tuning import TUNED_KEY, tuned_params
+
     resolved = dict(params)
+    if resolved.pop(TUNED_KEY, False) and method is not None:
+        resolved = {**tuned_params(results, method), **resolved}
     if "model" in resolved:
         model_id = resolved.pop("model")
         model_spec(cfg, model_id)  # KeyError naming the configured models

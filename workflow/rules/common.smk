@@ -19,6 +19,7 @@ from scenegen.config import (
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
 from denoisers.evaluate import evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids
 from denoisers.report import report_outputs
+from denoisers.tuning import tuning_problems
 from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, settings_digest,
                                        training_problems, training_split)
 
@@ -35,7 +36,7 @@ except Exception as err:  # WorkflowError, or AttributeError when a section is n
     schema_error = err
 config_errors = config_problems(config) or ([str(schema_error)] if schema_error else [])
 if not config_errors:
-    config_errors = evaluation_problems(config) + training_problems(config)
+    config_errors = evaluation_problems(config) + training_problems(config) + tuning_problems(config)
 if config_errors:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
 

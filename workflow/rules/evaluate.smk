@@ -12,6 +12,7 @@ rule denoise_clip:
     input:
         noisy=scene_chunk_dirs("noisy"),
         model=method_model_dir,
+        tuning=method_tuning_file,
     output:
         out_dir=directory("results/denoised/{method}/{scene}/spp{spp}"),
     params:
@@ -65,6 +66,7 @@ rule robustness_clip:
     input:
         noisy=scene_chunk_dirs("noisy"),
         model=method_model_dir,
+        tuning=method_tuning_file,
         reference=scene_chunk_dirs("reference"),
     output:
         out_dir=directory("results/robustness/{method}/{scene}/spp{spp}"),
