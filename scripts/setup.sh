@@ -4,7 +4,8 @@
 #   1. the LLVM 19 shared library for Mitsuba's llvm_ad_rgb variant (Debian package libllvm19),
 #   2. a Python 3.11 virtual environment in .venv,
 #   3. the project installed editable with its test extras (skipped while pyproject.toml is unchanged),
-#   4. DRJIT_LIBLLVM_PATH, and .venv/bin first on PATH (Snakemake's `python -m scenegen` needs it).
+#   4. the native filter kernels (python -m denoisers.native),
+#   5. DRJIT_LIBLLVM_PATH, and .venv/bin first on PATH (Snakemake's `python -m scenegen` needs it).
 # Without LLVM 19, Mitsuba falls back to the much slower scalar_rgb variant with a warning.
 
 if [[ "${BASH_SOURCE[0]}" == "$0" ]]; then
@@ -63,7 +64,11 @@ setup_main() {
         touch "$stamp"
     fi
 
-    # 4. Environment for Mitsuba / Dr.Jit and for the workflow's shell commands.
+    # 4. The native filter kernels, built once into this checkout (denoisers/native/_build), so that no
+    #    job compiles; quick when already built. A failed build only means the torch fallback is used.
+    "$venv/bin/python" -m denoisers.native >&2 || echo "[setup] native kernels not built; filters use torch" >&2
+
+    # 5. Environment for Mitsuba / Dr.Jit and for the workflow's shell commands.
     if [[ -e "$llvm_lib" ]]; then
         export DRJIT_LIBLLVM_PATH="$llvm_lib"
         echo "[setup] DRJIT_LIBLLVM_PATH=$DRJIT_LIBLLVM_PATH" >&2

@@ -15,6 +15,12 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -179,7 +185,9 @@ def stream(height: int, width: int, frames: int, spp: int, seed: int) -> list[Fr
         samples = {"radiance": corrupt(radiance, generator), "albedo": corrupt(albedo, generator, 0.002),
                    "normal": corrupt(guides["normal"][None].repeat(spp, 1, 1, 1), generator, 0.002),
                    "depth": corrupt(depth[None].repeat(spp, 1, 1, 1), generator, 0.002),
-                   "position": corrupt(torch.rand(spp, 3, height, width, generator=generator), generator, 0.002)}
+                   "position": corrupt(torch.rand(spp, 3, height, width, generator=generator), generator, 0.002),
+                   "flags": corrupt((torch.rand(spp, 4, height, width, generator=generator) > 0.8).float(),
+                                    generator, 0.002)}
         pixel = {"motion": corrupt(motion, generator, 0.002), "valid": corrupt(valid, generator, 0.002),
                  "gbuffer.depth": corrupt(depth, generator, 0.002),
                  "gbuffer.normal": corrupt(guides["normal"], generator, 0.002)}
@@ -297,7 +305,7 @@ def test_environment_switch_disables_the_kernels(monkeypatch) -> None:
 def test_failed_build_warns_once_and_falls_back(monkeypatch, tmp_path, caplog) -> None:
     broken = tmp_path / "broken.cpp"
     broken.write_text("this is not C++\n")
-    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "extensions"))
+    monkeypatch.setenv(native.DIRECTORY_VARIABLE, str(tmp_path / "extensions"))
     monkeypatch.setenv(native.ENVIRONMENT_SWITCH, "1")
     monkeypatch.setattr(native, "SOURCES", (broken,))
     monkeypatch.setattr(native, "EXTENSION_NAME", "mcdn_broken_test")
@@ -333,3 +341,55 @@ def test_eaw_kernel_weights_follow_exp2_over_the_clamped_range(kernels) -> None:
         w_prev = torch.exp2(torch.clamp(math.log2(h_1) - distances[k - 1] ** 2, min=MIN_LOG2_WEIGHT))
         expected = (w_next * distances[k] + w_prev * distances[k - 1]) / (h_centre + 2 * h_2 + w_next + w_prev)
         torch.testing.assert_close(out[0, 0, 2 * k], expected, rtol=RTOL, atol=1e-30)
+
+
+def test_build_lives_in_this_installation_not_a_shared_cache(monkeypatch) -> None:
+    monkeypatch.delenv(native.DIRECTORY_VARIABLE, raising=False)
+    package = Path(native.__file__).resolve().parent
+    assert native.build_directory() == package / "_build"
+
+
+def test_build_timeout_warns_once_and_falls_back(monkeypatch, tmp_path, caplog) -> None:
+    monkeypatch.setenv(native.DIRECTORY_VARIABLE, str(tmp_path / "native"))
+    monkeypatch.setenv(native.TIMEOUT_VARIABLE, "1")
+    monkeypatch.setenv(native.ENVIRONMENT_SWITCH, "1")
+    monkeypatch.setattr(native, "_built", [])
+    with caplog.at_level(logging.WARNING, logger=native.__name__):
+        assert native.load() is None and native.load() is None
+    warnings = [record.getMessage() for record in caplog.records if record.name == native.__name__]
+    assert len(warnings) == 1 and "timed out" in warnings[0], warnings
+
+
+def _native_command(build_dir: Path, **kwargs) -> subprocess.Popen:
+    env = dict(os.environ, **{native.DIRECTORY_VARIABLE: str(build_dir), native.ENVIRONMENT_SWITCH: "1"})
+    return subprocess.Popen([sys.executable, "-m", "denoisers.native"], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, **kwargs)
+
+
+@pytest.mark.slow
+def test_a_build_killed_part_way_does_not_block_the_next(tmp_path) -> None:
+    # A cancelled job: the build is killed (with its compiler) while torch holds its lock file.
+    build_dir = tmp_path / "native"
+    first = _native_command(build_dir)
+    deadline = time.monotonic() + 120
+    while not list(build_dir.glob("*/lock")) and time.monotonic() < deadline and first.poll() is None:
+        time.sleep(0.2)
+    assert first.poll() is None, "the build finished before it could be killed"
+    time.sleep(2.0)
+    os.killpg(first.pid, signal.SIGKILL)
+    first.wait()
+    assert list(build_dir.glob("*/lock")), "expected torch's lock file of the killed build to remain"
+    second = _native_command(build_dir)
+    stdout, stderr = second.communicate(timeout=900)
+    assert second.returncode == 0 and "native kernels: native" in stdout, stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_the_kernel_source_ships_in_a_wheel(tmp_path) -> None:
+    import zipfile
+
+    repo = Path(native.__file__).resolve().parents[2]
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
+                    str(tmp_path), str(repo)], check=True, capture_output=True, timeout=600)
+    wheel = next(tmp_path.glob("*.whl"))
+    assert "denoisers/native/atrous.cpp" in zipfile.ZipFile(wheel).namelist()
