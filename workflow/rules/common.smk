@@ -20,6 +20,7 @@ from scenegen.config import (
 from denoisers.evaluate import evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids
 from denoisers.report import report_outputs
 from denoisers.tuning import tuning_problems
+from scenegen.overrides import coerce_override_strings
 from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, settings_digest,
                                        training_problems, training_split)
 
@@ -29,6 +30,8 @@ from denoisers.training.models import (method_model, model_dir, model_spec, mode
 # message dumps whole schema fragments, so problems are re-described by scenegen.config, which
 # names the key path and the allowed values, and also checks the cross-key constraints.
 # ---------------------------------------------------------------------------------------------
+# Nested command-line overrides (--config 'render={spp: 8}') arrive with string leaves: parse them.
+coerce_override_strings(config, yaml.safe_load((Path(workflow.current_basedir) / "../schemas/config.schema.yaml").read_text()))
 try:
     validate(config, "../schemas/config.schema.yaml")
     schema_error = None
