@@ -388,8 +388,15 @@ def test_a_build_killed_part_way_does_not_block_the_next(tmp_path) -> None:
 def test_the_kernel_source_ships_in_a_wheel(tmp_path) -> None:
     import zipfile
 
+    import shutil
+
     repo = Path(native.__file__).resolve().parents[2]
+    source = tmp_path / "source"       # setuptools writes build/ into the tree it builds: use a copy
+    source.mkdir()
+    shutil.copy(repo / "pyproject.toml", source)
+    for package in ("scenegen", "denoisers"):
+        shutil.copytree(repo / package, source / package, ignore=shutil.ignore_patterns("_build", "__pycache__"))
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
-                    str(tmp_path), str(repo)], check=True, capture_output=True, timeout=600)
-    wheel = next(tmp_path.glob("*.whl"))
+                    str(tmp_path / "wheel"), str(source)], check=True, capture_output=True, timeout=600)
+    wheel = next((tmp_path / "wheel").glob("*.whl"))
     assert "denoisers/native/atrous.cpp" in zipfile.ZipFile(wheel).namelist()
