@@ -1,6 +1,10 @@
-"""Running methods on the test clips and scoring them: the jobs behind the workflow's evaluation rules.
+"""Running methods on the evaluated clips and scoring them: the jobs behind the workflow's evaluation rules.
 
-* ``denoise_clip``    (rule denoise_clip):    one method on one test scene at one spp -> EXR + PNG + timing.json
+The evaluated scenes are the held-out test scenes (``test_*``) and the external scenes (``custom_*``,
+bring-your-own XML); each is an independent unit of every comparison. The robustness scenario runs
+on all of them too (its cost is one job per scene and row, like the evaluation's).
+
+* ``denoise_clip``    (rule denoise_clip):    one method on one evaluated scene at one spp -> EXR + PNG + timing.json
 * ``evaluate_clip``   (rule evaluate_clip):   per-frame metrics of a denoised clip against the reference -> CSV
 * ``robustness_clip`` (rule robustness_clip): one method on a clip with injected spikes and NaN/Inf -> CSV
 
@@ -25,7 +29,7 @@ import numpy as np
 from scenegen.atomic import atomic_directory, write_text_atomic
 from denoisers import native
 from denoisers.training.models import resolve_method_params
-from scenegen.config import SCENE_SPLITS, scene_ids
+from scenegen.config import CUSTOM_PREFIX, SCENE_SPLITS, scene_frame_count, scene_ids
 
 TEST_PREFIX = f"{SCENE_SPLITS[1]}_"
 #: Per-frame metrics of the CSVs, in column order (names of denoisers.metrics.frame_metrics).
@@ -120,8 +124,9 @@ def method_spec(cfg: dict, method_id: str) -> MethodSpec:
 
 
 def evaluated_scene_ids(cfg: dict) -> list[str]:
-    """Scenes that are evaluated: the held-out ``test_*`` ids (training scenes never are)."""
-    return [scene for scene in scene_ids(cfg) if scene.startswith(TEST_PREFIX)]
+    """Scenes that are evaluated, each an independent unit of the comparisons: the held-out ``test_*``
+    ids, then the external ``custom_*`` scenes of ``extra_scenes`` (training scenes never are)."""
+    return [scene for scene in scene_ids(cfg) if scene.startswith((TEST_PREFIX, CUSTOM_PREFIX))]
 
 
 def rendered_layers(cfg: dict) -> dict[str, int]:
@@ -170,6 +175,13 @@ def evaluation_problems(cfg: dict) -> list[str]:
     if not -frames <= grid_frame < frames:
         problems.append(f"config key 'evaluation.grid_frame' = {grid_frame} is outside the clips' frames; allowed: "
                         f"{-frames}..{frames - 1} (scenes.frames = {frames}; negative counts from the end)")
+    else:
+        for scene in (s for s in evaluated_scene_ids(cfg) if s.startswith(CUSTOM_PREFIX)):
+            count = scene_frame_count(cfg, scene)
+            if not -count <= grid_frame < count:
+                problems.append(f"config key 'evaluation.grid_frame' = {grid_frame} is outside the {count} frames of "
+                                f"the evaluated scene {scene}; allowed: {-count}..{count - 1}, or more frames in its "
+                                "extra_scenes entry")
     robustness = evaluation["robustness"]
     if robustness["enabled"] and robustness["spp"] not in evaluated:
         problems.append(f"config key 'evaluation.robustness.spp' = {robustness['spp']} is not one of "

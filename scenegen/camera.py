@@ -180,6 +180,21 @@ def _spline(rng: np.random.Generator, n: int, box: CameraBox, room_size: np.ndar
     return CameraPath("spline", origins, _keep_target_ahead(origins, targets), float(speed))
 
 
+def lift_low_views(origins: np.ndarray, targets: np.ndarray, min_pitch_deg: float) -> np.ndarray:
+    """Targets (n, 3) whose view direction is raised to ``min_pitch_deg`` (negative: below the horizon)
+    where it points lower, keeping yaw and target distance; used in open scenes so that the sky shows."""
+    view = targets - origins
+    dist = np.linalg.norm(view, axis=1, keepdims=True)
+    view = view / np.maximum(dist, 1e-9)
+    min_sin = np.sin(np.radians(min_pitch_deg))
+    low = view[:, 1] < min_sin
+    horizontal = np.linalg.norm(view[:, [0, 2]], axis=1, keepdims=True)
+    flat = np.where(horizontal > 1e-6, view[:, [0, 2]] / np.maximum(horizontal, 1e-9), np.array([[1.0, 0.0]]))
+    cos_lim = np.sqrt(1.0 - min_sin**2)
+    lifted = np.column_stack([flat[:, 0] * cos_lim, np.full(len(view), min_sin), flat[:, 1] * cos_lim])
+    return np.where(low[:, None], origins + lifted * dist, targets)
+
+
 _PATH_BUILDERS = {"dolly": _dolly, "orbit": _orbit, "pan": _pan, "spline": _spline}
 
 

@@ -158,6 +158,10 @@ def _cross_key_problems(cfg: dict[str, Any]) -> Iterator[str]:
             f"config key 'scenes.luminance_range' = {scenes['luminance_range']!r} is invalid; "
             "allowed: [low, high] with 0 < low < high"
         )
+    for index, entry in enumerate(cfg["extra_scenes"]):
+        if entry.get("max_depth") == 0:
+            yield (f"config key 'extra_scenes[{index}].max_depth' = 0 is not allowed; allowed: -1 (no limit) "
+                   "or 1..1024")
     names = [entry["name"] for entry in cfg["extra_scenes"]]
     for name in sorted({name for name in names if names.count(name) > 1}):
         yield f"config key 'extra_scenes' has the name {name!r} more than once; allowed: unique names"

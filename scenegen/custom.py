@@ -1,13 +1,24 @@
 """Bring-your-own scenes: a Mitsuba 3 XML file plus a camera path from the config.
 
 ``import_custom_scene`` writes a manifest in the procedural scenes' format (``"kind": "custom"``)
-holding the XML's path and hash, one static entry per shape and the per-frame camera, so the
-render, motion-vector and evaluation code treat custom scenes like generated ones.
+holding the XML's path and hash, one static entry per authored shape and the per-frame camera, so
+the render, motion-vector and evaluation code treat custom scenes like generated ones.
 ``load_custom_frame_scene`` loads the XML, keeps its shapes and emitters, and swaps in the
-project's integrator and the frame's sensor. Material features (roughness, metallic,
-transmissive) are read from each BSDF's class and parameters and stored as per-face attributes,
-which exist only on meshes: analytic shapes (sphere, disk, cylinder) report them as 0 and are
-listed in the manifest's ``shapes_without_material_features``.
+project's integrator and the frame's sensor.
+
+Rendered as authored where the per-sample design allows it (``scenegen.custom_xml`` reads what the
+XML asks for): the integrator's ``max_depth``, ``rr_depth`` (unless the extra_scenes entry sets
+them) and ``hide_emitters`` are honoured; the integrator itself, a pixel filter other than a
+one-pixel box, the resolution, the sampler and a non-pinhole sensor are replaced, and every such
+replacement is listed in ``manifest["substitutions"]`` ({what, authored, used, why}).
+
+Shape identity: the XML is parsed with Mitsuba's mesh merging off, and ``merge`` shapes are
+replaced by their children, so every authored shape stays a shape of its own. Every shape gets the
+per-face attributes the feature integrator reads (``scenegen.mitsuba_scene.attach_face_attributes``:
+shape index, material features, albedo source): meshes as mesh attributes, analytic shapes
+(sphere, disk, cylinder, ...) as constant texture attributes with the same values. Shapes inside
+a ``shapegroup`` are shared by all their instances (one id per authored shape, not per instance)
+and carry no material features (listed in ``shapes_without_material_features``).
 
 Camera paths (speeds relative to the scene's bounding-box diagonal D, per frame):
 dolly -- translate along the view direction by 0.01 D; orbit -- rotate about the target around
@@ -20,31 +31,122 @@ import hashlib
 import json
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from scenegen.custom_xml import (
+    CustomSceneError,
+    ParsedXml,
+    authored_settings,
+    parse_xml,
+    render_settings,
+    substitutions,
+)
+
 IDENTITY = np.eye(4).tolist()
+#: Mitsuba stores ``max_depth = -1`` ("no limit") as this unsigned 32-bit value; the feature integrator
+#: counts depth in the same UInt32, so passing it reproduces Mitsuba's unlimited depth exactly.
+UNBOUNDED_DEPTH = 2**32 - 1
 log = logging.getLogger("scenegen")
-_scene_cache: dict[str, object] = {}
+
+__all__ = ["CustomSceneError", "LoadedXml", "camera_path", "import_custom_scene", "integrator_settings",
+           "load_custom_frame_scene", "load_xml"]
 
 
-class CustomSceneError(ValueError):
-    """A custom scene's XML cannot be used; the message names the file."""
+@dataclass
+class LoadedXml:
+    """An XML scene ready to render: ``scene`` (every authored shape with its face attributes),
+    ``shapes`` (manifest records in authored order) and ``authored`` (custom_xml.authored_settings)."""
+
+    scene: object
+    shapes: list[dict]
+    authored: dict
 
 
-def _load_xml(xml: Path):
+_scene_cache: dict[tuple[str, str], LoadedXml] = {}   # (resolved path, SHA-256 of the file) -> loaded scene
+
+
+def _material_record(bsdf) -> dict:
+    """Roughness / metallic / transmissive of an XML BSDF, read from its class and parameters."""
     import mitsuba as mi
 
-    key = str(Path(xml).resolve())
-    if key not in _scene_cache:
-        if not Path(key).is_file():
-            raise CustomSceneError(f"custom scene XML not found: {key}")
-        try:
-            _scene_cache[key] = mi.load_file(key)
-        except Exception as exc:  # noqa: BLE001 -- Mitsuba raises RuntimeError with parser details
-            raise CustomSceneError(f"cannot load custom scene XML {key}: {exc}") from exc
-    return _scene_cache[key]
+    if bsdf is None:
+        return {"type": "diffuse", "roughness": 1.0}
+    name = bsdf.class_name().lower()
+    params = mi.traverse(bsdf)
+    alpha = next((float(np.asarray(params[k]).ravel()[0]) for k in params.keys()
+                  if k.split(".")[0] in ("alpha", "roughness", "alpha_u")), None)
+    metallic_keys = [k for k in params.keys() if k.split(".")[0] == "metallic"]
+    metallic = "conductor" in name or (bool(metallic_keys)
+                                       and float(np.asarray(params[metallic_keys[0]]).ravel()[0]) > 0.5)
+    if "principled" in name and alpha is not None:
+        alpha = alpha ** 2  # principled "roughness" -> microfacet alpha
+    kind = {"conductor": "conductor", "roughconductor": "roughconductor", "dielectric": "dielectric",
+            "thindielectric": "thindielectric", "roughdielectric": "roughdielectric"}.get(name, name)
+    smooth = kind in ("conductor", "dielectric", "thindielectric")
+    return {"type": kind, "roughness": 0.0 if smooth else (1.0 if alpha is None else alpha),
+            "metallic": metallic, "transmissive": "dielectric" in name}
+
+
+def _attribute_rows(bsdf, index: int, material: dict) -> dict[str, list[float]]:
+    """The constant per-face rows attach_face_attributes writes for a shape with ``bsdf`` and ``index``:
+    {attribute name: 3 floats}, read back from a one-triangle probe mesh (one source of truth)."""
+    import mitsuba as mi
+
+    from scenegen.mitsuba_scene import attach_face_attributes
+
+    props = mi.Properties()
+    if bsdf is not None:
+        props["bsdf"] = bsdf
+    probe = mi.Mesh("attribute_probe", 3, 1, props)
+    attach_face_attributes(probe, {"index": index}, material)
+    rows = {}
+    for name in ("face_material", "face_ident", "face_albedo"):
+        if bool(probe.has_attribute(name)[0]):
+            rows[name] = [float(v) for v in np.asarray(probe.attribute_buffer(name))[:3]]
+    return rows
+
+
+def load_xml(xml: Path) -> LoadedXml:
+    """Load ``xml`` once per process (see the module docstring); CustomSceneError naming the file."""
+    import mitsuba as mi
+
+    path = Path(xml).resolve()
+    if not path.is_file():
+        raise CustomSceneError(f"custom scene XML not found: {path}")
+    key = (str(path), hashlib.sha256(path.read_bytes()).hexdigest())
+    if key in _scene_cache:
+        return _scene_cache[key]
+    # Pass 1 instantiates the XML as authored (separate shapes) to read each shape's BSDF; pass 2
+    # re-parses it with constant texture attributes on the analytic shapes (they take attributes only
+    # at construction), then meshes get theirs as mesh attributes.
+    first: ParsedXml = parse_xml(path)
+    scene = first.instantiate()
+    by_id = {shape.id(): shape for shape in scene.shapes()}
+    second = parse_xml(path)
+    shapes, materials = [], {}
+    for index, (node_id, name, plugin) in enumerate(first.shapes):
+        shape = by_id.get(node_id)
+        material = _material_record(shape.bsdf()) if shape is not None else None
+        is_mesh = isinstance(shape, mi.Mesh)
+        if shape is not None and not is_mesh:
+            second.set_texture_attributes(index, _attribute_rows(shape.bsdf(), index, material))
+        materials[node_id] = material
+        shapes.append({"index": index, "name": name, "type": plugin, "kind": "custom", "mesh": None,
+                       "material": None, "emitter": None, "to_world": IDENTITY, "to_world_per_frame": None,
+                       "material_features": shape is not None})
+    final = second.instantiate()
+    from scenegen.mitsuba_scene import attach_face_attributes
+
+    index_of = {node_id: index for index, (node_id, _, _) in enumerate(second.shapes)}
+    for shape in final.shapes():
+        if isinstance(shape, mi.Mesh) and shape.id() in index_of:
+            attach_face_attributes(shape, {"index": index_of[shape.id()]}, materials[shape.id()])
+    loaded = LoadedXml(final, shapes, authored_settings(first, scene))
+    _scene_cache[key] = loaded
+    return loaded
 
 
 def _rotate_about(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -82,7 +184,8 @@ def import_custom_scene(entry: dict, scene_id: str, out_dir: Path) -> dict:
     import mitsuba as mi
 
     xml = Path(entry["xml"]).resolve()
-    scene = _load_xml(xml)
+    loaded = load_xml(xml)
+    scene = loaded.scene
     sensors = scene.sensors()
     params = mi.traverse(sensors[0]) if sensors else {}
     to_world = np.array(params["to_world"].matrix, np.float64).reshape(4, 4) if sensors else np.eye(4)
@@ -99,24 +202,21 @@ def import_custom_scene(entry: dict, scene_id: str, out_dir: Path) -> dict:
     up = np.asarray(camera.get("up", [0.0, 1.0, 0.0]), np.float64)
     fov = float(camera.get("fov_deg", float(params["x_fov"][0]) if sensors and "x_fov" in params else 45.0))
     n_frames = int(entry["frames"])
-    shapes = [{"index": i, "name": shape.id() or f"shape_{i:03d}", "kind": "custom", "mesh": None,
-               "material": None, "emitter": None, "to_world": IDENTITY, "to_world_per_frame": None,
-               "material_features": isinstance(shape, mi.Mesh)}
-              for i, shape in enumerate(scene.shapes())]
-    without = [shape["name"] for shape in shapes if not shape["material_features"]]
+    without = [shape["name"] for shape in loaded.shapes if not shape["material_features"]]
     if without:
-        # Per-face attributes only exist on meshes: analytic shapes report roughness 0, metallic 0,
-        # transmissive 0 and shape index 0 (static scenes only, so motion vectors are unaffected).
-        log.warning("custom scene %s: %d non-mesh shapes without material features: %s", scene_id,
+        log.warning("custom scene %s: %d shapes inside shape groups without material features: %s", scene_id,
                     len(without), ", ".join(without))
     manifest = {
         "format_version": 1, "kind": "custom", "scene_id": scene_id,
         "xml": str(xml), "xml_sha256": hashlib.sha256(xml.read_bytes()).hexdigest(),
-        "n_frames": n_frames, "redraws": [], "materials": [], "emitters": [], "shapes": shapes,
+        "n_frames": n_frames, "redraws": [], "materials": [], "emitters": [], "shapes": loaded.shapes,
         "camera": {"fov_x_deg": fov, "path": camera["path"], "frames": camera_path(
             camera["path"], origin, target, up / np.linalg.norm(up), n_frames, diagonal)},
         "animation": {"animated_light": None, "moving_shapes": [], "camera_cut_frame": None},
         "shapes_without_material_features": without,
+        "authored": loaded.authored,
+        "render": render_settings(loaded.authored, entry),
+        "substitutions": substitutions(loaded.authored, entry),
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -124,46 +224,37 @@ def import_custom_scene(entry: dict, scene_id: str, out_dir: Path) -> dict:
     return manifest
 
 
-def _material_record(bsdf) -> dict:
-    """Roughness / metallic / transmissive of an XML BSDF, read from its class and parameters."""
-    import mitsuba as mi
-
-    if bsdf is None:
-        return {"type": "diffuse", "roughness": 1.0}
-    name = bsdf.class_name().lower()
-    params = mi.traverse(bsdf)
-    alpha = next((float(np.asarray(params[k]).ravel()[0]) for k in params.keys()
-                  if k.split(".")[0] in ("alpha", "roughness", "alpha_u")), None)
-    metallic_keys = [k for k in params.keys() if k.split(".")[0] == "metallic"]
-    metallic = "conductor" in name or (bool(metallic_keys)
-                                       and float(np.asarray(params[metallic_keys[0]]).ravel()[0]) > 0.5)
-    if "principled" in name and alpha is not None:
-        alpha = alpha ** 2  # principled "roughness" -> microfacet alpha
-    kind = {"conductor": "conductor", "roughconductor": "roughconductor", "dielectric": "dielectric",
-            "thindielectric": "thindielectric", "roughdielectric": "roughdielectric"}.get(name, name)
-    smooth = kind in ("conductor", "dielectric", "thindielectric")
-    return {"type": kind, "roughness": 0.0 if smooth else (1.0 if alpha is None else alpha),
-            "metallic": metallic, "transmissive": "dielectric" in name}
+def integrator_settings(manifest: dict) -> dict:
+    """Integrator properties the manifest fixes (max_depth, rr_depth, hide_emitters); {} for manifests
+    written before they were recorded. ``max_depth`` -1 (no limit) becomes UNBOUNDED_DEPTH."""
+    render = manifest.get("render")
+    if not render:
+        return {}
+    depth = int(render["max_depth"])
+    return {"max_depth": UNBOUNDED_DEPTH if depth < 0 else depth, "rr_depth": int(render["rr_depth"]),
+            "hide_emitters": bool(render["hide_emitters"])}
 
 
 def load_custom_frame_scene(manifest: dict, frame: int, *, width: int, height: int, integrator: dict,
                             sampler: dict | None = None):
-    """The XML scene's shapes and emitters with the project's integrator and ``frame``'s sensor."""
+    """The XML scene's shapes and emitters with the project's integrator (``integrator`` with the
+    manifest's integrator_settings) and ``frame``'s sensor (box filter, ``width`` x ``height``)."""
     import mitsuba as mi
 
-    from scenegen.mitsuba_scene import attach_face_attributes, sensor_dict
+    from scenegen.mitsuba_scene import sensor_dict
 
     xml = Path(manifest["xml"])
-    scene = _load_xml(xml)
+    if not xml.is_file():
+        raise CustomSceneError(f"custom scene XML not found: {xml}")
     if hashlib.sha256(xml.read_bytes()).hexdigest() != manifest["xml_sha256"]:
         raise CustomSceneError(f"{xml} changed since the scene was imported; re-run generate_scene")
-    scene_dict = {"type": "scene", "integrator": integrator,
+    scene = load_xml(xml).scene
+    scene_dict = {"type": "scene", "integrator": {**integrator, **integrator_settings(manifest)},
                   "sensor": sensor_dict(manifest, frame, width=width, height=height, sampler=sampler)}
     for index, shape in enumerate(scene.shapes()):
-        if isinstance(shape, mi.Mesh) and not shape.has_attribute("face_ident"):
-            attach_face_attributes(shape, {"index": index}, _material_record(shape.bsdf()))
         scene_dict[f"shape_{index:03d}"] = shape
     for index, emitter in enumerate(scene.emitters()):
         if emitter.get_shape() is None:  # area emitters come with their shapes
             scene_dict[f"emitter_{index:03d}"] = emitter
-    return mi.load_dict(scene_dict)
+    # optimize=False: Mitsuba would otherwise merge meshes with equal BSDFs (and their ids) into one.
+    return mi.load_dict(scene_dict, optimize=False)

@@ -1,6 +1,8 @@
 """Seeded procedural scene generator: room, objects, materials, lights, camera clip -> manifest + files.
 
-`generate_scene` writes `manifest.json`, `meshes/*.ply` and `textures/*.png` into a scene directory.
+`generate_scene` writes `manifest.json`, `meshes/*.ply` and `textures/*.png` into a scene directory,
+plus `textures/sky.exr` for open scenes (a ground plane under a procedural sky, or a room with one wall
+missing; ``scenes.open_scene_prob``, see `open_scene`). Object placement lives in `scenegen.placement`.
 Everything is drawn from numpy Generators spawned from one seed, and JSON floats are rounded to
 FLOAT_DECIMALS, so the same inputs always give byte-identical files.
 """
@@ -8,7 +10,9 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import pathlib
+import re
 import shutil
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -19,6 +23,8 @@ from scenegen import camera as cam
 from scenegen import geometry as geo
 from scenegen import lights
 from scenegen import materials as mats
+from scenegen.exr import write_exr
+from scenegen.placement import Placer, draw_from_mix
 from scenegen.textures import write_png
 
 log = logging.getLogger(__name__)
@@ -29,15 +35,22 @@ MAX_ATTEMPTS = 8
 ROOM_WIDTH_RANGE_M = (4.0, 10.0)
 ROOM_HEIGHT_RANGE_M = (2.5, 5.0)
 OBJECT_SIZE_RANGE_M = (0.25, 1.1)
-ROOM_MARGIN_M = 0.02
 WALL_OVERLAP_M = 0.01  # walls extend past the room edges so corners are closed for every ray
-
-PLACEMENT_MIX: dict[str, float] = {"floor": 0.55, "stacked": 0.25, "floating": 0.20}
-"""Probability of resting an object on the floor, on top of a flat-topped object, or floating in the air."""
 
 EMISSIVE_OBJECT_PROB = 0.25
 CONSTANT_FILL_PROB = 0.5
 SPOT_PROB = 0.4  # probability that a non-area light is a spot rather than a point light
+
+OPEN_KIND_MIX: dict[str, float] = {"ground": 0.5, "opening": 0.5}
+"""Open scenes: objects on a ground plane under the sky (no walls, no ceiling), or the room with the
+wall the camera faces most removed, looking out onto the ground plane and the sky."""
+GROUND_HALF_EXTENT_M = 60.0  # the ground plane of open scenes reaches ~1 degree below the horizon
+SKY_WEIGHT_RANGE: dict[str, tuple[float, float]] = {"ground": (1.5, 3.0), "opening": (0.5, 1.5)}
+"""Weight of the sky in the irradiance shares (ceiling panels and small lights weigh 0.3-1.5 each)."""
+OPEN_MIN_PITCH_FRACTION = 0.5
+"""Open scenes: the camera looks no lower than this fraction of half the horizontal fov below the
+horizon, so the sky fills roughly the top quarter of a square frame where nothing blocks it."""
+SKY_FILE = "textures/sky.exr"
 
 DEFAULT_SCENE_CFG: dict[str, Any] = {
     "objects": [5, 30],
@@ -46,26 +59,8 @@ DEFAULT_SCENE_CFG: dict[str, Any] = {
     "moving_objects_prob": 0.5,
     "camera_cut_prob": 0.2,
     "luminance_range": [0.05, 5.0],
+    "open_scene_prob": 0.25,
 }
-
-
-@dataclass
-class PlacedObject:
-    """An object mesh with its rigid placement; `per_frame` (n_frames, 4, 4) only for moving objects."""
-    mesh: geo.ObjectMesh
-    rotation: np.ndarray
-    translation: np.ndarray
-    placement: str
-    support: int | None
-    per_frame: np.ndarray | None = None
-
-    @property
-    def to_world(self) -> np.ndarray:
-        return geo.make_transform(self.rotation, self.translation)
-
-    def aabb(self, matrix: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        world = geo.transform_points(self.to_world if matrix is None else matrix, self.mesh.vertices)
-        return world.min(axis=0), world.max(axis=0)
 
 
 @dataclass
@@ -74,6 +69,7 @@ class SceneDraft:
     manifest: dict
     meshes: list[tuple[str, geo.ObjectMesh]] = field(default_factory=list)
     textures: list[tuple[str, np.ndarray]] = field(default_factory=list)
+    environment_maps: list[tuple[str, np.ndarray]] = field(default_factory=list)  # (H, W, 3) float32
 
 
 # ---------------------------------------------------------------------------------------------
@@ -103,22 +99,27 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def _draw_from_mix(rng: np.random.Generator, mix: dict[str, float]) -> str:
-    names = list(mix)
-    probs = np.array([mix[n] for n in names], dtype=np.float64)
-    return names[int(rng.choice(len(names), p=probs / probs.sum()))]
+def open_scene(scene_id: str, open_prob: float, rng: np.random.Generator) -> bool:
+    """Whether scene ``scene_id`` is drawn open (``open_prob`` = scenes.open_scene_prob).
 
-
-def _aabbs_overlap(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> bool:
-    return bool(np.all(lo_a < hi_b) and np.all(lo_b < hi_a))
+    Scene k of a split (an id ending in ``_k``) is open when ceil((k + 1) p) > ceil(k p): exactly
+    ceil(n p) of the first n scenes, evenly spread and starting with scene 0, whatever the seeds, so
+    every split with p > 0 has an open scene. Other ids draw one uniform number from ``rng``."""
+    match = re.search(r"_(\d+)$", scene_id)
+    if match is None:
+        return bool(rng.random() < open_prob)
+    k = int(match.group(1))
+    return math.ceil((k + 1) * open_prob - 1e-9) > math.ceil(k * open_prob - 1e-9)
 
 
 # ---------------------------------------------------------------------------------------------
 # Camera
 # ---------------------------------------------------------------------------------------------
 
-def _draw_camera(rng: np.random.Generator, cfg: dict, room_size: np.ndarray, n_frames: int) -> dict:
-    """Draw fov, path(s) and an optional cut; returns the manifest 'camera' dict plus numpy arrays."""
+def _draw_camera(rng: np.random.Generator, cfg: dict, room_size: np.ndarray, n_frames: int,
+                 keep_sky_in_view: bool = False) -> dict:
+    """Draw fov, path(s) and an optional cut; returns the manifest 'camera' dict plus numpy arrays.
+    In open scenes views are lifted to at most OPEN_MIN_PITCH_FRACTION * fov_x / 2 below the horizon."""
     path_types = list(cfg["camera_paths"])
     fov_x = float(rng.uniform(*cam.FOV_X_RANGE_DEG))
     first_kind = path_types[int(rng.integers(len(path_types)))]
@@ -131,6 +132,8 @@ def _draw_camera(rng: np.random.Generator, cfg: dict, room_size: np.ndarray, n_f
         second_kind = path_types[int(rng.integers(len(path_types)))]
         second = cam.draw_camera_path(rng, second_kind, n_frames - cut_frame, room_size)
         origins[cut_frame:], targets[cut_frame:] = second.origins, second.targets
+    if keep_sky_in_view:
+        targets = cam.lift_low_views(origins, targets, -OPEN_MIN_PITCH_FRACTION * fov_x / 2)
     cut = np.zeros(n_frames, dtype=bool)
     if cut_frame is not None:
         cut[cut_frame] = True
@@ -146,130 +149,26 @@ def _draw_camera(rng: np.random.Generator, cfg: dict, room_size: np.ndarray, n_f
 
 
 # ---------------------------------------------------------------------------------------------
-# Objects
-# ---------------------------------------------------------------------------------------------
-
-def _orientation(rng: np.random.Generator, kind: str, placement: str) -> np.ndarray:
-    """(3, 3) rotation: upright with random yaw for resting objects, uniformly random when floating."""
-    if placement == "floating":
-        return geo.random_rotation(rng)
-    yaw = geo.rotation_matrix(np.array([0.0, 1.0, 0.0]), rng.uniform(0, 2 * np.pi))
-    if kind in ("icosphere", "displaced_sphere"):
-        return geo.random_rotation(rng)
-    if kind == "capsule" and rng.random() < 0.5:
-        return yaw @ geo.rotation_matrix(np.array([1.0, 0.0, 0.0]), np.pi / 2)  # lying on its side
-    return yaw
-
-
-class _Placer:
-    """Places objects in the room, keeping them inside it, apart from each other and off the camera path."""
-
-    def __init__(self, room_size: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, focus: np.ndarray):
-        self.room_lo = np.array([-room_size[0] / 2, 0.0, -room_size[2] / 2]) + ROOM_MARGIN_M
-        self.room_hi = np.array([room_size[0] / 2, room_size[1], room_size[2] / 2]) - ROOM_MARGIN_M
-        self.room_lo[1] = 0.0
-        self.seg_start, self.seg_end = seg_start, seg_end
-        self.focus = focus
-        self.objects: list[PlacedObject] = []
-        self.boxes: list[tuple[np.ndarray, np.ndarray]] = []
-
-    def clear_of_camera(self, centres: np.ndarray, radius: float) -> bool:
-        dist = cam.distance_to_segments(np.atleast_2d(centres), self.seg_start, self.seg_end)
-        return bool(np.all(dist > radius + cam.CAMERA_CLEARANCE_M))
-
-    def inside_room(self, lo: np.ndarray, hi: np.ndarray) -> bool:
-        return bool(np.all(lo >= self.room_lo - 1e-9) and np.all(hi <= self.room_hi + 1e-9))
-
-    def _xz(self, rng: np.random.Generator, lo_r: np.ndarray, hi_r: np.ndarray) -> np.ndarray:
-        lim_lo = self.room_lo[[0, 2]] - lo_r[[0, 2]]
-        lim_hi = self.room_hi[[0, 2]] - hi_r[[0, 2]]
-        if rng.random() < 0.35:
-            # Cluster some objects around what the camera looks at, so frames are not empty.
-            xz = self.focus[[0, 2]] + rng.normal(0.0, 1.0, 2)
-        else:
-            xz = rng.uniform(lim_lo, np.maximum(lim_hi, lim_lo))
-        return np.clip(xz, lim_lo, np.maximum(lim_hi, lim_lo))
-
-    def place(self, rng: np.random.Generator, mesh: geo.ObjectMesh) -> PlacedObject:
-        supports = [i for i, o in enumerate(self.objects)
-                    if o.mesh.kind in geo.FLAT_TOP_SHAPES and o.placement != "floating"]
-        for attempt in range(400):
-            if attempt and attempt % 20 == 0:
-                mesh = mesh.scaled(0.85)  # crowded room: shrink until it fits
-            placement = _draw_from_mix(rng, PLACEMENT_MIX)
-            if placement == "stacked" and not supports:
-                placement = "floor"
-            rotation = _orientation(rng, mesh.kind, placement)
-            rotated = mesh.vertices @ rotation.T
-            lo_r, hi_r = rotated.min(axis=0), rotated.max(axis=0)
-            support: int | None = None
-            if placement == "floor":
-                xz = self._xz(rng, lo_r, hi_r)
-                y = -lo_r[1] + 1e-3
-            elif placement == "stacked":
-                support = supports[int(rng.integers(len(supports)))]
-                s_lo, s_hi = self.boxes[support]
-                quarter = 0.25 * (s_hi - s_lo)
-                centre_xz = rng.uniform((s_lo + quarter)[[0, 2]], (s_hi - quarter)[[0, 2]])
-                xz = centre_xz - 0.5 * (lo_r + hi_r)[[0, 2]]
-                y = s_hi[1] - lo_r[1] + 1e-3
-            else:
-                xz = self._xz(rng, lo_r, hi_r)
-                y = rng.uniform(0.4 - lo_r[1], max(self.room_hi[1] - 0.3 - hi_r[1], 0.4 - lo_r[1]))
-            translation = np.array([xz[0], y, xz[1]])
-            lo, hi = lo_r + translation, hi_r + translation
-            if not self.inside_room(lo, hi):
-                continue
-            if not self.clear_of_camera(translation, mesh.bounding_radius):
-                continue
-            # After many failures allow touching/overlapping neighbours, never the camera clearance.
-            if attempt < 120 and any(_aabbs_overlap(lo, hi, b_lo, b_hi)
-                                     for i, (b_lo, b_hi) in enumerate(self.boxes) if i != support):
-                continue
-            obj = PlacedObject(mesh, rotation, translation, placement, support)
-            self.objects.append(obj)
-            self.boxes.append((lo, hi))
-            return obj
-        raise RuntimeError("could not place an object clear of the camera path")
-
-    def animate(self, rng: np.random.Generator, index: int, n_frames: int) -> bool:
-        """Try to give object `index` a rigid motion (translation + rotation per frame) that stays in the
-        room, off the camera path and clear of other objects; returns whether it succeeded."""
-        obj = self.objects[index]
-        others = [self.boxes[i] for i in range(len(self.objects)) if i != index
-                  and not _aabbs_overlap(*self.boxes[index], *self.boxes[i])]
-        t = np.arange(n_frames, dtype=np.float64)
-        speed = rng.uniform(0.01, 0.06)
-        for _attempt in range(8):
-            direction = rng.normal(size=3)
-            axis = rng.normal(size=3)
-            if obj.placement != "floating":
-                direction[1] = 0.0  # resting objects slide and spin on their support plane
-                axis = np.array([0.0, 1.0, 0.0])
-            direction /= np.linalg.norm(direction)
-            spin = np.radians(rng.uniform(0.5, 4.0))
-            matrices = np.stack([geo.make_transform(geo.rotation_matrix(axis, spin * k) @ obj.rotation,
-                                                    obj.translation + speed * k * direction) for k in t])
-            centres = matrices[:, :3, 3]
-            ok = self.clear_of_camera(centres, obj.mesh.bounding_radius)
-            for m in matrices if ok else []:
-                lo, hi = obj.aabb(m)
-                if not self.inside_room(lo, hi) or any(_aabbs_overlap(lo, hi, b_lo, b_hi) for b_lo, b_hi in others):
-                    ok = False
-                    break
-            if ok:
-                obj.per_frame = matrices
-                return True
-            speed *= 0.6
-        return False
-
-
-# ---------------------------------------------------------------------------------------------
 # Scene drawing
 # ---------------------------------------------------------------------------------------------
 
-def _room_meshes(room_size: np.ndarray) -> list[tuple[str, geo.ObjectMesh, np.ndarray]]:
-    """Six inward-facing quads (name, object-space mesh, world translation)."""
+WALL_OUTWARD = {"wall_x_neg": np.array([-1.0, 0.0, 0.0]), "wall_x_pos": np.array([1.0, 0.0, 0.0]),
+                "wall_z_neg": np.array([0.0, 0.0, -1.0]), "wall_z_pos": np.array([0.0, 0.0, 1.0])}
+
+
+def _faced_wall(origins: np.ndarray, targets: np.ndarray) -> str:
+    """The wall the camera faces most over the clip: largest mean horizontal view direction . outward normal."""
+    view = (targets - origins)[:, [0, 2]]
+    view = view / np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-9)
+    mean = view.mean(axis=0)
+    return max(WALL_OUTWARD, key=lambda name: float(mean @ WALL_OUTWARD[name][[0, 2]]))
+
+
+def _room_meshes(room_size: np.ndarray, open_kind: str | None = None,
+                 missing_wall: str | None = None) -> list[tuple[str, geo.ObjectMesh, np.ndarray]]:
+    """Inward-facing quads (name, object-space mesh, world translation): floor, ceiling and four walls of
+    a closed room; open scenes replace the floor by a GROUND_HALF_EXTENT_M ground plane and keep no walls
+    or ceiling ('ground') or every surface but ``missing_wall`` ('opening')."""
     sx, sy, sz = room_size
     e = WALL_OVERLAP_M
     ex, ey, ez = np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0])
@@ -282,6 +181,10 @@ def _room_meshes(room_size: np.ndarray) -> list[tuple[str, geo.ObjectMesh, np.nd
         ("wall_z_neg", ex * (sx / 2 + e), ey * (sy / 2 + e), ez, np.array([0.0, sy / 2, -sz / 2])),
         ("wall_z_pos", ex * (sx / 2 + e), ey * (sy / 2 + e), -ez, np.array([0.0, sy / 2, sz / 2])),
     ]
+    if open_kind is not None:
+        ground = ("floor", ex * GROUND_HALF_EXTENT_M, ez * GROUND_HALF_EXTENT_M, ey, np.zeros(3))
+        keep = () if open_kind == "ground" else tuple(spec for spec in specs[1:] if spec[0] != missing_wall)
+        specs = [ground, *keep]
     return [(name, geo.quad_mesh(zero, hu, hv, n, kind="room"), t) for name, hu, hv, n, t in specs]
 
 
@@ -290,8 +193,12 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
     if n_frames < 1:
         raise ValueError("n_frames must be >= 1")
     cfg = {**DEFAULT_SCENE_CFG, **scene_cfg}
-    rng_room, rng_camera, rng_objects, rng_motion, rng_lights, rng_materials = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(int(draw_seed)).spawn(6))
+    # The seventh stream (open scenes) leaves the draws of closed scenes as they were before it existed.
+    rng_room, rng_camera, rng_objects, rng_motion, rng_lights, rng_materials, rng_open = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(int(draw_seed)).spawn(7))
+    open_kind: str | None = None
+    if open_scene(scene_id, float(cfg["open_scene_prob"]), rng_open):
+        open_kind = draw_from_mix(rng_open, OPEN_KIND_MIX)
 
     # Room ------------------------------------------------------------------------------------
     room_size = np.array([rng_room.uniform(*ROOM_WIDTH_RANGE_M), rng_room.uniform(*ROOM_HEIGHT_RANGE_M),
@@ -299,16 +206,17 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
     room_size = np.round(room_size, 3)
 
     # Camera ----------------------------------------------------------------------------------
-    camera = _draw_camera(rng_camera, cfg, room_size, n_frames)
+    camera = _draw_camera(rng_camera, cfg, room_size, n_frames, keep_sky_in_view=open_kind is not None)
+    missing_wall = _faced_wall(camera["origins"], camera["targets"]) if open_kind == "opening" else None
     seg_start, seg_end = cam.clearance_segments(camera["origins"], camera["cut"])
     focus = camera["targets"].mean(axis=0)
 
     # Objects ---------------------------------------------------------------------------------
     n_min, n_max = (int(v) for v in cfg["objects"])
     n_objects = int(rng_objects.integers(n_min, n_max + 1))
-    placer = _Placer(room_size, seg_start, seg_end, focus)
+    placer = Placer(room_size, seg_start, seg_end, focus)
     for _ in range(n_objects):
-        kind = _draw_from_mix(rng_objects, geo.OBJECT_SHAPE_MIX)
+        kind = draw_from_mix(rng_objects, geo.OBJECT_SHAPE_MIX)
         size = rng_objects.uniform(*OBJECT_SIZE_RANGE_M)
         placer.place(rng_objects, geo.draw_object_mesh(rng_objects, kind, size))
     objects = placer.objects
@@ -335,10 +243,12 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
     # Lights ----------------------------------------------------------------------------------
     floor_area = float(room_size[0] * room_size[2])
     total_irradiance = float(np.exp(rng_lights.uniform(*np.log(lights.FLOOR_IRRADIANCE_RANGE))))
-    panels = lights.draw_ceiling_panels(rng_lights, room_size, int(rng_lights.integers(1, 4)))
+    n_panels = int(rng_lights.integers(1, 4))
+    panels = lights.draw_ceiling_panels(rng_lights, room_size, n_panels) if open_kind != "ground" else []
     n_small = int(rng_lights.integers(0, 3))
     weights = np.concatenate([rng_lights.uniform(0.5, 1.5, len(panels)), rng_lights.uniform(0.3, 1.0, n_small)])
-    irradiance_share = total_irradiance * weights / weights.sum()
+    sky_weight = float(rng_open.uniform(*SKY_WEIGHT_RANGE[open_kind])) if open_kind is not None else 0.0
+    irradiance_share = total_irradiance * weights / (weights.sum() + sky_weight)
     light_lo, light_hi = lights.light_box(room_size)
 
     emitters: list[dict] = []
@@ -368,9 +278,15 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
         else:
             entry["intensity"] = lights.blackbody_rgb(temperature) * lights.point_intensity(share, floor_area)
         emitters.append(entry)
-    if rng_lights.random() < CONSTANT_FILL_PROB:
+    sky_image: np.ndarray | None = None
+    if open_kind is not None:
+        # The sky replaces the constant fill; its scale is its share of the (unoccluded) floor irradiance.
+        sky_image, sky_params = lights.draw_sky(rng_open)
+        emitters.append({"name": "sky", "type": "envmap", "filename": SKY_FILE,
+                         "scale": total_irradiance * sky_weight / (weights.sum() + sky_weight), **sky_params})
+    elif rng_lights.random() < CONSTANT_FILL_PROB:
         temperature = lights.draw_temperature(rng_lights)
-        # Note: the room is closed, so the environment fill only shows through if walls are removed.
+        # Closed room: this fill light only reaches the camera through walls removed by hand.
         emitters.append({"name": "fill", "type": "constant", "temperature_k": temperature,
                          "radiance": lights.blackbody_rgb(temperature) * rng_lights.uniform(0.01, 0.05)})
 
@@ -409,7 +325,7 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
                     del light["position"]
                     animated_light = light["name"]
                     break
-        if animated_light is None:
+        if animated_light is None and panel_shapes:
             panel = panel_shapes[int(rng_lights.integers(len(panel_shapes)))]
             half = panel["half"]
             # Slightly lower than the static panels so a moving panel never overlaps one coplanarly.
@@ -423,6 +339,8 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
 
     # Materials, textures and shapes ------------------------------------------------------------
     draft = SceneDraft(manifest={})
+    if sky_image is not None:
+        draft.environment_maps.append((SKY_FILE, sky_image))
     material_entries: list[dict] = []
     shapes: list[dict] = []
 
@@ -447,8 +365,8 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
                        "to_world_per_frame": per_frame, "bounding_radius": mesh.bounding_radius,
                        "smooth": mesh.smooth, **extra})
 
-    for name, mesh, translation in _room_meshes(room_size):
-        material = add_material(_draw_from_mix(rng_materials, mats.WALL_MATERIAL_MIX), mix_is_wall=True)
+    for name, mesh, translation in _room_meshes(room_size, open_kind, missing_wall):
+        material = add_material(draw_from_mix(rng_materials, mats.WALL_MATERIAL_MIX), mix_is_wall=True)
         add_shape(name, "room", mesh, material, geo.make_transform(np.eye(3), translation), None, None,
                   {"object_type": None, "placement": None})
 
@@ -460,10 +378,10 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
             material = len(material_entries) - 1
             emitter = {"radiance": emissive_radiance, "temperature_k": emissive_temperature}
         else:
-            material = add_material(_draw_from_mix(rng_materials, mats.MATERIAL_MIX), mix_is_wall=False)
+            material = add_material(draw_from_mix(rng_materials, mats.MATERIAL_MIX), mix_is_wall=False)
         add_shape(f"object_{i:03d}_{obj.mesh.kind}", "object", obj.mesh, material, obj.to_world,
                   obj.per_frame, emitter, {"object_type": obj.mesh.kind, "placement": obj.placement})
-    object_shape_offset = 6
+    object_shape_offset = len(shapes) - len(objects)
     moving_shapes = [object_shape_offset + i for i in moving]
 
     for panel in panel_shapes:
@@ -492,7 +410,7 @@ def draw_scene(scene_cfg: dict, seed: int, draw_seed: int, scene_id: str, n_fram
         "draw_seed": int(draw_seed),
         "redraws": [],
         "n_frames": int(n_frames),
-        "room": {"size": room_size},
+        "room": {"size": room_size, "open": open_kind, "missing_wall": missing_wall},
         "materials": material_entries,
         "shapes": shapes,
         "emitters": emitters,
@@ -529,6 +447,8 @@ def write_draft(draft: SceneDraft, out_dir: pathlib.Path) -> None:
         geo.export_ply(mesh, out_dir / rel_path)
     for rel_path, image in draft.textures:
         write_png(image, out_dir / rel_path)
+    for rel_path, image in draft.environment_maps:
+        write_exr(out_dir / rel_path, {c: image[..., k] for k, c in enumerate("RGB")})
     write_manifest(draft.manifest, out_dir)
 
 

@@ -13,20 +13,44 @@ Per sample it returns, as AOVs (Isik et al. 2021, Sec. 3.1):
   else -- glossy reflection, emission seen directly or through a specular chain -- is
   ``specular = radiance - diffuse``.
 * ``albedo`` (3), ``normal`` (3, world-space shading normal), ``roughness`` (1),
-  ``position`` (3, world space) at the first non-specular vertex;
+  ``position`` (3, world space) at the first non-specular vertex; 0 where the path escapes;
   ``depth`` (1): path length from the camera to that vertex (through mirrors and glass), metres.
 * ``flags`` (4): emissive (that vertex is on an emitter, or the path escaped to an environment
   emitter), metallic (conductor there), transmissive (a refraction on the way there or a
   transmissive material there), specular bounce (the first camera vertex is specular).
 
+The albedo follows the convention OIDN documents for its albedo input: view independent, in
+[0, 1] (clamped). Diffuse-type BSDFs (diffuse, (rough)plastic, principled -- whose base colour is
+also the specular colour of its metallic part) give their base colour incl. textures, Mitsuba's
+``eval_diffuse_reflectance``; conductors their specular reflectance colour, ``specular_reflectance``
+x the Fresnel reflectance at normal incidence ((eta-1)^2+k^2)/((eta+1)^2+k^2); dielectrics their
+``specular_transmittance`` tint (1 by default). Conductor and dielectric colours are computed on
+the host from the BSDF's parameters and stored per face (``face_albedo``). Where that attribute
+is missing (analytic shapes of XML scenes, BSDFs wrapped in ``twosided``, textured conductor
+parameters) a BSDF with a diffuse lobe gives its ``eval_diffuse_reflectance``, and any other BSDF
+(and a ``blendbsdf`` mesh, whose diffuse reflectance is Mitsuba's view-dependent default) its
+directional albedo at normal incidence, int f(n, wo) |cos wo| dwo, by deterministic quadrature
+(``NORMAL_ALBEDO_POINTS`` BSDF samples at fixed low-discrepancy points: view independent, noise
+free, and no dimensions of the path's sampler are used). That equals the colour above for a
+smooth conductor; a dielectric gets R + (1 - R) x tint (R = 0.04 at eta 1.5); a rough conductor
+loses its microfacet masking-shadowing (GGX alpha 0.3: < 0.1 %, alpha 0.6: 14 %), and the
+quadrature is within a few percent at high roughness. A path whose specular chain ends early
+(``max_depth``) takes the albedo of its last vertex.
+
 A vertex counts as specular when its BSDF is purely Dirac (smooth mirror, glass) or is a
 non-diffuse material with linear roughness below ``specular_roughness`` (0.1, as Isik et al.).
 Material facts that Mitsuba's BSDF interface does not expose are read from per-face mesh
 attributes written by ``scenegen.mitsuba_scene.attach_face_attributes``: ``face_material`` =
-(roughness, metallic, transmissive) and ``face_ident`` = (shape index, specular-like, 0).
+(roughness, metallic, transmissive), ``face_ident`` = (shape index, specular-like, albedo
+source: 0 none / 1 ``face_albedo`` / 2 quadrature) and ``face_albedo`` (RGB).
 
 With ``mode="gbuffer"`` the integrator returns only the primary hit (position, shading normal,
 depth, shape index; -1 on a miss) and no light transport, for motion vectors.
+
+``hide_emitters`` (read by ``mi.SamplingIntegrator``) has the meaning of Mitsuba's ``path``: camera
+rays pass through area emitters to the first surface behind them, and a camera ray that escapes
+sees no environment emitter (black, not emissive); emitters still light the scene. The G-buffer
+mode follows its own flag or that of the scene's integrator, so it sees the same first surface.
 """
 from __future__ import annotations
 
@@ -50,6 +74,16 @@ GBUFFER_AOVS: tuple[tuple[str, int], ...] = (
 )
 MATERIAL_ATTRIBUTE = "face_material"
 IDENT_ATTRIBUTE = "face_ident"
+ALBEDO_ATTRIBUTE = "face_albedo"
+ALBEDO_SOURCE_ATTRIBUTE = 1.0
+"""face_ident.z value: the albedo is the ``face_albedo`` attribute (0: decided per sample)."""
+ALBEDO_SOURCE_QUADRATURE = 2.0
+"""face_ident.z value: the albedo is the directional albedo at normal incidence."""
+NORMAL_ALBEDO_POINTS = 64
+# Additive recurrence with the generalised golden ratio in 3D (Roberts' R3 sequence): points for
+# (sample1, sample2) of bsdf.sample spread jointly, so lobe choice and direction do not alias.
+_R3 = 1.2207440845749
+_R3_STEPS = (1.0 / _R3, 1.0 / _R3**2, 1.0 / _R3**3)
 _CHANNEL_SUFFIX = {1: ("Y",), 3: ("R", "G", "B"), 4: ("0", "1", "2", "3")}
 
 
@@ -62,6 +96,42 @@ def _mis_weight(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
     """Power heuristic (beta = 2), the weight Mitsuba's ``path`` uses."""
     a2 = dr.square(pdf_a)
     return dr.detach(dr.select(pdf_a > 0, a2 / (a2 + dr.square(pdf_b)), 0.0))
+
+
+@dr.syntax
+def normal_incidence_albedo(bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool) -> mi.Color3f:
+    """Directional albedo of ``bsdf`` at ``si`` for light arriving along the shading normal,
+    int f(n, wo) |cos wo| dwo over both hemispheres, by quadrature over ``NORMAL_ALBEDO_POINTS``
+    fixed low-discrepancy BSDF samples (importance transport: no 1/eta^2 radiance scaling on
+    refraction). View independent and deterministic; uses no sampler."""
+    si_n = mi.SurfaceInteraction3f(si)
+    si_n.wi = mi.Vector3f(0.0, 0.0, 1.0)
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    total = mi.Color3f(0.0)
+    i = mi.UInt32(0)
+    while active & (i < NORMAL_ALBEDO_POINTS):
+        x = mi.Float(i) + 0.5
+        u1 = x * _R3_STEPS[0] - dr.floor(x * _R3_STEPS[0])
+        u2 = mi.Point2f(x * _R3_STEPS[1] - dr.floor(x * _R3_STEPS[1]),
+                        x * _R3_STEPS[2] - dr.floor(x * _R3_STEPS[2]))
+        bs, weight = bsdf.sample(ctx, si_n, u1, u2, active)
+        total += dr.select(bs.pdf > 0.0, mi.Color3f(weight), 0.0)
+        i += 1
+    return total / NORMAL_ALBEDO_POINTS
+
+
+def feature_albedo(bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, source: mi.Float,
+                   active: mi.Bool) -> mi.Color3f:
+    """Albedo (RGB in [0, 1]) at the hit ``si`` following the module docstring; ``source`` is
+    face_ident.z (0 where the shape has no attributes). 0 on inactive lanes."""
+    from_attribute = active & (dr.abs(source - ALBEDO_SOURCE_ATTRIBUTE) < 0.5)
+    quadrature = active & ((dr.abs(source - ALBEDO_SOURCE_QUADRATURE) < 0.5)
+                           | ((source < 0.5) & ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Diffuse)))
+    from_diffuse = active & ~from_attribute & ~quadrature
+    albedo = dr.select(from_attribute, si.shape.eval_attribute_3(ALBEDO_ATTRIBUTE, si, from_attribute), 0.0)
+    albedo = dr.select(from_diffuse, bsdf.eval_diffuse_reflectance(si, from_diffuse), albedo)
+    albedo = dr.select(quadrature, normal_incidence_albedo(bsdf, si, quadrature), albedo)
+    return mi.Color3f(dr.clip(albedo, 0.0, 1.0))
 
 
 class FeatureIntegrator(mi.SamplingIntegrator):
@@ -84,7 +154,21 @@ class FeatureIntegrator(mi.SamplingIntegrator):
         return aov_channel_names(SAMPLE_AOVS if self.mode == "samples" else GBUFFER_AOVS)
 
     def to_string(self) -> str:
-        return f"FeatureIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, mode={self.mode}]"
+        return (f"FeatureIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, mode={self.mode}, "
+                f"hide_emitters={self.hide_emitters}]")
+
+    def _skip_hidden_emitters(self, scene: mi.Scene, ray: mi.Ray3f, si: mi.SurfaceInteraction3f,
+                              camera: mi.Bool) -> tuple[mi.SurfaceInteraction3f, mi.Float]:
+        """hide_emitters: lanes in ``camera`` whose hit is an area emitter continue to the first
+        surface behind all area emitters on the ray. Returns that interaction (``t`` measured from
+        the last hidden emitter) and the distance from the ray origin to that emitter (0 elsewhere)."""
+        skip = camera & si.is_valid() & (si.shape.emitter() != None)  # noqa: E711 -- drjit pointers
+        ray_skip = si.spawn_ray(ray.d)
+        behind = self.skip_area_emitters(scene, ray_skip, True, skip)
+        si_behind = behind.compute_surface_interaction(ray_skip, mi.RayFlags.All, skip)
+        offset = dr.select(skip, si.t, 0.0)
+        si[skip] = si_behind
+        return si, offset
 
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
                medium: mi.Medium = None, active: mi.Bool = True):
@@ -94,12 +178,15 @@ class FeatureIntegrator(mi.SamplingIntegrator):
 
     def _sample_gbuffer(self, scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool):
         si = scene.ray_intersect(mi.Ray3f(ray), active)
+        offset = mi.Float(0.0)
+        if self.hide_emitters or (scene.integrator() is not None and scene.integrator().hide_emitters):
+            si, offset = self._skip_hidden_emitters(scene, mi.Ray3f(ray), si, active)
         hit = active & si.is_valid()
         ident = si.shape.eval_attribute_3(IDENT_ATTRIBUTE, si, hit)
         obj = dr.select(hit, ident.x, -1.0)
         p = dr.select(hit, si.p, 0.0)
         n = dr.select(hit, si.sh_frame.n, 0.0)
-        depth = dr.select(hit, si.t, 0.0)
+        depth = dr.select(hit, offset + si.t, 0.0)
         aovs = [p.x, p.y, p.z, n.x, n.y, n.z, depth, obj]
         return mi.Spectrum(0.0), hit, aovs
 
@@ -135,15 +222,21 @@ class FeatureIntegrator(mi.SamplingIntegrator):
         f_transmissive = mi.Bool(False)
         f_spec_bounce = mi.Bool(False)
         refracted = mi.Bool(False)
+        hide_emitters = bool(self.hide_emitters)
 
         while active:
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
+            offset = mi.Float(0.0)
+            if dr.hint(hide_emitters, mode="scalar"):
+                si, offset = self._skip_hidden_emitters(scene, ray, si, active & (depth == 0))
             hit = si.is_valid()
-            path_length += dr.select(hit, si.t, 0.0)
+            path_length += dr.select(hit, offset + si.t, 0.0)
 
             # ---- emission found by the previous BSDF sample (or seen directly) ----
             emitter = si.emitter(scene)
             has_emitter = emitter != None  # noqa: E711 -- drjit pointer comparison
+            # hide_emitters: after the skip above, a camera ray's emitter can only be the environment.
+            has_emitter &= ~(mi.Bool(hide_emitters) & (depth == 0))
             ds = mi.DirectionSample3f(scene, si, prev_si)
             em_pdf = dr.select(~prev_bsdf_delta,
                                scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta), 0.0)
@@ -162,7 +255,7 @@ class FeatureIntegrator(mi.SamplingIntegrator):
             # The chain ends here: at a non-specular vertex, a miss, or when the path stops.
             latch = active & on_spec_chain & (~is_specular | ~active_next)
             if latch:
-                f_albedo = mi.Color3f(dr.select(hit, bsdf.eval_diffuse_reflectance(si, hit), 0.0))
+                f_albedo = feature_albedo(bsdf, si, ident.z, hit)
                 f_normal = mi.Normal3f(dr.select(hit, si.sh_frame.n, 0.0))
                 f_position = mi.Point3f(dr.select(hit, si.p, 0.0))
                 f_depth = path_length

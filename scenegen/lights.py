@@ -108,3 +108,76 @@ def draw_light_path(rng: np.random.Generator, start: np.ndarray, n_frames: int, 
         # Smooth back-and-forth: moves ~speed per frame near the start, never farther than `amplitude`.
         offsets = direction[None, :] * (amplitude * np.sin(speed * t / amplitude))[:, None]
     return np.clip(start[None, :] + offsets, lo, hi)
+
+
+# ---------------------------------------------------------------------------------------------
+# Procedural sky (environment map of open scenes)
+# ---------------------------------------------------------------------------------------------
+
+SKY_MAP_SIZE = (128, 256)
+"""(height, width) of the latitude-longitude sky image, ~1.4 degrees per pixel."""
+SKY_ZENITH_TEMPERATURE_K = (9000.0, 20000.0)
+SKY_HORIZON_TEMPERATURE_K = (5500.0, 8000.0)
+SUN_TEMPERATURE_K = (4000.0, 6500.0)
+SUN_ELEVATION_DEG = (15.0, 65.0)
+SUN_WIDTH_DEG = (3.0, 6.0)
+"""Standard deviation of the sun's Gaussian lobe: a soft sun, importance-sampled without fireflies."""
+SUN_SHARE = (0.3, 0.75)
+"""Fraction of the sky's horizontal irradiance that comes from the sun lobe."""
+GROUND_REFLECTANCE = 0.25
+"""Radiance of the lower hemisphere relative to the horizon (seen only past the ground plane's edge)."""
+
+
+def latlong_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit world directions (height, width, 3) of the pixel centres of a latitude-longitude map in
+    Mitsuba's ``envmap`` convention (u = atan2(x, -z) / 2 pi, v = acos(y) / pi; +y up at the top row),
+    and each pixel's solid angle (height, width) in sr."""
+    theta = (np.arange(height) + 0.5) * np.pi / height
+    phi = (np.arange(width) + 0.5) * 2.0 * np.pi / width
+    sin_t = np.sin(theta)[:, None]
+    directions = np.stack([sin_t * np.sin(phi)[None, :], np.broadcast_to(np.cos(theta)[:, None], (height, width)),
+                           -sin_t * np.cos(phi)[None, :]], axis=-1)
+    solid_angle = np.broadcast_to(sin_t * (np.pi / height) * (2.0 * np.pi / width), (height, width))
+    return directions, np.ascontiguousarray(solid_angle)
+
+
+def horizontal_irradiance(image: np.ndarray) -> float:
+    """Luminance irradiance on an upward-facing plane from a latitude-longitude radiance map (H, W, 3)."""
+    directions, solid_angle = latlong_directions(*image.shape[:2])
+    cosine = np.maximum(directions[..., 1], 0.0)
+    return float(np.sum((image @ REC709_LUMINANCE) * cosine * solid_angle))
+
+
+def draw_sky(rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """A clear-sky latitude-longitude radiance map (H, W, 3) float32 with horizontal irradiance 1
+    (luminance; scale it by the wanted irradiance), and its parameters for the manifest.
+
+    Upper hemisphere: a blend from a warm, bright horizon to a bluer, darker zenith plus a Gaussian
+    sun lobe carrying ``SUN_SHARE`` of the irradiance; lower hemisphere: a dim ground colour."""
+    height, width = SKY_MAP_SIZE
+    directions, _ = latlong_directions(height, width)
+    zenith_k = float(np.round(rng.uniform(*SKY_ZENITH_TEMPERATURE_K)))
+    horizon_k = float(np.round(rng.uniform(*SKY_HORIZON_TEMPERATURE_K)))
+    sun_k = float(np.round(rng.uniform(*SUN_TEMPERATURE_K)))
+    zenith_ratio = float(rng.uniform(0.3, 0.8))
+    elevation = np.radians(rng.uniform(*SUN_ELEVATION_DEG))
+    azimuth = rng.uniform(0.0, 2.0 * np.pi)
+    width_rad = np.radians(rng.uniform(*SUN_WIDTH_DEG))
+    sun_share = float(rng.uniform(*SUN_SHARE))
+    sun_direction = np.array([np.cos(elevation) * np.cos(azimuth), np.sin(elevation),
+                              np.cos(elevation) * np.sin(azimuth)])
+
+    up = directions[..., 1:2]
+    blend = np.sqrt(np.clip(up, 0.0, 1.0))
+    horizon = blackbody_rgb(horizon_k)
+    sky = horizon * (1.0 - blend) + zenith_ratio * blackbody_rgb(zenith_k) * blend
+    sky = np.where(up >= 0.0, sky, GROUND_REFLECTANCE * horizon)
+    angle = np.arccos(np.clip(directions @ sun_direction, -1.0, 1.0))[..., None]
+    sun = blackbody_rgb(sun_k) * np.exp(-0.5 * (angle / width_rad) ** 2)
+    sky = sky * ((1.0 - sun_share) / horizontal_irradiance(sky))
+    sun = sun * (sun_share / horizontal_irradiance(sun))
+    image = (sky + sun).astype(np.float32)
+    params = {"zenith_temperature_k": zenith_k, "horizon_temperature_k": horizon_k,
+              "sun_temperature_k": sun_k, "zenith_ratio": zenith_ratio, "sun_direction": sun_direction,
+              "sun_width_deg": float(np.degrees(width_rad)), "sun_share": sun_share}
+    return image, params

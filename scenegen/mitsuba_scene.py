@@ -186,6 +186,10 @@ def build_scene_dict(manifest: dict, scene_dir: pathlib.Path, frame: int, *, wid
                               origin=position.tolist(), target=target.tolist(), up=_spot_up(target - position))}
         elif emitter["type"] == "constant":
             scene[key] = {"type": "constant", "radiance": _rgb(emitter["radiance"])}
+        elif emitter["type"] == "envmap":
+            # Latitude-longitude map in the scene directory (open scenes' sky), +y up.
+            scene[key] = {"type": "envmap", "filename": str((scene_dir / emitter["filename"]).resolve()),
+                          "scale": float(emitter.get("scale", 1.0))}
         else:
             raise ValueError(f"unknown emitter type {emitter['type']!r}")
     return scene
@@ -204,25 +208,82 @@ def _material_is_specular_like(material: dict) -> bool:
     return False
 
 
+_CONDUCTOR_CLASSES = ("SmoothConductor", "RoughConductor")
+_DIELECTRIC_CLASSES = ("SmoothDielectric", "RoughDielectric", "ThinDielectric")
+# BSDFs with a diffuse lobe whose eval_diffuse_reflectance is Mitsuba's view-dependent default
+# (pi x BSDF value towards the normal): their albedo is the directional albedo at normal incidence.
+_QUADRATURE_CLASSES = ("BlendBSDF",)
+
+
+def _uniform_rgb(params, name: str, default: float) -> np.ndarray | None:
+    """(3,) value of the BSDF parameter ``name`` if it is a constant (or absent: ``default``); None if
+    it is a texture."""
+    key = f"{name}.value"
+    if key in params:
+        return np.broadcast_to(np.asarray(params[key], np.float64).ravel(), (3,)).copy()
+    if any(k.startswith(f"{name}.") for k in params.keys()):
+        return None
+    return np.full(3, default)
+
+
+def specular_albedo(bsdf) -> np.ndarray | None:
+    """Feature albedo (3,) in [0, 1] of a conductor or dielectric ``mi.BSDF``, from its parameters.
+
+    Conductors: ``specular_reflectance`` x normal-incidence Fresnel reflectance
+    ((eta-1)^2 + k^2) / ((eta+1)^2 + k^2); dielectrics: ``specular_transmittance``. None for other
+    BSDF classes and for textured parameters (the integrator then decides per sample)."""
+    if bsdf is None:
+        return None
+    name = bsdf.class_name()
+    if name not in _CONDUCTOR_CLASSES + _DIELECTRIC_CLASSES:
+        return None
+    import mitsuba as mi
+
+    params = mi.traverse(bsdf)
+    if name in _DIELECTRIC_CLASSES:
+        tint = _uniform_rgb(params, "specular_transmittance", 1.0)
+        return None if tint is None else np.clip(tint, 0.0, 1.0)
+    eta, k = _uniform_rgb(params, "eta", np.nan), _uniform_rgb(params, "k", np.nan)
+    tint = _uniform_rgb(params, "specular_reflectance", 1.0)
+    if eta is None or k is None or tint is None or not np.all(np.isfinite(eta) & np.isfinite(k)):
+        return None
+    fresnel = ((eta - 1.0) ** 2 + k**2) / ((eta + 1.0) ** 2 + k**2)
+    return np.clip(tint * fresnel, 0.0, 1.0)
+
+
 def attach_face_attributes(mesh, shape: dict, material: dict | None) -> None:
-    """Store (roughness, metallic, transmissive) and (shape index, specular-like, 0) per face of ``mesh``
-    (a loaded ``mi.Mesh``): the ``face_material`` / ``face_ident`` attributes ``scenegen.integrator`` reads.
+    """Store (roughness, metallic, transmissive), (shape index, specular-like, albedo source) and the
+    albedo colour per face of ``mesh`` (a loaded ``mi.Mesh``): the ``face_material`` / ``face_ident`` /
+    ``face_albedo`` attributes ``scenegen.integrator`` reads.
 
     ``shape`` needs its ``index``; ``material`` is a manifest material record (None: diffuse, roughness 1).
+    The albedo colour of conductors and dielectrics comes from the mesh's BSDF (``specular_albedo``);
+    blend BSDFs get albedo source 2 (quadrature), others 0 (the integrator decides per sample).
     Used for procedural scenes (``scenegen.render``) and XML meshes (``scenegen.custom``)."""
     import mitsuba as mi
 
+    from scenegen.integrator import ALBEDO_SOURCE_ATTRIBUTE, ALBEDO_SOURCE_QUADRATURE
+
     n_faces = mesh.face_count()
+    bsdf = mesh.bsdf()
+    albedo = specular_albedo(bsdf)
+    if albedo is not None:
+        albedo_source = ALBEDO_SOURCE_ATTRIBUTE
+    else:
+        quadrature = bsdf is not None and bsdf.class_name() in _QUADRATURE_CLASSES
+        albedo_source = ALBEDO_SOURCE_QUADRATURE if quadrature else 0.0
+    albedo_row = (albedo if albedo is not None else np.zeros(3)).astype(np.float32)
     if material is None:
         mat_row = np.array([1.0, 0.0, 0.0], np.float32)
-        ident_row = np.array([float(shape["index"]), 0.0, 0.0], np.float32)
+        ident_row = np.array([float(shape["index"]), 0.0, albedo_source], np.float32)
     else:
         mat_row = np.array([float(material.get("roughness", 1.0)), float(bool(material.get("metallic"))),
                             float(bool(material.get("transmissive")))], np.float32)
-        ident_row = np.array([float(shape["index"]), float(_material_is_specular_like(material)), 0.0],
-                             np.float32)
+        ident_row = np.array([float(shape["index"]), float(_material_is_specular_like(material)),
+                              albedo_source], np.float32)
     mesh.add_attribute("face_material", 3, mi.Float(np.tile(mat_row, n_faces)))
     mesh.add_attribute("face_ident", 3, mi.Float(np.tile(ident_row, n_faces)))
+    mesh.add_attribute("face_albedo", 3, mi.Float(np.tile(albedo_row, n_faces)))
 
 
 def preview_mean_luminance(manifest: dict, scene_dir: pathlib.Path, *, frame: int = 0, width: int = 32,

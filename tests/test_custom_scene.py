@@ -62,14 +62,25 @@ def test_custom_scene_renders_and_loads(custom_cfg):
     clip = load_clip(render_dir)
     assert clip.samples["radiance"].shape == (2, 4, 3, 32, 32)
     assert np.isfinite(clip.samples["radiance"]).all()
-    # Mesh shapes carry material features (the rough plastic cube); the analytic sphere is listed as
-    # lacking them. The orbit keeps most pixels reprojectable.
+    # Every shape carries material features: the meshes as mesh attributes (the rough plastic cube), the
+    # analytic rough-conductor sphere as texture attributes. The orbit keeps most pixels reprojectable.
     assert (np.abs(clip.samples["roughness"] - 0.1) < 1e-3).any()  # roughplastic's default alpha
+    assert (np.abs(clip.samples["roughness"] - 0.3) < 1e-3).any()  # the sphere's alpha
     assert (np.abs(clip.samples["roughness"] - 1.0) < 1e-3).any()  # the diffuse floor
-    sphere = [shape["name"] for shape in manifest["shapes"] if not shape["material_features"]]
-    assert len(sphere) == 1 and manifest["shapes_without_material_features"] == sphere
+    assert (clip.samples["flags"][:, :, 1] > 0.5).any()            # metallic: the conductor sphere
+    assert all(shape["material_features"] for shape in manifest["shapes"])
+    assert manifest["shapes_without_material_features"] == []
+    assert [shape["type"] for shape in manifest["shapes"]] == ["rectangle", "sphere", "cube"]
     hit = clip.gbuffer["object"][1, 0] >= 0  # background (environment) pixels have no history
     assert hit.mean() > 0.3 and clip.valid[1, 0][hit].mean() > 0.7
+    assert set(np.unique(clip.gbuffer["object"][0, 0])) == {-1.0, 0.0, 1.0, 2.0}
+
+    # As authored: `<integrator type="path"/>` means path's defaults (no depth limit), not render.max_depth.
+    assert manifest["render"] == {"max_depth": -1, "rr_depth": 5, "hide_emitters": False, "filter": "box"}
+    assert {row["what"] for row in manifest["substitutions"]} == {
+        "integrator", "pixel filter", "resolution", "sampler", "camera"}
+    film_filter = next(row for row in manifest["substitutions"] if row["what"] == "pixel filter")
+    assert film_filter["authored"] == "gaussian (radius 2 px, the film's default)"
 
     # Frame 0 matches Mitsuba's own path tracer on the unmodified XML.
     original = mi.load_file(str(root / "my_scene.xml"))

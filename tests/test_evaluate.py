@@ -135,6 +135,9 @@ def test_evaluation_problems_name_the_keys() -> None:
 def test_test_scenes_exclude_training_scenes() -> None:
     cfg = smoke_config()
     cfg["scenes"]["n_train"], cfg["scenes"]["n_test"] = 3, 2
+    # The test scenes, then the external (custom_*) scenes; never a training scene.
+    assert evaluate.evaluated_scene_ids(cfg) == ["test_000", "test_001", "custom_spheres_room"]
+    cfg["extra_scenes"] = []
     assert evaluate.evaluated_scene_ids(cfg) == ["test_000", "test_001"]
 
 

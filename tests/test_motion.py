@@ -15,7 +15,7 @@ SIZE = 64
 SETTINGS = RenderSettings(width=SIZE, height=SIZE, max_depth=4, rr_depth=4)
 SCENE_CFG = {
     "objects": [10, 10], "camera_paths": ["dolly"], "animated_light_prob": 0.0, "moving_objects_prob": 0.0,
-    "camera_cut_prob": 0.0, "luminance_range": [0.05, 5.0],
+    "camera_cut_prob": 0.0, "luminance_range": [0.05, 5.0], "open_scene_prob": 0.0,
 }
 
 

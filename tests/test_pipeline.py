@@ -1,10 +1,11 @@
 """End-to-end run of the smoke configuration through Snakemake with the real renderer and denoisers.
 
-One copy of the workflow (Snakefile, workflow/, config/) in a temporary directory is run twice:
+One copy of the workflow (Snakefile, workflow/, config/, examples/) in a temporary directory is run twice:
 first the stage target `scenes` alone, then the default target (renders, every configured method on
 the test scene, metrics, the robustness scenario and the report). That checks the stage target on a
 fresh tree, that the full run reuses the scenes, the complete dataset and the evaluation outputs in
-a single DAG.
+a single DAG. The smoke config evaluates one test scene and the README's example XML scene
+(custom_spheres_room).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from denoisers.report import report_outputs
 from denoisers.report.claims import INCONCLUSIVE, NOT_RUN
 from denoisers.reproductions import all_claims
 from denoisers.training.models import MODEL_FILES, model_dir, model_specs
-from scenegen.config import chunk_count, chunk_frames, load_config, scene_ids
+from scenegen.config import CUSTOM_PREFIX, chunk_count, chunk_frames, load_config, scene_frame_count, scene_ids
 from scenegen.dataset import REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -93,7 +94,7 @@ class PipelineRun:
 def pipeline(tmp_path_factory) -> PipelineRun:
     workdir = tmp_path_factory.mktemp("pipeline")
     shutil.copy2(REPO_ROOT / "Snakefile", workdir / "Snakefile")
-    for folder in ("workflow", "config"):
+    for folder in ("workflow", "config", "examples"):
         shutil.copytree(REPO_ROOT / folder, workdir / folder)
 
     scenes_run = _snakemake(workdir, "scenes")
@@ -109,7 +110,8 @@ def pipeline(tmp_path_factory) -> PipelineRun:
 
 def test_scenes_stage_target_produces_only_scenes(pipeline: PipelineRun) -> None:
     scenes = scene_ids(pipeline.cfg)
-    assert len(scenes) == 3   # two training scenes (one held out for validation) and one test scene
+    # Two training scenes (one held out for validation), one test scene and the example XML scene.
+    assert scenes == ["train_000", "train_001", "test_000", "custom_spheres_room"]
     produced = {Path(path).parts[0] for path in pipeline.after_scenes}
     # Besides scenes, a stage run may only leave bookkeeping (resolved config, logs, benchmarks).
     assert "scenes" in produced and "renders" not in produced
@@ -130,8 +132,14 @@ def test_every_scene_has_manifest_and_all_chunks(pipeline: PipelineRun) -> None:
     for scene in scene_ids(cfg):
         manifest_path = pipeline.results / "scenes" / scene / "manifest.json"
         manifest = json.loads(manifest_path.read_text())
-        assert manifest["n_frames"] == cfg["scenes"]["frames"]
-        assert list((manifest_path.parent / "meshes").glob("*.ply")), f"{scene}: no meshes"
+        assert manifest["n_frames"] == scene_frame_count(cfg, scene)
+        if scene.startswith(CUSTOM_PREFIX):  # the XML's shapes, as authored, with what was substituted
+            assert manifest["kind"] == "custom" and len(manifest["shapes"]) == 8
+            assert manifest["render"] == {"max_depth": 6, "rr_depth": 5, "hide_emitters": True, "filter": "box"}
+            assert {row["what"] for row in manifest["substitutions"]} == {
+                "integrator", "resolution", "sampler", "camera"}
+        else:
+            assert list((manifest_path.parent / "meshes").glob("*.ply")), f"{scene}: no meshes"
         for kind in ("noisy", "reference"):
             kind_dir = pipeline.results / "renders" / scene / kind
             expected_chunks = {f"chunk_{c:03d}" for c in range(chunk_count(cfg, scene))}
@@ -145,9 +153,9 @@ def test_every_scene_has_manifest_and_all_chunks(pipeline: PipelineRun) -> None:
 
 def test_clips_load_with_configured_shapes_and_sane_metadata(pipeline: PipelineRun) -> None:
     render = pipeline.cfg["render"]
-    n_frames, spp = pipeline.cfg["scenes"]["frames"], render["spp"]
-    height, width = render["height"], render["width"]
+    spp, height, width = render["spp"], render["height"], render["width"]
     for scene in scene_ids(pipeline.cfg):
+        n_frames = scene_frame_count(pipeline.cfg, scene)
         clip = load_clip(pipeline.results / "renders" / scene)  # also rejects non-finite values
         assert clip.scene == scene
         assert clip.frames == list(range(n_frames))
@@ -212,7 +220,6 @@ def test_second_run_has_nothing_to_do(pipeline: PipelineRun) -> None:
 
 
 def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun) -> None:
-    frames = list(range(pipeline.cfg["scenes"]["frames"]))
     runs = pipeline.runs()
     # The smoke config renders enough layers for every configured (method, spp), and every trained
     # ablation variant is evaluated at evaluation.ablation_spp.
@@ -222,6 +229,7 @@ def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun
     assert {(v, s) for v in variants for s in pipeline.cfg["evaluation"]["ablation_spp"]} <= \
         {(run.spec.id, run.spp) for run in runs}
     for scene in evaluated_scene_ids(pipeline.cfg):
+        frames = list(range(scene_frame_count(pipeline.cfg, scene)))
         for run in runs:
             folder = denoised_dir(pipeline.results, run.spec.id, scene, run.spp)
             expected = {f"frame_{t:04d}.{ext}" for t in frames for ext in ("exr", "png")} | {TIMING_FILE}
@@ -256,20 +264,29 @@ def test_report_has_tables_figures_and_claims(pipeline: PipelineRun) -> None:
 
     claims = pd.read_csv(pipeline.results / "tables" / "claims.csv").set_index("claim")
     assert list(claims.index) == [claim.id for claim in all_claims()]
-    # The smoke config evaluates one test scene at 1 and 2 spp: every claim whose rows exist is decided
-    # from n = 1 paired difference, which is never enough (inconclusive); C1.4 is stated at 4 spp and the
-    # papers whose methods are not built name their missing rows.
-    assert evaluated_scene_ids(pipeline.cfg) == ["test_000"] and pipeline.cfg["evaluation"]["spp"] == [1, 2]
+    # The smoke config evaluates one test scene and the example XML scene at 1 and 2 spp: every claim whose
+    # rows exist is decided from n = 2 paired differences, fewer than the 3 units a verdict needs
+    # (inconclusive); C1.4 is stated at 4 spp and the papers whose methods are not built name their missing rows.
+    assert evaluated_scene_ids(pipeline.cfg) == ["test_000", "custom_spheres_room"]
+    assert pipeline.cfg["evaluation"]["spp"] == [1, 2]
     decided = ("C1.1", "C1.2", "C1.3", "C1.5", "C4.1", "C4.2", "C4.3", "C4.4")
     for claim in decided:
         assert claims.loc[claim, "verdict"] == INCONCLUSIVE, (claim, claims.loc[claim].to_dict())
-        assert claims.loc[claim, "n"] == 1, claim
+        assert claims.loc[claim, "n"] == 2, claim
     assert claims.loc["C1.4", "verdict"] == NOT_RUN and "stated at 4 spp" in claims.loc["C1.4", "note"]
     for claim in (c for c in claims.index if c.startswith(("C2.", "C3."))):
         assert claims.loc[claim, "verdict"] == NOT_RUN and claims.loc[claim, "note"].startswith("missing rows: ")
 
     report = (pipeline.results / "REPORT.md").read_text()
     assert "## Claims" in report and "figures/quality_vs_speed.png" in report
+    # The example XML scene has its own section with its metrics and substitutions, and is evaluated.
+    assert "## External scenes" in report and "### custom_spheres_room" in report
+    external = pd.read_csv(pipeline.results / "tables" / "external.csv")
+    assert set(external["scene"]) == {"custom_spheres_room"} and np.isfinite(external["psnr"]).all()
+    substitutions = pd.read_csv(pipeline.results / "tables" / "external_substitutions.csv")
+    assert "integrator" in set(substitutions["what"])
+    split = pd.read_csv(pipeline.results / "tables" / "split.csv").set_index("scene")
+    assert bool(split.loc["custom_spheres_room", "evaluated"])
 
 
 def test_every_configured_baseline_is_in_the_main_table(pipeline: PipelineRun) -> None:

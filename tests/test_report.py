@@ -56,11 +56,13 @@ def metric_frame(psnr: float, trmae: float, cut_at: int | None = None) -> pd.Dat
 
 
 def write_results(root: Path, cfg: dict, *, psnr: dict | None = None, trmae: dict | None = None,
-                  spiked: dict | None = None) -> None:
-    """A complete hand-made results tree for ``cfg`` (every runnable (method, spp) on SCENES)."""
+                  spiked: dict | None = None, scenes: dict[str, float] | None = None) -> None:
+    """A complete hand-made results tree for ``cfg`` (every runnable (method, spp) on ``scenes``: {scene:
+    PSNR offset}, default SCENE_OFFSET)."""
     psnr, trmae, spiked = psnr or PSNR, trmae or TRMAE, spiked or SPIKED_PSNR
+    offsets = SCENE_OFFSET if scenes is None else scenes
     layers = cfg["render"]["spp"]
-    for scene in SCENES:
+    for scene in offsets:
         write_synthetic_scene(root / "renders" / scene, scene=scene, frames=FRAMES, layers=layers, height=SIZE[0],
                               width=SIZE[1])
         image = synthetic_reference(*SIZE)
@@ -70,7 +72,7 @@ def write_results(root: Path, cfg: dict, *, psnr: dict | None = None, trmae: dic
             for spp in cfg["evaluation"]["spp"]:
                 if spp * factor > layers:
                     continue
-                value = psnr[method_id] + 3.0 * math.log2(spp) + SCENE_OFFSET[scene]
+                value = psnr[method_id] + 3.0 * math.log2(spp) + offsets[scene]
                 csv = evaluate.metrics_csv(root, method_id, scene, spp)
                 csv.parent.mkdir(parents=True, exist_ok=True)
                 metric_frame(value, trmae[method_id], cut_at=2).to_csv(csv, index=False)
@@ -86,7 +88,7 @@ def write_results(root: Path, cfg: dict, *, psnr: dict | None = None, trmae: dic
                 (folder / evaluate.TIMING_FILE).write_text(json.dumps(timing))
             robust = evaluate.robustness_dir(root, method_id, scene, cfg["evaluation"]["robustness"]["spp"])
             robust.mkdir(parents=True, exist_ok=True)
-            metric_frame(spiked[method_id] + SCENE_OFFSET[scene], trmae[method_id]).assign(
+            metric_frame(spiked[method_id] + offsets[scene], trmae[method_id]).assign(
                 nonfinite_input=6, nonfinite_output=0).to_csv(robust / evaluate.ROBUSTNESS_CSV, index=False)
             (robust / evaluate.ROBUSTNESS_SUMMARY).write_text(json.dumps({
                 "injected": {"spikes": 4, "nan_values": 6, "inf_values": 12}, "nonfinite_inputs": 24,
@@ -97,6 +99,7 @@ def write_results(root: Path, cfg: dict, *, psnr: dict | None = None, trmae: dic
 def report_config() -> dict:
     cfg = smoke_config(methods=METHODS, spp=[1, 2], warmup_frames=1, ablation_spp=[])
     cfg["scenes"]["n_test"], cfg["scenes"]["n_train"] = len(SCENES), 2
+    cfg["extra_scenes"] = []   # test scenes only; external scenes: tests/test_external_scenes.py
     cfg["render"]["spp"] = 2   # path_x2 at 2 spp needs 4 layers: not run
     cfg["render"]["width"], cfg["render"]["height"] = SIZE[1], SIZE[0]
     return cfg
@@ -258,7 +261,7 @@ def test_every_output_and_link_exists(built: tuple[Path, dict]) -> None:
 def test_report_from_real_evaluation_outputs(tmp_path: Path) -> None:
     """denoise + evaluate + robustness jobs on a synthetic clip, then the report, end to end in-process."""
     cfg = smoke_config(methods=METHODS[:2], spp=[1, 2], warmup_frames=1, ablation_spp=[])
-    cfg["scenes"]["n_test"] = 1
+    cfg["scenes"]["n_test"], cfg["extra_scenes"] = 1, []
     write_synthetic_scene(tmp_path / "renders" / "test_000")
     for run in evaluate.plan_runs(cfg):
         if run.runnable:

@@ -21,10 +21,12 @@ from scenegen.mitsuba_scene import (build_scene_dict, camera_matrices, object_to
                                     project_to_pixels)
 
 N_FRAMES = 4
-SMALL_CFG = {"objects": [5, 8], "moving_objects_prob": 1.0, "animated_light_prob": 1.0, "camera_cut_prob": 0.5}
+# Closed rooms (open_scene_prob 0): these tests check the room shell; open scenes: tests/test_open_scenes.py.
+SMALL_CFG = {"objects": [5, 8], "moving_objects_prob": 1.0, "animated_light_prob": 1.0, "camera_cut_prob": 0.5,
+             "open_scene_prob": 0.0}
 # A handful of seeds whose union of object materials covers every type of MATERIAL_MIX.
 MIX_SEEDS = (11, 12, 13, 14)
-MIX_CFG = {"objects": [12, 16]}
+MIX_CFG = {"objects": [12, 16], "open_scene_prob": 0.0}
 
 
 def _files(root: pathlib.Path) -> dict[str, bytes]:

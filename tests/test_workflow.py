@@ -30,7 +30,8 @@ SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
              "robustness_clip", "build_report", "train_denoiser")
 STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report")
-WORKFLOW_FILES = ("Snakefile", "workflow", "config")
+# examples/: the configs' extra_scenes XML (an input of its generate_scene job).
+WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
 JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
 
 
@@ -69,7 +70,8 @@ def dry_run(*args: str, cwd: Path) -> dict[str, int]:
 
 
 def copy_workflow(destination: Path) -> Path:
-    """Copy Snakefile, workflow/ and config/ to ``destination``; the rules' CLIs stay the installed ones."""
+    """Copy Snakefile, workflow/, config/ and examples/ to ``destination``; the rules' CLIs stay the installed
+    ones."""
     for name in WORKFLOW_FILES:
         source = REPO_ROOT / name
         if source.is_dir():
@@ -88,10 +90,10 @@ def workflow_copy(tmp_path_factory) -> Path:
 def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     """{rule: job count} of a --forceall dry run of ``target``, derived from the config.
 
-    Renders cover every scene; the evaluation only the test scenes, with one denoise and one evaluate
-    job per (test scene, runnable (row, spp) pair) and one robustness job per (test scene, runnable
-    row with robustness at evaluation.robustness.spp). The rows are evaluation.methods (each at its own
-    spp) plus one per trained ablation variant (at evaluation.ablation_spp). Which pairs are planned and
+    Renders cover every scene; the evaluation only the evaluated scenes (test and custom), with one
+    denoise and one evaluate job per (evaluated scene, runnable (row, spp) pair) and one robustness job
+    per (evaluated scene, runnable row with robustness at evaluation.robustness.spp). The rows are
+    evaluation.methods (each at its own spp) plus one per trained ablation variant (at evaluation.ablation_spp). Which pairs are planned and
     runnable (those needing no more sample layers than were rendered) is decided by the workflow's own
     planning, denoisers.evaluate.plan_runs / robustness_runs.
     """
@@ -164,10 +166,11 @@ def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_cop
     (workflow_copy / "layers.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("--forceall", "--configfile", "layers.yaml", cwd=workflow_copy)
     # Hand count with 4 rendered layers: noisy runs at 1, 2, 4 spp; path_x2 needs 2, 4, 8 layers (runs
-    # at 1, 2); path_x4 needs 4, 8, 16 (runs at 1): 6 pairs x 2 test scenes. Robustness at 2 spp:
-    # noisy and path_x2 (4 layers), not path_x4 (8 layers): 2 x 2 test scenes.
+    # at 1, 2); path_x4 needs 4, 8, 16 (runs at 1): 6 pairs x 3 evaluated scenes (2 test scenes and the
+    # smoke config's custom scene). Robustness at 2 spp: noisy and path_x2 (4 layers), not path_x4
+    # (8 layers): 2 x 3 evaluated scenes.
     assert {rule: counts.get(rule) for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
-        "denoise_clip": 12, "evaluate_clip": 12, "robustness_clip": 4}
+        "denoise_clip": 18, "evaluate_clip": 18, "robustness_clip": 6}
     assert counts == expected_jobs(load_config(workflow_copy / "layers.yaml"))
 
 
@@ -212,6 +215,29 @@ def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Pat
 
 
 @pytest.mark.slow
+def test_custom_scenes_are_denoised_evaluated_and_reported(workflow_copy: Path) -> None:
+    """The smoke config's extra scene is an evaluated scene: every runnable (row, spp) denoises and scores it,
+    every robustness row runs on it, and the report reads its manifest; it is rendered but never trained on."""
+    cfg = load_config(workflow_copy / "config/smoke.yaml")
+    custom = [f"custom_{entry['name']}" for entry in cfg["extra_scenes"]]
+    assert custom == ["custom_spheres_room"] and evaluated_scene_ids(cfg) == ["test_000", *custom]
+    jobs = dry_run_jobs("report", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
+    outputs = {rule: {job["output"] for r, job in jobs if r == rule} for rule in
+               ("denoise_clip", "evaluate_clip", "robustness_clip", "generate_scene")}
+    runs = [run for run in plan_runs(cfg) if run.runnable]
+    assert {f"results/denoised/{run.spec.id}/{custom[0]}/spp{run.spp}" for run in runs} <= outputs["denoise_clip"]
+    assert {f"results/metrics/{run.spec.id}/{custom[0]}/spp{run.spp}.csv" for run in runs} <= outputs["evaluate_clip"]
+    robust = [run for run in robustness_runs(cfg) if run.runnable]
+    assert robust and {f"results/robustness/{run.spec.id}/{custom[0]}/spp{run.spp}" for run in robust} <= \
+        outputs["robustness_clip"]
+    assert f"results/scenes/{custom[0]}" in outputs["generate_scene"]
+    report = next(job for rule, job in jobs if rule == "build_report")
+    assert f"results/scenes/{custom[0]}" in report["input"].split(", ")
+    training = [job for rule, job in jobs if rule == "train_denoiser"]
+    assert training and not any(custom[0] in job["input"] for job in training)
+
+
+@pytest.mark.slow
 def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path) -> None:
     cfg = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
     cfg["evaluation"].update(spp=[1, 2], ablation_spp=[2], methods=[
@@ -221,19 +247,20 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
     ])
     (workflow_copy / "rows.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
-    # Hand count, one test scene: noisy at 1 and 2 spp, eaw at 2, path_x2 at none, the 8 ablation variants
-    # at 2: 11 denoise jobs, which need the 8 variant models (no row uses the base model rae).
-    assert counts["denoise_clip"] == 11 and counts["train_denoiser"] == 8
+    # Hand count per evaluated scene (the test scene and the custom scene): noisy at 1 and 2 spp, eaw at 2,
+    # path_x2 at none, the 8 ablation variants at 2: 11 denoise jobs, which need the 8 variant models (no
+    # row uses the base model rae).
+    assert counts["denoise_clip"] == 2 * 11 and counts["train_denoiser"] == 8
     counts = dry_run("evaluate", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
     # Robustness: noisy and path_x2 (its evaluated spp do not matter), not eaw or the variants.
     assert {rule: counts[rule] for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
-        "denoise_clip": 11, "evaluate_clip": 11, "robustness_clip": 2}
+        "denoise_clip": 2 * 11, "evaluate_clip": 2 * 11, "robustness_clip": 2 * 2}
     assert counts == expected_jobs(load_config(workflow_copy / "rows.yaml"), "evaluate")
 
     cfg["evaluation"]["ablation_spp"] = []
     (workflow_copy / "no_ablation.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "no_ablation.yaml", cwd=workflow_copy)
-    assert counts["denoise_clip"] == 3 and "train_denoiser" not in counts
+    assert counts["denoise_clip"] == 2 * 3 and "train_denoiser" not in counts
 
 
 def failing_dry_run(workflow_copy: Path, tmp_path: Path, cfg: dict) -> str:
@@ -354,18 +381,24 @@ def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> Non
     assert (work / "results/renders/test_000/reference/chunk_001/stub.txt").is_file()
     assert dry_run("renders", "--configfile", "config/smoke.yaml", cwd=work) == {}
 
-    # The smoke config: 3 scenes x 2 chunks.
+    # The smoke config: 3 procedural scenes and the custom scene, 2 chunks each.
     noisy_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "spp", 2), cwd=work)
-    assert noisy_only == {"render_noisy": 6, "renders": 1}
+    assert noisy_only == {"render_noisy": 8, "renders": 1}
 
     reference_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "reference_spp", 32), cwd=work)
-    assert reference_only == {"render_reference": 6, "renders": 1}
+    assert reference_only == {"render_reference": 8, "renders": 1}
 
     one_more_scene = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "n_train", 3), cwd=work)
     assert one_more_scene == {"generate_scene": 1, "render_noisy": 2, "render_reference": 2, "renders": 1}
 
+    # Every procedural scene; the custom scene depends on its extra_scenes entry, not on scenes.*.
     everything = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "objects", [3, 7]), cwd=work)
     assert everything == {"generate_scene": 3, "render_noisy": 6, "render_reference": 6, "renders": 1}
+    custom = yaml.safe_load((work / "config/smoke.yaml").read_text())
+    custom["extra_scenes"][0]["max_depth"] = 3
+    (work / "custom_depth.yaml").write_text(yaml.safe_dump(custom))
+    assert dry_run("renders", "--configfile", "custom_depth.yaml", cwd=work) == {
+        "generate_scene": 1, "render_noisy": 2, "render_reference": 2, "renders": 1}
 
 
 STUB_TRAIN_CLI = """\

@@ -36,10 +36,10 @@ class OpenImageDenoise(Denoiser):
       OIDN gets the same cores as the torch methods it is timed against.
 
     Inputs: mean over the frame's samples of radiance (clamped to >= 0, OIDN's HDR range), albedo
-    (clamped to [0, 1] as OIDN requires; conductors report albedos above 1) and normal (world space,
-    OIDN accepts any space). The auxiliary images are noisy where samples see different surfaces, so
-    OIDN's ``cleanAux`` stays off. The device and filter are created once per image size, the images
-    are shared buffers refilled per frame.
+    (OIDN's convention, in [0, 1] by construction -- see ``scenegen.integrator``; clamped anyway as
+    OIDN requires) and normal (world space, OIDN accepts any space). The auxiliary images are noisy
+    where samples see different surfaces, so OIDN's ``cleanAux`` stays off. The device and filter are
+    created once per image size, the images are shared buffers refilled per frame.
     """
 
     def __init__(self, quality: str = "high", threads: int = 0) -> None:

@@ -232,6 +232,10 @@ class SVGF(Denoiser):
         depth = sanitize(frame.mean("depth")).abs_()
         gbuffer_depth = sanitize(frame.pixel["gbuffer.depth"])
         gbuffer_normal = normalize_vectors(sanitize(frame.pixel["gbuffer.normal"]))
+        # Environment pixels (G-buffer miss: depth 0, no normal) get the unit normal +z, so the
+        # reprojection tests keep exactly their environment taps: depth 0 is within the tolerance
+        # (0 x relative) of depth 0 only, and the normals agree.
+        gbuffer_normal[2:3].add_(torch.le(gbuffer_depth, 0.0).float())
 
         integrated, integrated_moments, length = self._accumulate(frame, illumination, moments, gbuffer_depth,
                                                                   gbuffer_normal)

@@ -1,7 +1,9 @@
 """Claims and their verdicts: every claim is decided from paired differences over independent units.
 
-The units are the evaluated scenes. A claim has one or more measured *parts*; each part is a paired
-comparison ``a - b`` of one quantity per scene with a claimed direction. Its outcome:
+The units are the evaluated scenes (``Results.scenes``: the test scenes and the external XML scenes, each
+an independent scene; nothing here depends on which kind a unit is). A claim has one or more measured
+*parts*; each part is a paired comparison ``a - b`` of one quantity per scene with a claimed direction.
+Its outcome:
 
 * ``reproduced``   -- n >= :data:`MIN_UNITS` and the 95 % Student-t interval of the mean paired
   difference lies wholly on the claimed side of 0;

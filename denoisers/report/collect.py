@@ -1,5 +1,6 @@
 """Collecting what the report is computed from: per-frame metric CSVs, timing.json, the robustness
-scenario (rules evaluate_clip, denoise_clip, robustness_clip) and the trained models (train_denoiser).
+scenario (rules evaluate_clip, denoise_clip, robustness_clip), the trained models (train_denoiser) and
+the manifests of the external scenes (generate_scene: what was rendered and what was substituted).
 
 Nothing here computes a verdict; :class:`Results` only answers lookups (which rows ran, per-scene
 values of a column, rows whose outputs were flagged as non-finite or absurd).
@@ -26,6 +27,7 @@ from denoisers.evaluate import (
 )
 from denoisers.report.stats import pooled_psnr
 from denoisers.training.models import ModelSpec, model_dir, model_specs
+from scenegen.config import CUSTOM_PREFIX
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -108,6 +110,12 @@ class Results:
     robustness: pd.DataFrame | None = None    # per (method_id, scene): spiked metrics and counts
     results_dir: Path = field(default_factory=lambda: Path("results"))
     models: TrainedModels | None = None
+    external: dict[str, dict | None] = field(default_factory=dict)   # custom_* scene -> manifest (None: missing)
+
+    @property
+    def external_scenes(self) -> list[str]:
+        """The evaluated external (bring-your-own XML) scenes, in evaluation order."""
+        return [scene for scene in self.scenes if scene.startswith(CUSTOM_PREFIX)]
 
     @property
     def main_specs(self) -> list[MethodSpec]:
@@ -239,7 +247,16 @@ def collect(cfg: dict, results_dir: Path) -> Results:
     robustness = _collect_robustness(cfg, results_dir, specs, scenes) \
         if cfg["evaluation"]["robustness"]["enabled"] else None
     return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir,
-                   collect_models(cfg, results_dir))
+                   collect_models(cfg, results_dir), external_manifests(results_dir, scenes))
+
+
+def external_manifests(results_dir: Path, scenes: list[str]) -> dict[str, dict | None]:
+    """results/scenes/{scene}/manifest.json of every external scene in ``scenes`` (None if absent)."""
+    found = {}
+    for scene in (s for s in scenes if s.startswith(CUSTOM_PREFIX)):
+        path = Path(results_dir) / "scenes" / scene / "manifest.json"
+        found[scene] = json.loads(path.read_text()) if path.is_file() else None
+    return found
 
 
 def _collect_robustness(cfg: dict, results_dir: Path, specs: list[MethodSpec], scenes: list[str]) -> pd.DataFrame:

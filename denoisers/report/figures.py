@@ -223,7 +223,7 @@ def _reference_frame(render_dir: Path, frame: int) -> np.ndarray:
 
 
 def plot_grids(res: Results, figures: Path) -> list[Path]:
-    """One image grid per test scene at the lowest evaluated spp, plus the robustness grid."""
+    """One image grid per evaluated scene at the lowest evaluated spp, plus the robustness grid."""
     written = []
     spp = min(res.cfg["evaluation"]["spp"])
     for scene in res.scenes:
@@ -242,7 +242,7 @@ def plot_grids(res: Results, figures: Path) -> list[Path]:
     robustness = res.cfg["evaluation"]["robustness"]
     path = figures / "robustness_grid.png"
     if not (robustness["enabled"] and res.scenes):
-        placeholder(path, "robustness scenario disabled" if res.scenes else "no test scenes")
+        placeholder(path, "robustness scenario disabled" if res.scenes else "no evaluated scenes")
         written.append(path)
     else:
         scene, columns = res.scenes[0], []

@@ -4,10 +4,13 @@ from __future__ import annotations
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.reproductions import all_reproductions
 from denoisers.training.models import model_specs
+from scenegen.config import CUSTOM_PREFIX
 
 #: Cross-paper tables, written as tables/{name}.csv and tables/{name}.md.
 CORE_TABLES: tuple[str, ...] = ("summary", "per_scene", "timing", "equal_time", "noise_floor", "robustness",
                                 "claims", "runs", "split")
+#: Written when external (custom_*) scenes are evaluated.
+EXTERNAL_TABLES: tuple[str, ...] = ("external", "external_substitutions")
 
 
 def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
@@ -15,11 +18,12 @@ def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
     (per-frame error per scene), 'grids', 'markdown', 'training_tables' / 'training_figures' (empty without
     training) and 'paper_tables' (CSV + Markdown) / 'paper_figures' of the reproduction modules."""
     scenes = evaluated_scene_ids(cfg)
+    core = CORE_TABLES + (EXTERNAL_TABLES if any(s.startswith(CUSTOM_PREFIX) for s in scenes) else ())
     trained = bool(model_specs(cfg))
     paper_tables = [name for r in all_reproductions() for name in r.tables(cfg)]
     paper_figures = [name for r in all_reproductions() for name in r.figures(cfg)]
-    return {"tables": [f"{root}/tables/{t}.csv" for t in CORE_TABLES],
-            "tables_md": [f"{root}/tables/{t}.md" for t in CORE_TABLES],
+    return {"tables": [f"{root}/tables/{t}.csv" for t in core],
+            "tables_md": [f"{root}/tables/{t}.md" for t in core],
             "quality": [f"{root}/figures/quality_vs_speed.png", f"{root}/figures/quality_vs_speed.svg"],
             "curves": [f"{root}/figures/frame_curves_{scene}.png" for scene in scenes],
             "grids": [f"{root}/figures/grid_{scene}.png" for scene in scenes] + [f"{root}/figures/robustness_grid.png"],

@@ -176,7 +176,8 @@ def robustness_table(res: Results) -> pd.DataFrame:
 
 
 def split_table(cfg: dict) -> pd.DataFrame:
-    """The seeded train/test split: every scene id, its split and its derived seed."""
+    """The seeded train/test split: every scene id, its split ('custom' for external scenes), whether it is
+    evaluated (test and custom scenes) and its derived seed (none for custom scenes)."""
     import pandas as pd
 
     from denoisers.evaluate import evaluated_scene_ids
@@ -189,6 +190,49 @@ def split_table(cfg: dict) -> pd.DataFrame:
         rows.append({"scene": scene, "split": split, "evaluated": scene in evaluated,
                      "scene_seed": scene_seed(cfg["seed"], scene) if split != "custom" else None})
     return pd.DataFrame(rows)
+
+
+EXTERNAL_COLUMNS: tuple[str, ...] = (*ALL_METRICS, "video_psnr", "ms_per_frame")
+SUBSTITUTION_COLUMNS: tuple[str, ...] = ("scene", "what", "authored", "used", "why")
+
+
+def external_table(res: Results) -> pd.DataFrame:
+    """Per row, spp and external scene: the frame means of every metric, video PSNR and ms/frame."""
+    rows = res.per_scene[res.per_scene.scene.isin(res.external_scenes)]
+    roles = {spec.id: spec.role for spec in res.specs}
+    table = rows[["method_id", "spp", "scene", *[c for c in EXTERNAL_COLUMNS if c in rows]]].copy()
+    table.insert(1, "role", table["method_id"].map(roles))
+    return table.reset_index(drop=True)
+
+
+def _resolved_use(cfg: dict, row: dict[str, str]) -> str:
+    """A substitution's ``used`` with the config's values where the manifest names config keys."""
+    render = cfg["render"]
+    if row["what"] == "resolution":
+        return f"{render['width']}x{render['height']} (render.width x render.height)"
+    if row["what"] == "sampler":
+        return (f"independent: {render['spp']} 1-spp layers (+{render['extra_radiance_spp']} radiance-only); "
+                f"references of {render['reference_spp']} spp in two halves")
+    return row["used"]
+
+
+def substitutions_table(res: Results) -> pd.DataFrame:
+    """Every substitution recorded in the external scenes' manifests (scenegen.custom_xml.substitutions),
+    one row each: scene, what, authored, used (config values filled in), why."""
+    import pandas as pd
+
+    rows = []
+    for scene in res.external_scenes:
+        manifest = res.external.get(scene)
+        if manifest is None:
+            rows.append({"scene": scene, "what": "manifest", "authored": "", "used": "",
+                         "why": f"results/scenes/{scene}/manifest.json is missing"})
+        elif "substitutions" not in manifest:
+            rows.append({"scene": scene, "what": "substitutions", "authored": "", "used": "not recorded",
+                         "why": "the manifest predates their recording; re-run generate_scene for this scene"})
+        else:
+            rows += [{"scene": scene, **row, "used": _resolved_use(res.cfg, row)} for row in manifest["substitutions"]]
+    return pd.DataFrame(rows, columns=list(SUBSTITUTION_COLUMNS))
 
 
 def training_table(models: TrainedModels) -> pd.DataFrame:

@@ -154,17 +154,19 @@ def render_digest(kind: str):
 
 
 # ---------------------------------------------------------------------------------------------
-# Evaluation (workflow/rules/evaluate.smk): which (method, test scene, spp) jobs exist.
+# Evaluation (workflow/rules/evaluate.smk): which (method, evaluated scene, spp) jobs exist.
 #
-# Only test_* scenes are evaluated. The rows are evaluation.methods (each at its own `spp`, in the
-# robustness scenario if its `robustness` is true) followed by one row per trained ablation variant
-# (at evaluation.ablation_spp, not in the robustness scenario); see denoisers.evaluate.method_specs.
+# The evaluated scenes are the test_* scenes and the external custom_* scenes (extra_scenes), each an
+# independent unit of the report's comparisons; train_* scenes never are. The rows are evaluation.methods
+# (each at its own `spp`, in the robustness scenario if its `robustness` is true) followed by one row
+# per trained ablation variant (at evaluation.ablation_spp, not in the robustness scenario); see
+# denoisers.evaluate.method_specs.
 # A (row, spp) pair that needs more sample layers than were rendered (e.g. path tracing at 2 x 4 spp
 # with 4 layers) is left out of the DAG; the report lists it as "not run" with the reason. Planning
 # builds every planned method (importing torch), so it happens on first use, i.e. only when an
 # evaluation target is part of the DAG.
 # ---------------------------------------------------------------------------------------------
-TEST_SCENES = evaluated_scene_ids(config)
+EVALUATED_SCENES = evaluated_scene_ids(config)
 # Row id -> denoisers.evaluate.MethodSpec, resolved once (the ablation rows need the training models).
 METHOD_SPECS = {spec.id: spec for spec in method_specs(config)}
 
@@ -193,13 +195,14 @@ def planned_runs(kind: str = "evaluation") -> list:
 def denoised_dirs(wildcards=None) -> list[str]:
     """Every denoised output directory (stage target `denoise`)."""
     return [
-        f"results/denoised/{run.spec.id}/{scene}/spp{run.spp}" for run in planned_runs() for scene in TEST_SCENES
+        f"results/denoised/{run.spec.id}/{scene}/spp{run.spp}" for run in planned_runs() for scene in EVALUATED_SCENES
     ]
 
 
 def metrics_files(wildcards=None) -> list[str]:
     """Every per-frame metrics CSV."""
-    return [f"results/metrics/{run.spec.id}/{scene}/spp{run.spp}.csv" for run in planned_runs() for scene in TEST_SCENES]
+    return [f"results/metrics/{run.spec.id}/{scene}/spp{run.spp}.csv"
+            for run in planned_runs() for scene in EVALUATED_SCENES]
 
 
 def robustness_dirs(wildcards=None) -> list[str]:
@@ -207,7 +210,7 @@ def robustness_dirs(wildcards=None) -> list[str]:
     return [
         str(robustness_dir("results", run.spec.id, scene, run.spp))
         for run in planned_runs("robustness")
-        for scene in TEST_SCENES
+        for scene in EVALUATED_SCENES
     ]
 
 
@@ -268,11 +271,13 @@ def render_dir(wildcards) -> str:
 
 def report_input(wildcards) -> dict[str, list[str]]:
     """Named inputs of build_report: every metrics CSV, denoised directory (timing, grid images),
-    robustness output and the test scenes' references (grids)."""
-    reference = [f"results/renders/{scene}/reference/chunk_{c:03d}" for scene in TEST_SCENES
+    robustness output, the evaluated scenes' references (grids) and the external scenes' manifests
+    (their substitutions)."""
+    reference = [f"results/renders/{scene}/reference/chunk_{c:03d}" for scene in EVALUATED_SCENES
                  for c in range(chunk_count(config, scene))]
+    external = [f"results/scenes/{scene}" for scene in EVALUATED_SCENES if scene.startswith("custom_")]
     return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
-            "reference": reference, "models": model_dirs()}
+            "reference": reference, "models": model_dirs(), "scenes": external}
 
 
 def _method_settings(wildcards) -> dict:

@@ -1,11 +1,12 @@
-# Stage 3: denoising and evaluation of the test scenes, and the generated report.
+# Stage 3: denoising and evaluation of the test scenes and the external (custom_*) scenes, and the generated report.
 # A row with params {model: <id>} reads results/models/<id>/ (rule train_denoiser) and depends on it.
 #   denoise_clip:    results/denoised/{method}/{scene}/spp{spp}/frame_{t:04d}.exr + .png, timing.json
 #   evaluate_clip:   results/metrics/{method}/{scene}/spp{spp}.csv (per-frame metrics)
 #   robustness_clip: results/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected)
 #   build_report:    results/tables/, results/figures/, results/REPORT.md
 # {method} is a row id: of evaluation.methods, or a trained ablation variant's model id (evaluated at
-# evaluation.ablation_spp, not in the robustness scenario); only test_* scenes are requested by the targets.
+# evaluation.ablation_spp, not in the robustness scenario); the targets request the test_* and custom_* scenes
+# (denoisers.evaluate.evaluated_scene_ids), never train_*.
 
 
 rule denoise_clip:
