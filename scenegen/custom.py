@@ -76,15 +76,25 @@ def _material_record(bsdf) -> dict:
         return {"type": "diffuse", "roughness": 1.0}
     name = bsdf.class_name().lower()
     params = mi.traverse(bsdf)
-    alpha = next((float(np.asarray(params[k]).ravel()[0]) for k in params.keys()
-                  if k.split(".")[0] in ("alpha", "roughness", "alpha_u")), None)
-    metallic_keys = [k for k in params.keys() if k.split(".")[0] == "metallic"]
-    metallic = "conductor" in name or (bool(metallic_keys)
-                                       and float(np.asarray(params[metallic_keys[0]]).ravel()[0]) > 0.5)
+    # Parameter name -> value, with a two-sided wrapper's "brdf_0." prefix dropped (its parameters are
+    # those of the one-sided BSDF it wraps, whose class is not exposed: recognised by its parameters).
+    values = {key.removeprefix("brdf_0.").split(".")[0]: params[key] for key in params.keys()}
+    if name.startswith("twosided"):
+        if {"eta", "k"} <= set(values):
+            name = "roughconductor" if {"alpha", "alpha_u"} & set(values) else "smoothconductor"
+        elif "diffuse_reflectance" in values:
+            name = "roughplastic" if "alpha" in values else "smoothplastic"
+        elif "reflectance" in values:
+            name = "smoothdiffuse"
+    alpha = next((float(np.asarray(values[k]).ravel()[0]) for k in ("alpha", "roughness", "alpha_u")
+                  if k in values), None)
+    metallic = "conductor" in name or ("metallic" in values and float(np.asarray(values["metallic"]).ravel()[0]) > 0.5)
     if "principled" in name and alpha is not None:
         alpha = alpha ** 2  # principled "roughness" -> microfacet alpha
-    kind = {"conductor": "conductor", "roughconductor": "roughconductor", "dielectric": "dielectric",
-            "thindielectric": "thindielectric", "roughdielectric": "roughdielectric"}.get(name, name)
+    # Mitsuba's class names (SmoothConductor, RoughDielectric, ...) -> the plugin names of the manifest.
+    kind = {"smoothconductor": "conductor", "roughconductor": "roughconductor", "smoothdielectric": "dielectric",
+            "thindielectric": "thindielectric", "roughdielectric": "roughdielectric", "smoothdiffuse": "diffuse",
+            "smoothplastic": "plastic"}.get(name, name)
     smooth = kind in ("conductor", "dielectric", "thindielectric")
     return {"type": kind, "roughness": 0.0 if smooth else (1.0 if alpha is None else alpha),
             "metallic": metallic, "transmissive": "dielectric" in name}

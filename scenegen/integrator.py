@@ -93,9 +93,11 @@ def aov_channel_names(aovs: tuple[tuple[str, int], ...]) -> list[str]:
 
 
 def _mis_weight(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
-    """Power heuristic (beta = 2), the weight Mitsuba's ``path`` uses."""
+    """Power heuristic (beta = 2), the weight Mitsuba's ``path`` uses; 0 where it is not finite (a pdf
+    that overflows at grazing angles gives inf / inf), as ``path`` does."""
     a2 = dr.square(pdf_a)
-    return dr.detach(dr.select(pdf_a > 0, a2 / (a2 + dr.square(pdf_b)), 0.0))
+    weight = a2 / (a2 + dr.square(pdf_b))
+    return dr.detach(dr.select((pdf_a > 0) & dr.isfinite(weight), weight, 0.0))
 
 
 @dr.syntax

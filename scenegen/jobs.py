@@ -66,9 +66,15 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
 def _frame_meta(manifest: dict, scene_id: str, frame: int, settings: RenderSettings, variant: str) -> dict:
     from scenegen.mitsuba_scene import camera_matrices
 
+    depths = {"max_depth": settings.max_depth, "rr_depth": settings.rr_depth}
+    if manifest.get("kind") == "custom":      # rendered with the XML's (or its entry's) depths
+        from scenegen.custom import integrator_settings
+
+        authored = integrator_settings(manifest)
+        depths.update({key: authored[key] for key in depths if key in authored})
     meta = {
         "scene": scene_id, "frame": frame, "width": settings.width, "height": settings.height,
-        "variant": variant, "max_depth": settings.max_depth, "rr_depth": settings.rr_depth,
+        "variant": variant, **depths,
         "camera": _jsonable(camera_matrices(manifest, frame, settings.width, settings.height)),
         "prev_camera": (_jsonable(camera_matrices(manifest, frame - 1, settings.width, settings.height))
                         if frame > 0 else None),

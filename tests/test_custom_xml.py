@@ -253,3 +253,26 @@ def test_merged_shapes_keep_distinct_object_ids(tmp_path: Path) -> None:
         column = int((0.5 + x / (2 * depth * math.tan(math.radians(fov / 2)))) * width)
         assert objects[height // 2, column] == index, (index, objects[height // 2])
     assert set(np.unique(objects)) == {-1.0, *map(float, range(6))}
+
+
+@pytest.mark.parametrize("bsdf, expected", [
+    ({"type": "conductor"}, {"type": "conductor", "roughness": 0.0, "metallic": True, "transmissive": False}),
+    ({"type": "roughconductor", "alpha": 0.3}, {"type": "roughconductor", "roughness": 0.3, "metallic": True}),
+    ({"type": "twosided", "inner": {"type": "roughconductor", "alpha": 0.3}},
+     {"type": "roughconductor", "roughness": 0.3, "metallic": True, "transmissive": False}),
+    ({"type": "twosided", "inner": {"type": "conductor"}}, {"type": "conductor", "roughness": 0.0, "metallic": True}),
+    ({"type": "dielectric"}, {"type": "dielectric", "roughness": 0.0, "metallic": False, "transmissive": True}),
+    ({"type": "roughdielectric", "alpha": 0.2}, {"type": "roughdielectric", "roughness": 0.2, "transmissive": True}),
+    ({"type": "twosided", "inner": {"type": "diffuse"}}, {"type": "diffuse", "roughness": 1.0, "metallic": False}),
+])
+def test_material_features_of_xml_bsdfs_follow_the_plugin(bsdf: dict, expected: dict) -> None:
+    """Smooth and two-sided BSDFs are recognised (Mitsuba's class names are SmoothConductor, TwoSidedBRDF, ...)."""
+    import mitsuba as mi
+
+    from scenegen.custom import _material_record
+    from scenegen.mitsuba_env import init_mitsuba
+
+    init_mitsuba("llvm_ad_rgb")
+    record = _material_record(mi.load_dict(bsdf))
+    for key, value in expected.items():
+        assert record[key] == pytest.approx(value) if isinstance(value, float) else record[key] == value, (key, record)

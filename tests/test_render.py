@@ -146,3 +146,19 @@ def test_nonfinite_samples_are_replaced_and_counted():
     clean = counter.sanitise("radiance", values)
     assert np.isfinite(clean).all() and clean[0, 0] == 1.0
     assert counter.counts["radiance"] == 3
+
+
+def test_mis_weight_is_zero_where_the_power_heuristic_is_not_finite() -> None:
+    """A light-sample pdf that overflows at grazing angles gives inf / inf; Mitsuba's ``path`` drops such a
+    weight (NaN radiance would otherwise reach the references as zeroed pixels)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from scenegen.integrator import _mis_weight
+
+    pdf_a = mi.Float([float("inf"), 2.0, 0.0, 1e30])
+    pdf_b = mi.Float([float("inf"), 2.0, 1.0, 1e30])
+    weight = np.asarray(_mis_weight(pdf_a, pdf_b))
+    assert np.all(np.isfinite(weight))
+    assert weight[0] == 0.0 and weight[1] == pytest.approx(0.5) and weight[2] == 0.0
+    assert not dr.any(dr.isnan(_mis_weight(pdf_a, pdf_b)))
