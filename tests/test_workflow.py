@@ -28,7 +28,7 @@ from scenegen.config import chunk_count, load_config, scene_ids
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
-             "robustness_clip", "build_report", "train_denoiser")
+             "robustness_clip", "build_report", "train_denoiser", "tune_method")
 STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
@@ -106,26 +106,30 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     all_models = len(model_specs(cfg))
     # The models the evaluated rows name: the configured rows' and the ablation rows' (one per variant).
     used_models = len({method_model(spec.params) for spec in method_specs(cfg)} - {None})
+    # One tuning job per method that an evaluated row takes tuned parameters from; it reads the training scenes.
+    tuned = len({run.spec.method for run in plan_runs(cfg) if run.runnable and run.spec.params.get("tuned")})
 
     def renders(noisy: list[str], reference: list[str]) -> dict[str, int]:
         ids = set(noisy) | set(reference)
         return {"generate_scene": len(ids), "render_noisy": sum(chunk_count(cfg, s) for s in set(noisy)),
                 "render_reference": sum(chunk_count(cfg, s) for s in set(reference))}
 
-    training_inputs = train_scenes if all_models else []
-    used_inputs = train_scenes if used_models else []
+    training_inputs = train_scenes if all_models or tuned else []
+    used_inputs = train_scenes if used_models or tuned else []
     evaluation = {"denoise_clip": evaluated, "evaluate_clip": evaluated, "robustness_clip": robustness}
     jobs = {
         "scenes": {"generate_scene": len(scenes)},
         "renders": renders(scenes, scenes),
-        "train": {**renders(training_inputs, training_inputs), "train_denoiser": all_models},
+        "train": {**renders(train_scenes if all_models else [], train_scenes if all_models else []),
+                  "train_denoiser": all_models},
         "denoise": {**renders(test_scenes + used_inputs, used_inputs), "denoise_clip": evaluated,
-                    "train_denoiser": used_models},
+                    "train_denoiser": used_models, "tune_method": tuned},
         "evaluate": {**renders(test_scenes + used_inputs, test_scenes + used_inputs), **evaluation,
-                     "train_denoiser": used_models},
+                     "train_denoiser": used_models, "tune_method": tuned},
         "report": {**renders(test_scenes + training_inputs, test_scenes + training_inputs), **evaluation,
-                   "build_report": 1, "train_denoiser": all_models},
-        "all": {**renders(scenes, scenes), **evaluation, "build_report": 1, "train_denoiser": all_models},
+                   "build_report": 1, "train_denoiser": all_models, "tune_method": tuned},
+        "all": {**renders(scenes, scenes), **evaluation, "build_report": 1, "train_denoiser": all_models,
+                "tune_method": tuned},
     }[target]
     return {rule: count for rule, count in {**jobs, target: 1}.items() if count}
 
@@ -370,6 +374,8 @@ def stub_workflow(tmp_path: Path) -> Path:
 def smoke_variant(workdir: Path, section: str, key: str, value: object) -> str:
     cfg = yaml.safe_load((workdir / "config/smoke.yaml").read_text())
     cfg[section][key] = value
+    if section == "render" and key == "spp":    # tuning.spp must stay within the rendered layers
+        cfg["tuning"]["spp"] = [s for s in cfg["tuning"]["spp"] if s <= value]
     path = workdir / f"{section}_{key}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path.name

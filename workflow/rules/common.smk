@@ -304,3 +304,26 @@ def robustness_digest(wildcards) -> str:
 def report_digest(wildcards) -> str:
     """The report states the whole configuration (split, render settings, evaluation)."""
     return config_digest(config)
+
+
+# ---------------------------------------------------------------------------------------------
+# Tuning (workflow/rules/tune.smk): baseline parameters chosen on the training scenes only.
+# ---------------------------------------------------------------------------------------------
+def tuning_methods() -> list[str]:
+    return [entry["method"] for entry in config.get("tuning", {}).get("methods", [])]
+
+
+def training_render_dirs(wildcards=None) -> list[str]:
+    return [f"results/renders/{scene}" for scene in TRAIN_SCENES + VALIDATION_SCENES]
+
+
+def method_tuning_file(wildcards) -> list[str]:
+    """Input function: the tuning result an evaluation row with params {tuned: true} reads, or nothing."""
+    spec = method_spec(wildcards.method)
+    return [f"results/tuning/{spec.method}.json"] if spec.params.get("tuned") else []
+
+
+def tuning_digest(wildcards) -> str:
+    settings = {key: value for key, value in config["tuning"].items() if key != "methods"}
+    entry = next(e for e in config["tuning"]["methods"] if e["method"] == wildcards.method)
+    return config_digest({**settings, **entry})

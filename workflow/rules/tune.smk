@@ -4,26 +4,6 @@
 # params {tuned: true} depends on its method's file (input function method_tuning_file).
 
 
-def tuning_methods() -> list[str]:
-    return [entry["method"] for entry in config.get("tuning", {}).get("methods", [])]
-
-
-def training_render_dirs(wildcards=None) -> list[str]:
-    return [f"results/renders/{scene}" for scene in TRAIN_SCENES + VALIDATION_SCENES]
-
-
-def method_tuning_file(wildcards) -> list[str]:
-    """Input function: the tuning result an evaluation row with params {tuned: true} reads, or nothing."""
-    spec = method_spec(wildcards.method)
-    return [f"results/tuning/{spec.method}.json"] if spec.params.get("tuned") else []
-
-
-def tuning_digest(wildcards) -> str:
-    settings = {key: value for key, value in config["tuning"].items() if key != "methods"}
-    entry = next(e for e in config["tuning"]["methods"] if e["method"] == wildcards.method)
-    return config_digest({**settings, **entry})
-
-
 rule tune_method:
     input:
         noisy=training_chunk_dirs("noisy"),
