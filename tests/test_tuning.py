@@ -135,3 +135,24 @@ def test_no_shipped_test_scene_shares_a_seed_with_any_shipped_training_scene() -
     assert len(SHIPPED_CONFIGS) >= 2 and test_seeds and train_seeds
     shared = set(train_seeds) & set(test_seeds)
     assert not shared, [(train_seeds[s], test_seeds[s]) for s in shared]
+
+
+def test_report_tuning_table_states_the_chosen_parameters(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from denoisers.evaluate import method_specs
+    from denoisers.report.tables import tuning_table
+
+    cfg = load_config(REPO_ROOT / "config" / "smoke.yaml")
+    (tmp_path / "tuning").mkdir()
+    record = {"best_params": {"sigma_color": 4.0}, "best_score_db": 25.1234, "scenes": ["train_000", "train_001"],
+              "spp": [1, 4], "frames_per_scene": 4,
+              "results": [{"params": {"sigma_color": 4.0}, "score_db": 25.1234},
+                          {"params": {"sigma_color": 8.0}, "score_db": 24.9}]}
+    (tmp_path / "tuning" / "eaw.json").write_text(json.dumps(record))
+    res = SimpleNamespace(cfg=cfg, specs=method_specs(cfg), results_dir=tmp_path)
+    table = tuning_table(res).set_index("method")
+    assert table.loc["eaw", "status"] == "ran" and table.loc["eaw", "rows"] == "eaw"
+    assert json.loads(table.loc["eaw", "chosen"]) == {"sigma_color": 4.0}
+    assert table.loc["eaw", "margin_db"] == pytest.approx(0.223, abs=1e-3) and table.loc["eaw", "grid_points"] == 2
+    assert table.loc["wrls", "status"] == "not run"

@@ -314,7 +314,8 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     ran = {(re.search(r"--method-id (\S+)", c).group(1), int(re.search(r"--spp (\d+)", c).group(1))) for c in denoise}
     assert ran == planned
     assert all(f"--threads {cfg['evaluation']['threads']} " in command for command in denoise)
-    assert all(re.search(r"--scene test_\d{3} ", command) for command in denoise), "a training scene is evaluated"
+    assert all(re.search(r"--scene (test_\d{3}|custom_[a-z0-9_]+) ", command) for command in denoise), \
+        "a training scene is evaluated"
 
 
 def test_invalid_config_fails_the_dry_run_naming_the_key(workflow_copy: Path, tmp_path: Path) -> None:

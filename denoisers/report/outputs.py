@@ -18,7 +18,8 @@ def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
     (per-frame error per scene), 'grids', 'markdown', 'training_tables' / 'training_figures' (empty without
     training) and 'paper_tables' (CSV + Markdown) / 'paper_figures' of the reproduction modules."""
     scenes = evaluated_scene_ids(cfg)
-    core = CORE_TABLES + (EXTERNAL_TABLES if any(s.startswith(CUSTOM_PREFIX) for s in scenes) else ())
+    core = (CORE_TABLES + (EXTERNAL_TABLES if any(s.startswith(CUSTOM_PREFIX) for s in scenes) else ())
+            + (("tuning",) if (cfg.get("tuning") or {}).get("methods") else ()))
     trained = bool(model_specs(cfg))
     paper_tables = [name for r in all_reproductions() for name in r.tables(cfg)]
     paper_figures = [name for r in all_reproductions() for name in r.figures(cfg)]

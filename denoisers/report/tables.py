@@ -261,6 +261,35 @@ def training_table(models: TrainedModels) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def tuning_table(res: Results) -> pd.DataFrame:
+    """One row per tuned method (tuning.methods): the evaluation rows that use its result, the chosen
+    parameters, their score (mean frame PSNR over the training clips and tuning spp), the margin to the
+    runner-up, the grid size and the scenes; 'not run' where results/tuning/{method}.json is missing."""
+    import json
+
+    import pandas as pd
+
+    from denoisers.tuning import tuning_file
+
+    rows = []
+    for entry in (res.cfg.get("tuning") or {}).get("methods", []):
+        method = entry["method"]
+        users = [spec.id for spec in res.specs if spec.method == method and spec.params.get("tuned")]
+        path = tuning_file(res.results_dir, method)
+        row: dict[str, Any] = {"method": method, "rows": ", ".join(users) or "none"}
+        if not path.is_file():
+            rows.append({**row, "status": "not run"})
+            continue
+        record = json.loads(path.read_text())
+        scores = sorted((r["score_db"] for r in record["results"]), reverse=True)
+        rows.append({**row, "status": "ran", "chosen": json.dumps(record["best_params"], sort_keys=True),
+                     "score_db": round(record["best_score_db"], 3),
+                     "margin_db": round(scores[0] - scores[1], 3) if len(scores) > 1 else None,
+                     "grid_points": len(record["results"]), "scenes": ", ".join(record["scenes"]),
+                     "spp": ", ".join(map(str, record["spp"])), "frames_per_scene": record["frames_per_scene"]})
+    return pd.DataFrame(rows)
+
+
 def write_table(table: pd.DataFrame, folder: Path, name: str, markdown: str | None = None) -> None:
     """{folder}/{name}.csv and {name}.md (``markdown`` or the table as Markdown), each written atomically."""
     from denoisers.report.stats import frame_to_markdown

@@ -101,6 +101,19 @@ def _external_section(res: Results, tables: Path) -> list[str]:
     return lines
 
 
+def _tuning_section(res: Results, tables: Path) -> list[str]:
+    """Parameters of hand-set baselines chosen on the training scenes (rule tune_method)."""
+    if not (res.cfg.get("tuning") or {}).get("methods"):
+        return []
+    table = tab.tuning_table(res)
+    tab.write_table(table, tables, "tuning")
+    return ["## Tuned parameters", "",
+            "Chosen by grid search on the training scenes only (never a test or external scene): the grid point "
+            "with the highest mean frame PSNR over the training clips at the tuning spp; rows with "
+            "`params: {tuned: true}` use it. Margin = best minus runner-up score. Every grid point's score: "
+            "`results/tuning/{method}.json`.", "", frame_to_markdown(table), ""]
+
+
 def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
     if not res.models or not res.models.specs:
         return []
@@ -190,7 +203,7 @@ def build_report(cfg: dict, results_dir: Path, out_dir: Path | None = None) -> l
              "[per scene](tables/per_scene.csv), [timing, memory and output checks](tables/timing.md).", "",
              "![Quality versus speed](figures/quality_vs_speed.png)", "",
              "[Quality vs speed (SVG)](figures/quality_vs_speed.svg)", "", *_external_section(res, tables),
-             *_claims_section(claims)]
+             *_tuning_section(res, tables), *_claims_section(claims)]
     for reproduction in all_reproductions():
         section = reproduction.write(res, tables, figures)
         ids = [c.id for c in reproduction.claims]

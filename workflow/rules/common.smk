@@ -276,8 +276,10 @@ def report_input(wildcards) -> dict[str, list[str]]:
     reference = [f"results/renders/{scene}/reference/chunk_{c:03d}" for scene in EVALUATED_SCENES
                  for c in range(chunk_count(config, scene))]
     external = [f"results/scenes/{scene}" for scene in EVALUATED_SCENES if scene.startswith("custom_")]
+    tuning = sorted({f"results/tuning/{run.spec.method}.json" for run in planned_runs()
+                     if run.spec.params.get("tuned")})
     return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
-            "reference": reference, "models": model_dirs(), "scenes": external}
+            "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning}
 
 
 def _method_settings(wildcards) -> dict:
