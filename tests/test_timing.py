@@ -1,0 +1,55 @@
+"""The timing job (denoisers/timing.py): passes, medians and spread, rows timed on the same frames."""
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import torch
+
+from denoisers import registry
+from denoisers.registry import Denoiser, Frame
+from denoisers.timing import pass_seconds, summarise_passes, time_run
+from tests.test_evaluate import smoke_config, write_synthetic_scene
+
+
+class Sleeper(Denoiser):
+    """Test only: the sample mean after sleeping ``ms`` milliseconds (a known cost per frame)."""
+
+    def __init__(self, ms: float = 1.0) -> None:
+        super().__init__()
+        self.ms = float(ms)
+
+    def denoise(self, frame: Frame) -> torch.Tensor:
+        time.sleep(self.ms / 1e3)
+        return frame.samples["radiance"].mean(0)
+
+
+@pytest.fixture
+def sleeper() -> Iterator[str]:
+    registry.register("test_sleeper", inputs=("radiance",), description="test only: sleeps")(Sleeper)
+    yield "test_sleeper"
+    registry._REGISTRY.pop("test_sleeper", None)
+
+
+def test_a_pass_is_the_median_frame_without_the_first() -> None:
+    assert pass_seconds([9.0, 1.0, 3.0, 2.0]) == 2.0
+    assert pass_seconds([5.0]) == 5.0
+    summary = summarise_passes([0.002, 0.004, 0.003], pixels=1_000_000)
+    assert summary["ms_per_frame"] == pytest.approx(3.0) and summary["repeats"] == 3
+    assert summary["ms_per_frame_min"] == pytest.approx(2.0) and summary["ms_per_frame_max"] == pytest.approx(4.0)
+    assert summary["spread"] == pytest.approx(2.0 / 3.0) and summary["mpix_per_s"] == pytest.approx(1000 / 3.0)
+
+
+def test_rows_are_timed_over_repeated_passes_on_the_same_frames(tmp_path: Path, sleeper: str) -> None:
+    write_synthetic_scene(tmp_path / "test_000")
+    cfg = smoke_config(methods=[{"id": "slow", "method": sleeper, "params": {"ms": 20.0}},
+                                {"id": "fast", "method": sleeper, "params": {"ms": 5.0}}])
+    slow = time_run(cfg, "slow", 1, tmp_path / "test_000", frames=3, repeats=3, threads=1, results=tmp_path)
+    fast = time_run(cfg, "fast", 1, tmp_path / "test_000", frames=3, repeats=3, threads=1, results=tmp_path)
+    assert slow["frames"] == fast["frames"] == [0, 1, 2] and slow["repeats"] == 3 == len(slow["pass_ms_per_frame"])
+    # Sleeping sets a floor on every pass; the scheduler can only add time.
+    assert slow["ms_per_frame_min"] >= 20.0 and fast["ms_per_frame_min"] >= 5.0
+    assert slow["ms_per_frame_min"] <= slow["ms_per_frame"] <= slow["ms_per_frame_max"]
+    assert slow["ms_per_frame"] > 2.0 * fast["ms_per_frame"]
