@@ -62,7 +62,7 @@ def test_custom_scenes_are_evaluated_after_the_test_scenes() -> None:
     assert evaluate.evaluated_scene_ids(cfg) == ["test_000", "test_001", "test_002", CUSTOM]
     outputs = report_outputs(cfg)
     assert "results/tables/external.csv" in outputs["tables"]
-    assert f"results/figures/grid_{CUSTOM}.png" in outputs["grids"]
+    assert f"results/figures/grid_{CUSTOM}_spp1.png" in outputs["grids"]
     cfg["extra_scenes"] = []
     assert "results/tables/external.csv" not in report_outputs(cfg)["tables"]
 
@@ -113,7 +113,7 @@ def test_custom_scene_is_a_unit_everywhere(built: tuple[Path, dict]) -> None:
     assert wrls["mean"] == pytest.approx(sum(expected) / 4)
     claims = pd.read_csv(root / "tables" / "claims.csv").set_index("claim")
     assert claims.loc["C4.1", "n"] == 4 and claims.loc["C4.1", "verdict"] == "reproduced"
-    assert (root / "figures" / f"grid_{CUSTOM}.png").is_file()
+    assert (root / "figures" / f"grid_{CUSTOM}_spp1.png").is_file()
 
 
 def test_the_custom_scene_alone_can_change_a_verdict(tmp_path: Path) -> None:

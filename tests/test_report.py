@@ -251,7 +251,7 @@ def test_every_output_and_link_exists(built: tuple[Path, dict]) -> None:
     text = (root / "REPORT.md").read_text()
     links = re.findall(r"\]\(([^)]+)\)", text)
     assert "figures/quality_vs_speed.png" in links and "tables/claims.csv" in links
-    assert "figures/grid_test_002.png" in links and "figures/frame_curves_test_000.png" in links
+    assert "figures/grid_test_002_spp1.png" in links and "figures/frame_curves_test_000.png" in links
     for link in links:
         assert (root / link).is_file(), link
     assert "| C4.1 |" in text and "reproduced" in text

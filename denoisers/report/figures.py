@@ -70,7 +70,7 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     plt = pyplot()
     lookup = summary_lookup(summary)
     colours = _colours(res.main_specs)
-    fig, ax = plt.subplots(figsize=(7.5, 5.0))
+    fig, ax = plt.subplots(figsize=(8.5, 5.0))
     xs = []
     for spec in res.main_specs:
         spps = [s for s in res.cfg["evaluation"]["spp"] if res.ran(spec.id, s)]
@@ -80,8 +80,10 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
         y = [lookup[(spec.id, s, "psnr")] for s in spps]
         err = [[0 if math.isnan(v[1]) else v[0] - v[1] for v in y], [0 if math.isnan(v[2]) else v[2] - v[0] for v in y]]
         ax.errorbar(x, [v[0] for v in y], yerr=err, marker="o", color=colours[spec.id], label=spec.id, capsize=3)
+        # Only the spp next to each point (the colour says the method): long labels overlapped.
         for xi, yi, s in zip(x, y, spps):
-            ax.annotate(f"{spec.id} {s}spp", (xi, yi[0]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+            ax.annotate(str(s), (xi, yi[0]), textcoords="offset points", xytext=(4, -9), fontsize=7,
+                        color=colours[spec.id])
         xs += x
     for spec in res.main_specs:
         if spec.method not in REFERENCE_METHODS:
@@ -98,12 +100,19 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     ax.set_xscale("log")
     if not xs:
         ax.set_xlim(0.1, 10)
+    # Plain numbers at 1, 2, 5 x 10^k instead of sparse powers of ten.
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("throughput (Mpix/s, denoising only, log scale)")
     ax.set_ylabel("PSNR (dB, tonemapped)")
-    ax.set_title(f"Quality vs speed ({len(res.scenes)} scene(s), mean ± 95 % CI)")
+    ax.set_title(f"Quality vs speed ({len(res.scenes)} scene(s), mean ± 95 % CI; numbers = spp;\n"
+                 "dashed: noisy input / path tracing at that spp)", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
-    if xs:
-        ax.legend(fontsize=8, loc="lower left")
+    if xs:   # outside the axes, so it covers no data
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     for path in paths:
         fig.savefig(path, dpi=150)
@@ -134,12 +143,17 @@ def plot_frame_curves(res: Results, scene: str, path: Path) -> None:
             if metric == "relmse" and ax.has_data():
                 ax.set_yscale("log")
             ax.set_title(f"{label}, {spp} spp", fontsize=9)
+            ax.set_ylabel(label, fontsize=8)
             ax.set_xlabel("frame")
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.grid(True, alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
     if handles:
-        fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=8)
+        from matplotlib.lines import Line2D
+
+        handles.append(Line2D([], [], color="grey", linestyle=":", linewidth=0.8))
+        labels.append("camera cut")
+        fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 9), fontsize=8)
     fig.suptitle(f"{scene}: per-frame error (lower rMSE / 1−SSIM, higher tPSNR is better)", fontsize=10)
     fig.tight_layout(rect=(0, 0.06, 1, 0.97))
     fig.savefig(path, dpi=110)
@@ -196,10 +210,13 @@ def image_grid(columns: Sequence[tuple[str, np.ndarray]], reference: np.ndarray,
             axes[row][col].set_xticks([])
             axes[row][col].set_yticks([])
     axes[1][0].set_ylabel("crop", fontsize=8)
-    axes[2][0].set_ylabel(f"|error| (0..{vmax:.2f})", fontsize=8)
+    axes[2][0].set_ylabel("|error|, tonemapped", fontsize=8)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    mappable = plt.cm.ScalarMappable(cmap="inferno", norm=plt.Normalize(0.0, vmax))
+    bar = fig.colorbar(mappable, ax=list(axes[2]), fraction=0.02, pad=0.01, format="%.2g")
+    bar.ax.tick_params(labelsize=7)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -223,10 +240,9 @@ def _reference_frame(render_dir: Path, frame: int) -> np.ndarray:
 
 
 def plot_grids(res: Results, figures: Path) -> list[Path]:
-    """One image grid per evaluated scene at the lowest evaluated spp, plus the robustness grid."""
+    """One image grid per evaluated scene and evaluated spp, plus the robustness grid."""
     written = []
-    spp = min(res.cfg["evaluation"]["spp"])
-    for scene in res.scenes:
+    for scene, spp in ((scene, spp) for scene in res.scenes for spp in res.cfg["evaluation"]["spp"]):
         columns, frame = [], None
         for spec in res.main_specs:
             if not res.ran(spec.id, spp):
@@ -235,7 +251,7 @@ def plot_grids(res: Results, figures: Path) -> list[Path]:
             frame = _grid_frame(res.cfg, sorted(files)) if frame is None else frame
             columns.append((spec.id, read_radiance_exr(files[frame])))
         frame = frame if frame is not None else 0
-        path = figures / f"grid_{scene}.png"
+        path = figures / f"grid_{scene}_spp{spp}.png"
         reference = _reference_frame(res.results_dir / "renders" / scene, frame)
         image_grid(columns, reference, path, f"{scene}, frame {frame}, {spp} spp")
         written.append(path)

@@ -27,7 +27,8 @@ def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
             "tables_md": [f"{root}/tables/{t}.md" for t in core],
             "quality": [f"{root}/figures/quality_vs_speed.png", f"{root}/figures/quality_vs_speed.svg"],
             "curves": [f"{root}/figures/frame_curves_{scene}.png" for scene in scenes],
-            "grids": [f"{root}/figures/grid_{scene}.png" for scene in scenes] + [f"{root}/figures/robustness_grid.png"],
+            "grids": [f"{root}/figures/grid_{scene}_spp{spp}.png" for scene in scenes for spp in cfg["evaluation"]["spp"]]
+            + [f"{root}/figures/robustness_grid.png"],
             "markdown": [f"{root}/REPORT.md"],
             "training_tables": [f"{root}/tables/training.{ext}" for ext in ("csv", "md")] if trained else [],
             "training_figures": [f"{root}/figures/training_curves.png"] if trained else [],
