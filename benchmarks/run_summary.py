@@ -6,6 +6,7 @@ of the dataset on disk. Usage: python benchmarks/run_summary.py [results]
 """
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -14,7 +15,10 @@ import pandas as pd
 
 
 def main() -> None:
-    results = Path(sys.argv[1] if len(sys.argv) > 1 else "results")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results", nargs="?", type=Path, default=Path("results"),
+                        help="the run's output directory (default: results)")
+    results = parser.parse_args().results
     rows = []
     for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
         parts = tsv.relative_to(results / "benchmarks").parts
