@@ -3,6 +3,8 @@
 # denoised test clips, per-frame metrics and a generated report. Rules live in workflow/rules/, the
 # config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
 # `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake report`.
+# Every output goes below the config's output_dir (default results/; config/smoke.yaml: results/smoke/);
+# `python -m denoisers clean --config <file>` removes one experiment's outputs.
 
 from snakemake.utils import min_version
 

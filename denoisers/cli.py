@@ -1,11 +1,13 @@
 """Command line of the evaluation stages (``python -m denoisers <command>``); the workflow's rules call it.
+<out> is the config's output_dir (default results), the experiment's folder.
 
-  train       one configured model on the training scenes          -> results/models/{model}/
-  tune        grid search of a baseline's parameters on training scenes -> results/tuning/{method}.json
-  denoise     one configured method on one test clip at one spp  -> results/denoised/{method}/{scene}/spp{spp}/
-  evaluate    per-frame metrics of a denoised clip               -> results/metrics/{method}/{scene}/spp{spp}.csv
-  robustness  one method on a clip with injected spikes/NaN/Inf  -> results/robustness/{method}/{scene}/spp{spp}/
-  report      tables, figures, claims and REPORT.md              -> results/tables/, results/figures/, results/REPORT.md
+  train       one configured model on the training scenes          -> <out>/models/{model}/
+  tune        grid search of a baseline's parameters on training scenes -> <out>/tuning/{method}.json
+  denoise     one configured method on one test clip at one spp  -> <out>/denoised/{method}/{scene}/spp{spp}/
+  evaluate    per-frame metrics of a denoised clip               -> <out>/metrics/{method}/{scene}/spp{spp}.csv
+  robustness  one method on a clip with injected spikes/NaN/Inf  -> <out>/robustness/{method}/{scene}/spp{spp}/
+  report      tables, figures, claims and REPORT.md              -> <out>/tables/, <out>/figures/, <out>/REPORT.md
+  clean       remove an experiment's outputs, or only its stale training work directories (--stale)
   methods     list the registered methods
 """
 from __future__ import annotations
@@ -33,8 +35,9 @@ def _parser() -> argparse.ArgumentParser:
         cmd.add_argument("--out", type=Path, required=True, help="output directory (written atomically)")
         cmd.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
         cmd.add_argument("--spp", type=int, required=True, help="evaluated samples per pixel")
-        cmd.add_argument("--results", type=Path, default=Path("results"),
-                         help="results root; trained models are read from <results>/models/<id>/")
+        cmd.add_argument("--results", type=Path, default=None,
+                         help="experiment folder (default: the config's output_dir); trained models are read "
+                              "from <results>/models/<id>/, tuning results from <results>/tuning/")
 
     train = sub.add_parser("train", help="train one configured model (training.models / ablations)")
     train.add_argument("--config", type=Path, required=True, help="resolved config YAML")
@@ -59,8 +62,16 @@ def _parser() -> argparse.ArgumentParser:
 
     report = sub.add_parser("report", help="aggregate every metrics CSV into tables, figures and REPORT.md")
     report.add_argument("--config", type=Path, required=True)
-    report.add_argument("--results", type=Path, default=Path("results"), help="results root to read")
+    report.add_argument("--results", type=Path, default=None,
+                        help="experiment folder to read (default: the config's output_dir)")
     report.add_argument("--out", type=Path, default=None, help="where to write (default: --results)")
+
+    clean = sub.add_parser("clean", help="remove an experiment's outputs (the config's output_dir)")
+    clean.add_argument("--config", type=Path, required=True, help="the experiment's config file")
+    clean.add_argument("--stale", action="store_true",
+                       help="only training work directories no configured model resumes from, and "
+                            "temporaries of interrupted jobs")
+    clean.add_argument("--dry-run", "-n", action="store_true", help="list what would be removed, remove nothing")
 
     sub.add_parser("methods", help="list the registered methods")
     return parser
@@ -84,7 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
                         stream=sys.stderr)
+    from denoisers.clean import CleanError
     from denoisers.evaluate import EvaluationError
+    from denoisers.experiment import SettingsMismatchError
     from denoisers.registry import MissingInputError
     from denoisers.training.loop import CheckpointError, NonFiniteLossError
     from denoisers.tuning import TuningError
@@ -94,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(args)
     except (MissingInputError, EvaluationError, DatasetError, ConfigError, CheckpointError,
-            NonFiniteLossError, TuningError) as error:
+            NonFiniteLossError, TuningError, SettingsMismatchError, CleanError) as error:
         # Expected failures get one clear line (the workflow prints the job's log), not a traceback.
         log.error("%s", error)
         return 1
@@ -118,6 +131,16 @@ def _run(args: argparse.Namespace) -> int:
     cfg = load_evaluation_config(args.config)
     from denoisers import evaluate
 
+    if args.command == "clean":
+        from denoisers.clean import clean_experiment
+
+        removed = clean_experiment(cfg, stale_only=args.stale, dry_run=args.dry_run)
+        verb = "would remove" if args.dry_run else "removed"
+        for path, size in removed:
+            print(f"{verb} {path} ({size / 1024**2:.1f} MB)")
+        print(f"{verb} {len(removed)} entries, {sum(size for _, size in removed) / 1024**2:.1f} MB")
+        return 0
+
     if args.command == "train":
         from denoisers.training.job import train_model
 
@@ -138,7 +161,10 @@ def _run(args: argparse.Namespace) -> int:
         from denoisers.tuning import format_result, tune_method
         from scenegen.atomic import write_text_atomic
 
+        from denoisers.experiment import DIGEST_KEY, Lineage
+
         result = tune_method(cfg, args.method, {path.name: path for path in args.render_dirs}, threads=args.threads)
+        result[DIGEST_KEY] = Lineage(cfg).tuning(args.method)
         print(format_result(result))
         write_text_atomic(args.out, json.dumps(result, indent=1) + "\n")
     elif args.command == "evaluate":
@@ -153,8 +179,11 @@ def _run(args: argparse.Namespace) -> int:
     elif args.command == "report":
         from denoisers.report import build_report
 
-        written = build_report(cfg, args.results, args.out)
-        log.info("report: wrote %d files, summary in %s", len(written), (args.out or args.results) / "REPORT.md")
+        from scenegen.config import output_root
+
+        results = args.results or output_root(cfg)
+        written = build_report(cfg, results, args.out)
+        log.info("report: wrote %d files, summary in %s", len(written), (args.out or results) / "REPORT.md")
     return 0
 
 

@@ -255,6 +255,11 @@ def metrics_csv(results: Path, method_id: str, scene: str, spp: int) -> Path:
     return Path(results) / "metrics" / method_id / scene / f"spp{spp}.csv"
 
 
+def metrics_sidecar(csv: Path) -> Path:
+    """The JSON next to a metrics CSV (spp{spp}.json): the row, scene, spp and settings digest it came from."""
+    return Path(csv).with_suffix(".json")
+
+
 def robustness_dir(results: Path, method_id: str, scene: str, spp: int) -> Path:
     return Path(results) / "robustness" / method_id / scene / f"spp{spp}"
 
@@ -462,7 +467,9 @@ def out_of_range_record(result: MethodOutput) -> dict[str, Any]:
             "out_of_range_checked": result.out_of_range_checked}
 
 
-def _prepare(cfg: dict, method_id: str, spp: int, results: Path | str = "results"):
+def _prepare(cfg: dict, method_id: str, spp: int, results: Path | str | None = None):
+    """(row spec, built method, sample layers); trained models and tuning results are read below ``results``
+    (default: the config's output_dir)."""
     from denoisers import registry
 
     spec = method_spec(cfg, method_id)
@@ -487,10 +494,13 @@ def _reference_render_rates(render_dir: Path) -> list[float]:
 
 
 def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Path, out_dir: Path,
-                 threads: int = 1, results: Path | str = "results") -> dict[str, Any]:
+                 threads: int = 1, results: Path | str | None = None) -> dict[str, Any]:
     """Run one configured method on one clip at ``spp`` and write ``out_dir`` atomically:
-    frame_TTTT.exr (radiance.R/G/B, linear HDR), frame_TTTT.png (tonemapped preview), timing.json.
-    A row with ``params: {model: <id>}`` loads ``<results>/models/<id>/best.pt``. Returns the timing record."""
+    frame_TTTT.exr (radiance.R/G/B, linear HDR), frame_TTTT.png (tonemapped preview), timing.json (with
+    the clip's settings digest, denoisers.experiment). A row with ``params: {model: <id>}`` loads
+    ``<results>/models/<id>/best.pt`` (default: the config's output_dir). Returns the timing record."""
+    from denoisers.experiment import DIGEST_KEY, Lineage
+
     spec, method, layers = _prepare(cfg, method_id, spp, results)
     clip = _load_method_clip(Path(render_dir), spec, method, layers, reference=False)
     frames = _frames(clip, method, layers)
@@ -516,6 +526,7 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
         "out_of_range_outputs_per_frame": result.out_of_range_outputs,
         # Cost of rendering one sample with every buffer (for the equal-time view of the report).
         "render_samples_per_s": float(np.mean(render_rates)) if render_rates else None,
+        DIGEST_KEY: Lineage(cfg).denoised(spec, scene, spp),
     }
     with atomic_directory(out_dir) as staging:
         for t, radiance in zip(clip.frames, result.radiance):
@@ -583,13 +594,31 @@ def score_sequence(pred: np.ndarray, ref: np.ndarray, cuts: Sequence[bool], warm
     return scores
 
 
+def _metrics_record(cfg: dict, denoised_path: Path) -> dict[str, Any] | None:
+    """The sidecar of the metrics of a denoised clip: the row, scene and spp its timing.json names and the
+    settings digest of the metrics (None without timing.json). SettingsMismatchError if the clip was
+    denoised with other settings than ``cfg``'s."""
+    from denoisers.experiment import DIGEST_KEY, Lineage, check_recorded
+
+    path = denoised_path / TIMING_FILE
+    timing = json.loads(path.read_text()) if path.is_file() else {}
+    if not {"method_id", "scene", "spp"} <= timing.keys():
+        return None
+    spec, scene, spp, lineage = method_spec(cfg, timing["method_id"]), timing["scene"], timing["spp"], Lineage(cfg)
+    check_recorded(path, timing.get(DIGEST_KEY), lineage.denoised(spec, scene, spp))
+    return {"method_id": spec.id, "scene": scene, "spp": spp, DIGEST_KEY: lineage.metrics(spec, scene, spp)}
+
+
 def evaluate_clip(cfg: dict, denoised_path: Path, render_dir: Path, out_csv: Path):
     """Per-frame metrics of one denoised clip against clip.reference radiance -> CSV with columns
     frame, psnr, ssim, rmse, relmse, smape, flip, tpsnr, trmae, camera_cut, nonfinite_output,
-    reference_psnr_halves. Raises EvaluationError when frame counts or resolutions differ."""
+    reference_psnr_halves, and its sidecar (metrics_sidecar: the settings digest the metrics came from;
+    not written when the denoised clip has no timing.json). Raises EvaluationError when frame counts or
+    resolutions differ."""
     import pandas as pd
 
     denoised_path, render_dir = Path(denoised_path), Path(render_dir)
+    record = _metrics_record(cfg, denoised_path)
     denoised = read_frame_files(denoised_path)
     if not denoised:
         raise EvaluationError(f"{denoised_path}: no denoised frames (frame_TTTT.exr)")
@@ -608,6 +637,8 @@ def evaluate_clip(cfg: dict, denoised_path: Path, render_dir: Path, out_csv: Pat
     table = pd.DataFrame({"frame": ref_frames, **scores, "camera_cut": cuts,
                           "nonfinite_output": (~np.isfinite(pred)).sum(axis=(1, 2, 3)),
                           "reference_psnr_halves": [m.get("psnr_halves", np.nan) for m in ref_meta]})
+    if record is not None:   # first: a CSV on disk always has its sidecar
+        write_text_atomic(metrics_sidecar(out_csv), json.dumps(record, indent=1) + "\n")
     write_text_atomic(out_csv, table.to_csv(index=False))
     return table
 
@@ -656,11 +687,13 @@ def inject_corruption(samples: dict[str, np.ndarray], *, seed: int, scene: str, 
 
 
 def robustness_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Path, out_dir: Path,
-                    threads: int = 1, results: Path | str = "results") -> dict[str, Any]:
+                    threads: int = 1, results: Path | str | None = None) -> dict[str, Any]:
     """Run one method at ``spp`` on a clip whose noisy samples carry injected spikes and NaN/Inf (settings
     in ``evaluation.robustness``) and score it against the reference. Writes ``out_dir`` atomically:
-    metrics.csv (per frame), summary.json (counts), last_frame.exr (the output of the last frame)."""
+    metrics.csv (per frame), summary.json (counts, settings digest), last_frame.exr (the output of the last frame)."""
     import pandas as pd
+
+    from denoisers.experiment import DIGEST_KEY, Lineage
 
     settings = cfg["evaluation"]["robustness"]
     spec, method, layers = _prepare(cfg, method_id, spp, results)
@@ -681,7 +714,7 @@ def robustness_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir:
                "nonfinite_inputs": int(sum(result.nonfinite_inputs)),
                "nonfinite_outputs": int(sum(result.nonfinite_outputs)),
                **out_of_range_record(result),
-               "mean_psnr": float(np.nanmean(scores["psnr"]))}
+               "mean_psnr": float(np.nanmean(scores["psnr"])), DIGEST_KEY: Lineage(cfg).robustness(spec, scene, spp)}
     with atomic_directory(out_dir) as staging:
         (staging / ROBUSTNESS_CSV).write_text(table.to_csv(index=False), encoding="utf-8")
         (staging / ROBUSTNESS_SUMMARY).write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")

@@ -42,7 +42,7 @@ def tuning_entry(cfg: dict, method: str) -> dict:
 
 
 def tuning_file(results: Path | str, method: str) -> Path:
-    """results/tuning/{method}.json"""
+    """<results>/tuning/{method}.json (<results>: the experiment folder, the config's output_dir)"""
     return Path(results) / "tuning" / f"{method}.json"
 
 
@@ -83,7 +83,7 @@ def _score_clip(method, frames: list, reference: np.ndarray) -> float:
 
 def tune_method(cfg: dict, method: str, render_dirs: Mapping[str, Path], threads: int = 1) -> dict[str, Any]:
     """Grid-search ``method``'s configured parameters on the training clips ``render_dirs``
-    ({scene id: results/renders/{scene}}, train_* only). Returns the JSON-ready result."""
+    ({scene id: <output_dir>/renders/{scene}}, train_* only). Returns the JSON-ready result."""
     import torch
 
     from denoisers import registry
@@ -138,7 +138,7 @@ def format_result(result: Mapping[str, Any]) -> str:
 
 
 def tuned_params(results: Path | str, method: str) -> dict[str, Any]:
-    """The chosen parameters of ``method`` from results/tuning/{method}.json; TuningError if missing."""
+    """The chosen parameters of ``method`` from <results>/tuning/{method}.json; TuningError if missing."""
     path = tuning_file(results, method)
     if not path.is_file():
         raise TuningError(f"evaluation row uses tuned parameters of {method!r} but {path} does not exist; "

@@ -15,7 +15,7 @@ import hashlib
 import json
 import math
 from collections.abc import Iterator, Sequence
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import jsonschema
@@ -28,6 +28,13 @@ MAX_SAMPLE_LAYERS = 32
 
 SCENE_SPLITS = ("train", "test")
 CUSTOM_PREFIX = "custom_"
+
+#: What a workflow run writes below the config's ``output_dir`` (the experiment folder); `python -m
+#: denoisers clean` removes exactly these entries, so another experiment nested inside the folder survives.
+OUTPUT_ENTRIES: tuple[str, ...] = ("scenes", "renders", "models", "tuning", "denoised", "metrics", "robustness",
+                                   "tables", "figures", "REPORT.md", "logs", "benchmarks", ".config")
+#: Hex characters of the settings digests that outputs record (64 bits: no accidental collisions).
+DIGEST_CHARS = 16
 
 
 class ConfigError(ValueError):
@@ -165,6 +172,32 @@ def _cross_key_problems(cfg: dict[str, Any]) -> Iterator[str]:
     names = [entry["name"] for entry in cfg["extra_scenes"]]
     for name in sorted({name for name in names if names.count(name) > 1}):
         yield f"config key 'extra_scenes' has the name {name!r} more than once; allowed: unique names"
+    yield from _output_dir_problems(cfg.get("output_dir", "results"))
+
+
+def _output_dir_problems(value: str) -> Iterator[str]:
+    """An experiment folder must be a folder of its own: not the working directory or the file system root,
+    not above them ('..'), and (if relative) not inside another experiment's output folders, which that
+    experiment's clean would remove."""
+    parts = PurePosixPath(value).parts
+    allowed = "allowed: a folder of its own, e.g. results or results/smoke (relative or absolute, no '..')"
+    if not parts or parts in ((".",), ("/",)) or ".." in parts:
+        yield f"config key 'output_dir' = {value!r} is not allowed; {allowed}"
+    # Relative paths only: an absolute path like /data/renders/exp1 is not inside an experiment of this tree.
+    clash = [part for part in parts if part in OUTPUT_ENTRIES] if not PurePosixPath(value).is_absolute() else []
+    if clash:
+        yield (f"config key 'output_dir' = {value!r} has a component {clash[0]!r}, a folder of the experiment "
+               f"layout ({', '.join(OUTPUT_ENTRIES)}); {allowed}")
+
+
+def output_root(cfg: dict[str, Any]) -> Path:
+    """The experiment folder of a validated config (key ``output_dir``), normalised (no trailing slash)."""
+    return Path(cfg["output_dir"])
+
+
+def short_digest(digest: str) -> str:
+    """The recorded form of a SHA-256 hex digest: its first DIGEST_CHARS characters."""
+    return digest[:DIGEST_CHARS]
 
 
 def config_problems(cfg: Any) -> list[str]:

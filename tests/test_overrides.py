@@ -35,7 +35,7 @@ def test_nested_override_on_the_command_line(tmp_path: Path) -> None:
     workflow = copy_workflow(tmp_path)
     result = run_snakemake("scenes", "-n", "-p", "--configfile", "config/smoke.yaml", "--config", "render={reference_spp: 32}",
                            cwd=workflow)
-    resolved = sorted((workflow / "results" / ".config").glob("*.yaml"))
+    resolved = sorted((workflow / "results" / "smoke" / ".config").glob("*.yaml"))
     assert result.returncode == 0 and resolved
     cfg = yaml.safe_load(resolved[-1].read_text())
     assert cfg["render"]["reference_spp"] == 32 and cfg["render"]["width"] == 48   # merged, not replaced

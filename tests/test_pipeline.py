@@ -5,7 +5,8 @@ first the stage target `scenes` alone, then the default target (renders, every c
 the test scene, metrics, the robustness scenario and the report). That checks the stage target on a
 fresh tree, that the full run reuses the scenes, the complete dataset and the evaluation outputs in
 a single DAG. The smoke config evaluates one test scene and the README's example XML scene
-(custom_spheres_room).
+(custom_spheres_room). Its outputs go to its output_dir (results/smoke); afterwards a second config
+(seed 7, its own output_dir) runs `scenes` next to it, which must leave the smoke experiment untouched.
 """
 
 from __future__ import annotations
@@ -22,10 +23,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 from PIL import Image
 
-from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_SUMMARY, TIMING_FILE, denoised_dir, metrics_csv, plan_runs,
-                                robustness_dir, robustness_runs)
+from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_SUMMARY, TIMING_FILE, denoised_dir, method_spec, metrics_csv,
+                                metrics_sidecar, plan_runs, robustness_dir, robustness_runs)
+from denoisers.experiment import DIGEST_KEY, Lineage
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.report import report_outputs
@@ -40,6 +43,8 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 SMOKE_CONFIG = "config/smoke.yaml"
+# The second experiment: the smoke config with another seed and its own folder.
+SEED7_CONFIG, SEED7_OUT = "seed7.yaml", "results/seed7"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference")
 # results/benchmarks/{folder}/{method}/{scene}/spp{spp}.tsv of the evaluation rules: folder -> which runs.
 EVALUATION_BENCHMARKS = {"denoise": "evaluation", "evaluate": "evaluation", "robustness": "robustness"}
@@ -47,22 +52,22 @@ MAX_RESULTS_BYTES = 50 * 1024**2
 # Snakemake marks every directory() output with this file; it is not part of the data.
 SNAKEMAKE_MARKER = ".snakemake_timestamp"
 # Generous: the machine may be shared; a hung job should fail the test rather than block forever.
-SNAKEMAKE_TIMEOUT_S = 900
+SNAKEMAKE_TIMEOUT_S = 2400
 
 
-def _snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
+def _snakemake(workdir: Path, *args: str, config: str = SMOKE_CONFIG) -> subprocess.CompletedProcess:
     """Run the venv's snakemake in ``workdir`` with the venv first on PATH (the rules call `python`)."""
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     # conftest's init_mitsuba may have set DRJIT_LIBLLVM_PATH in this process; dict(os.environ) passes it on.
     # Targets and flags go first: --configfile takes several values and would swallow a target.
-    return subprocess.run([str(SNAKEMAKE), *args, "--cores", "2", "--configfile", SMOKE_CONFIG],
+    return subprocess.run([str(SNAKEMAKE), *args, "--cores", "2", "--configfile", config],
                           cwd=workdir, env=env, capture_output=True, text=True, timeout=SNAKEMAKE_TIMEOUT_S)
 
 
 def _check_ok(result: subprocess.CompletedProcess, what: str, workdir: Path) -> None:
     if result.returncode != 0:
         logs = "\n".join(f"--- {log}\n{log.read_text()[-3000:]}"
-                         for log in sorted((workdir / "results" / "logs").rglob("*.log")))
+                         for log in sorted((workdir / "results").rglob("logs/**/*.log")))
         pytest.fail(f"{what} exited with {result.returncode}\n{result.stdout[-5000:]}\n"
                     f"{result.stderr[-5000:]}\n{logs}")
 
@@ -76,13 +81,16 @@ def _tree(root: Path) -> dict[str, int]:
 class PipelineRun:
     workdir: Path
     cfg: dict
-    after_scenes: dict[str, int]      # results/ tree after `snakemake scenes`
+    after_scenes: dict[str, int]      # the experiment folder's tree after `snakemake scenes`
     full: subprocess.CompletedProcess
     dry_rerun: subprocess.CompletedProcess
+    after_full: dict[str, int]        # the experiment folder's tree after the full run
+    after_seed7: dict[str, int]       # the same, after the seed-7 config ran `scenes` into its own folder
 
     @property
     def results(self) -> Path:
-        return self.workdir / "results"
+        """The smoke experiment's folder (its output_dir)."""
+        return self.workdir / self.cfg["output_dir"]
 
     def runs(self, kind: str = "evaluation") -> list:
         """Runnable (method, spp) runs of the evaluation or of the robustness scenario."""
@@ -97,15 +105,21 @@ def pipeline(tmp_path_factory) -> PipelineRun:
     for folder in ("workflow", "config", "examples"):
         shutil.copytree(REPO_ROOT / folder, workdir / folder)
 
+    cfg = load_config(workdir / SMOKE_CONFIG)
+    results = workdir / cfg["output_dir"]
     scenes_run = _snakemake(workdir, "scenes")
     _check_ok(scenes_run, "snakemake scenes", workdir)
-    after_scenes = _tree(workdir / "results")
-    assert not (workdir / "results" / "renders").exists(), "stage target `scenes` rendered frames"
+    after_scenes = _tree(results)
+    assert not (results / "renders").exists(), "stage target `scenes` rendered frames"
 
     full = _snakemake(workdir)
     _check_ok(full, "snakemake (default target)", workdir)
+    after_full = _tree(results)
+    seed7 = yaml.safe_load((workdir / SMOKE_CONFIG).read_text()) | {"seed": 7, "output_dir": SEED7_OUT}
+    (workdir / SEED7_CONFIG).write_text(yaml.safe_dump(seed7))
+    _check_ok(_snakemake(workdir, "scenes", config=SEED7_CONFIG), "snakemake scenes (seed 7)", workdir)
     dry_rerun = _snakemake(workdir, "-n")
-    return PipelineRun(workdir, load_config(workdir / SMOKE_CONFIG), after_scenes, full, dry_rerun)
+    return PipelineRun(workdir, cfg, after_scenes, full, dry_rerun, after_full, _tree(results))
 
 
 def test_scenes_stage_target_produces_only_scenes(pipeline: PipelineRun) -> None:
@@ -332,3 +346,46 @@ def test_every_configured_model_is_trained_and_reported(pipeline: PipelineRun) -
     assert "<!-- rae -->" in (pipeline.results / "figures" / "quality_vs_speed.svg").read_text()
     report = (pipeline.results / "REPORT.md").read_text()
     assert "## Learned denoisers" in report and "figures/rae_inputs_curves.png" in report
+
+
+def test_a_second_config_gets_its_own_complete_folder(pipeline: PipelineRun) -> None:
+    """Two configs run one after the other: the second (seed 7, output_dir results/seed7) writes only into its
+    own folder; the smoke experiment is byte-for-byte the tree it was (same files, same mtimes)."""
+    assert pipeline.after_seed7 == pipeline.after_full
+    seed7 = pipeline.workdir / SEED7_OUT
+    assert not seed7.is_relative_to(pipeline.results) and not pipeline.results.is_relative_to(seed7)
+    for scene in scene_ids(pipeline.cfg):
+        ours = json.loads((pipeline.results / "scenes" / scene / "manifest.json").read_text())
+        theirs = json.loads((seed7 / "scenes" / scene / "manifest.json").read_text())
+        if not scene.startswith(CUSTOM_PREFIX):   # procedural scenes are drawn from the seed
+            assert ours != theirs, scene
+    assert {p.name for p in seed7.iterdir()} <= {"scenes", ".config", "logs", "benchmarks"}
+
+
+def test_every_output_records_the_settings_digest_of_this_config(pipeline: PipelineRun) -> None:
+    """The digests the jobs recorded equal the ones denoisers.experiment derives from the config (and the
+    report checked every one of them)."""
+    cfg, lineage = pipeline.cfg, Lineage(pipeline.cfg)
+    checked = 0
+    for scene in evaluated_scene_ids(cfg):
+        for run in pipeline.runs():
+            sidecar = metrics_sidecar(metrics_csv(pipeline.results, run.spec.id, scene, run.spp))
+            assert json.loads(sidecar.read_text())[DIGEST_KEY] == lineage.metrics(run.spec, scene, run.spp), sidecar
+            timing = json.loads((denoised_dir(pipeline.results, run.spec.id, scene, run.spp) / TIMING_FILE).read_text())
+            assert timing[DIGEST_KEY] == lineage.denoised(run.spec, scene, run.spp)
+            checked += 2
+        for run in pipeline.runs("robustness"):
+            summary = json.loads((robustness_dir(pipeline.results, run.spec.id, scene, run.spp)
+                                  / ROBUSTNESS_SUMMARY).read_text())
+            assert summary[DIGEST_KEY] == lineage.robustness(method_spec(cfg, run.spec.id), scene, run.spp)
+            checked += 1
+    for spec in model_specs(cfg):
+        summary = json.loads((model_dir(pipeline.results, spec.id) / "summary.json").read_text())
+        assert summary[DIGEST_KEY] == lineage.model(spec.id)
+        checked += 1
+    for entry in cfg["tuning"]["methods"]:
+        record = json.loads((pipeline.results / "tuning" / f"{entry['method']}.json").read_text())
+        assert record[DIGEST_KEY] == lineage.tuning(entry["method"])
+        checked += 1
+    report = (pipeline.results / "REPORT.md").read_text()
+    assert f"Settings digests: {checked} outputs record this config's settings digests;" in report

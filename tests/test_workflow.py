@@ -3,7 +3,7 @@
 None of these runs the real renderer or a denoiser: dry runs only, plus one real run of the `renders`
 target in a temporary copy of the workflow where `python -m scenegen` is a stub that just creates the
 output directories. Every snakemake call runs in a temporary copy of Snakefile, workflow/ and config/:
-parsing writes results/.config/, and the repository's own results/ and .snakemake/ stay untouched.
+parsing writes <output_dir>/.config/, and the repository's own results/ and .snakemake/ stay untouched.
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
 JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
+# The smoke config's experiment folder (config key output_dir): every path of its DAG is below it.
+SMOKE_OUT = load_config(REPO_ROOT / "config/smoke.yaml")["output_dir"]
 
 
 def run_snakemake(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
@@ -209,13 +211,13 @@ def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Pat
     test_scenes = evaluated_scene_ids(cfg)
     for variant in variants:
         denoise = {job["output"]: job["input"].split(", ") for rule, job in jobs if rule == "denoise_clip"
-                   and job["output"].startswith(f"results/denoised/{variant}/")}
-        assert set(denoise) == {f"results/denoised/{variant}/{scene}/spp{spp}" for scene in test_scenes
+                   and job["output"].startswith(f"{SMOKE_OUT}/denoised/{variant}/")}
+        assert set(denoise) == {f"{SMOKE_OUT}/denoised/{variant}/{scene}/spp{spp}" for scene in test_scenes
                                 for spp in ablation_spp}
-        assert all(f"results/models/{variant}" in inputs for inputs in denoise.values())
+        assert all(f"{SMOKE_OUT}/models/{variant}" in inputs for inputs in denoise.values())
         assert not [job for rule, job in jobs if rule == "robustness_clip" and f"/{variant}/" in job["output"]]
     trained = {job["output"] for rule, job in jobs if rule == "train_denoiser"}
-    assert {f"results/models/{variant}" for variant in variants} <= trained
+    assert {f"{SMOKE_OUT}/models/{variant}" for variant in variants} <= trained
 
 
 @pytest.mark.slow
@@ -226,17 +228,17 @@ def test_custom_scenes_are_denoised_evaluated_and_reported(workflow_copy: Path) 
     custom = [f"custom_{entry['name']}" for entry in cfg["extra_scenes"]]
     assert custom == ["custom_spheres_room"] and evaluated_scene_ids(cfg) == ["test_000", *custom]
     jobs = dry_run_jobs("report", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
-    outputs = {rule: {job["output"] for r, job in jobs if r == rule} for rule in
+    outputs = {rule: {path for r, job in jobs if r == rule for path in job["output"].split(", ")} for rule in
                ("denoise_clip", "evaluate_clip", "robustness_clip", "generate_scene")}
     runs = [run for run in plan_runs(cfg) if run.runnable]
-    assert {f"results/denoised/{run.spec.id}/{custom[0]}/spp{run.spp}" for run in runs} <= outputs["denoise_clip"]
-    assert {f"results/metrics/{run.spec.id}/{custom[0]}/spp{run.spp}.csv" for run in runs} <= outputs["evaluate_clip"]
+    assert {f"{SMOKE_OUT}/denoised/{run.spec.id}/{custom[0]}/spp{run.spp}" for run in runs} <= outputs["denoise_clip"]
+    assert {f"{SMOKE_OUT}/metrics/{run.spec.id}/{custom[0]}/spp{run.spp}.csv" for run in runs} <= outputs["evaluate_clip"]
     robust = [run for run in robustness_runs(cfg) if run.runnable]
-    assert robust and {f"results/robustness/{run.spec.id}/{custom[0]}/spp{run.spp}" for run in robust} <= \
+    assert robust and {f"{SMOKE_OUT}/robustness/{run.spec.id}/{custom[0]}/spp{run.spp}" for run in robust} <= \
         outputs["robustness_clip"]
-    assert f"results/scenes/{custom[0]}" in outputs["generate_scene"]
+    assert f"{SMOKE_OUT}/scenes/{custom[0]}" in outputs["generate_scene"]
     report = next(job for rule, job in jobs if rule == "build_report")
-    assert f"results/scenes/{custom[0]}" in report["input"].split(", ")
+    assert f"{SMOKE_OUT}/scenes/{custom[0]}" in report["input"].split(", ")
     training = [job for rule, job in jobs if rule == "train_denoiser"]
     assert training and not any(custom[0] in job["input"] for job in training)
 
@@ -385,7 +387,7 @@ def smoke_variant(workdir: Path, section: str, key: str, value: object) -> str:
 @pytest.mark.slow
 def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> None:
     work = stub_workflow
-    assert (work / "results/renders/test_000/reference/chunk_001/stub.txt").is_file()
+    assert (work / SMOKE_OUT / "renders/test_000/reference/chunk_001/stub.txt").is_file()
     assert dry_run("renders", "--configfile", "config/smoke.yaml", cwd=work) == {}
 
     # The smoke config: 3 procedural scenes and the custom scene, 2 chunks each.
@@ -436,7 +438,7 @@ def test_training_reruns_only_when_its_settings_or_data_change(stub_workflow: Pa
     (package / "__init__.py").write_text(STUB_DENOISERS_INIT)
     (package / "__main__.py").write_text(STUB_TRAIN_CLI)
     run_snakemake("train", "--cores", "2", "--configfile", "config/smoke.yaml", cwd=work)
-    assert (work / "results/models/rae_loss_spatial/stub.txt").is_file()
+    assert (work / SMOKE_OUT / "models/rae_loss_spatial/stub.txt").is_file()
     assert dry_run("train", "--configfile", "config/smoke.yaml", cwd=work) == {}
 
     def variant(name: str, change) -> str:

@@ -24,7 +24,7 @@ def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
     return outputs(cfg, root)
 
 
-def build_report(cfg: dict, results_dir: Path, out_dir: Path | None = None) -> list[Path]:
+def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | None = None) -> list[Path]:
     """Compute every table, figure and REPORT.md (see denoisers.report.writer.build_report)."""
     from denoisers.report.writer import build_report as build
 

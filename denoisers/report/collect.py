@@ -4,6 +4,10 @@ the manifests of the external scenes (generate_scene: what was rendered and what
 
 Nothing here computes a verdict; :class:`Results` only answers lookups (which rows ran, per-scene
 values of a column, rows whose outputs were flagged as non-finite or absurd).
+
+Every output read is checked against the settings digest this config expects for it
+(denoisers.experiment.Lineage): outputs computed from other settings (another seed, other render or
+method settings) are not combined; :func:`collect` raises SettingsMismatchError naming each of them.
 """
 from __future__ import annotations
 
@@ -23,11 +27,14 @@ from denoisers.evaluate import (
     evaluated_scene_ids,
     method_specs,
     metrics_csv,
+    metrics_sidecar,
     robustness_dir,
 )
+from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
 from denoisers.report.stats import pooled_psnr
 from denoisers.training.models import ModelSpec, model_dir, model_specs
-from scenegen.config import CUSTOM_PREFIX
+from denoisers.tuning import TUNED_KEY, tuning_file
+from scenegen.config import CUSTOM_PREFIX, output_root
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -82,17 +89,20 @@ class TrainedModels:
         return [spec.id for spec in self.specs if spec.id not in self.models]
 
 
-def collect_models(cfg: dict, results_dir: Path) -> TrainedModels:
-    """Every configured model whose directory holds summary.json, curves.csv and validation.csv."""
+def collect_models(cfg: dict, results_dir: Path, ledger: DigestLedger | None = None) -> TrainedModels:
+    """Every configured model whose directory holds summary.json, curves.csv and validation.csv; their
+    settings digests go to ``ledger``."""
     import pandas as pd
 
-    found = TrainedModels(model_specs(cfg))
+    found, lineage = TrainedModels(model_specs(cfg)), Lineage(cfg)
     for spec in found.specs:
         folder = model_dir(results_dir, spec.id)
         files = [folder / name for name in ("summary.json", "curves.csv", "validation.csv")]
         if all(path.is_file() for path in files):
-            found.models[spec.id] = TrainedModel(spec, json.loads(files[0].read_text()), pd.read_csv(files[1]),
-                                                 pd.read_csv(files[2]))
+            summary = json.loads(files[0].read_text())
+            if ledger is not None:
+                ledger.add(files[0], summary.get(DIGEST_KEY), lineage.model(spec.id))
+            found.models[spec.id] = TrainedModel(spec, summary, pd.read_csv(files[1]), pd.read_csv(files[2]))
     return found
 
 
@@ -108,9 +118,14 @@ class Results:
     frames: pd.DataFrame                      # per-frame metrics of runs that exist: method_id, spp, scene, frame, ...
     per_scene: pd.DataFrame                   # per (method_id, spp, scene): frame means, video PSNR, timing, counts
     robustness: pd.DataFrame | None = None    # per (method_id, scene): spiked metrics and counts
-    results_dir: Path = field(default_factory=lambda: Path("results"))
+    results_dir: Path | None = None           # the experiment folder read (None: the config's output_dir)
     models: TrainedModels | None = None
     external: dict[str, dict | None] = field(default_factory=dict)   # custom_* scene -> manifest (None: missing)
+    digests: DigestLedger | None = None       # settings digests of the outputs read
+
+    def __post_init__(self) -> None:
+        if self.results_dir is None:
+            self.results_dir = output_root(self.cfg)
 
     @property
     def external_scenes(self) -> list[str]:
@@ -201,11 +216,15 @@ def _timing_row(spec: MethodSpec, scene: str, spp: int, timing: dict) -> dict[st
             "pixels": timing["width"] * timing["height"]}
 
 
-def collect(cfg: dict, results_dir: Path) -> Results:
-    """Read every metrics CSV and timing.json of the configured runs on the evaluated scenes."""
+def collect(cfg: dict, results_dir: Path | None = None) -> Results:
+    """Read every metrics CSV and timing.json of the configured runs on the evaluated scenes, the robustness
+    outputs and the trained models below ``results_dir`` (default: the config's output_dir). Raises
+    SettingsMismatchError, naming the files, if any of them records a settings digest other than this
+    config's (outputs of another seed or other settings are never combined)."""
     import pandas as pd
 
-    results_dir = Path(results_dir)
+    results_dir = output_root(cfg) if results_dir is None else Path(results_dir)
+    ledger, lineage = DigestLedger(), Lineage(cfg)
     specs, scenes = method_specs(cfg), evaluated_scene_ids(cfg)
     plan = None
     runs, frame_tables, timing_rows = [], [], []
@@ -217,12 +236,18 @@ def collect(cfg: dict, results_dir: Path) -> Results:
                 runs.append({"id": spec.id, "method": spec.method, "role": spec.role, "spp": spp, "status": "ran",
                              "reason": ""})
                 for scene in scenes:
-                    table = pd.read_csv(metrics_csv(results_dir, spec.id, scene, spp))
+                    csv = metrics_csv(results_dir, spec.id, scene, spp)
+                    table = pd.read_csv(csv)
+                    sidecar = metrics_sidecar(csv)
+                    recorded = json.loads(sidecar.read_text()).get(DIGEST_KEY) if sidecar.is_file() else None
+                    ledger.add(sidecar if sidecar.is_file() else csv, recorded, lineage.metrics(spec, scene, spp))
                     table.insert(0, "scene", scene)
                     table.insert(0, "spp", spp)
                     table.insert(0, "method_id", spec.id)
                     frame_tables.append(table)
-                    timing = json.loads((denoised_dir(results_dir, spec.id, scene, spp) / TIMING_FILE).read_text())
+                    timing_path = denoised_dir(results_dir, spec.id, scene, spp) / TIMING_FILE
+                    timing = json.loads(timing_path.read_text())
+                    ledger.add(timing_path, timing.get(DIGEST_KEY), lineage.denoised(spec, scene, spp))
                     timing_rows.append(_timing_row(spec, scene, spp, timing))
                 continue
             plan = _plan_status(cfg) if plan is None else plan
@@ -244,14 +269,20 @@ def collect(cfg: dict, results_dir: Path) -> Results:
         frames = pd.DataFrame(columns=["method_id", "spp", "scene", "frame", *metric_columns, "camera_cut"])
         per_scene = pd.DataFrame(columns=["method_id", "spp", "scene", *metric_columns, *DERIVED_METRICS,
                                           *TIMING_COLUMNS, "nonfinite_outputs", "out_of_range_outputs"])
-    robustness = _collect_robustness(cfg, results_dir, specs, scenes) \
+    robustness = _collect_robustness(cfg, results_dir, specs, scenes, ledger) \
         if cfg["evaluation"]["robustness"]["enabled"] else None
-    return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir,
-                   collect_models(cfg, results_dir), external_manifests(results_dir, scenes))
+    models = collect_models(cfg, results_dir, ledger)
+    for method in sorted({spec.method for spec in specs if spec.params.get(TUNED_KEY)}):
+        path = tuning_file(results_dir, method)
+        if path.is_file():
+            ledger.add(path, json.loads(path.read_text()).get(DIGEST_KEY), lineage.tuning(method))
+    ledger.raise_if_mixed(cfg, results_dir)
+    return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir, models,
+                   external_manifests(results_dir, scenes), ledger)
 
 
 def external_manifests(results_dir: Path, scenes: list[str]) -> dict[str, dict | None]:
-    """results/scenes/{scene}/manifest.json of every external scene in ``scenes`` (None if absent)."""
+    """<results_dir>/scenes/{scene}/manifest.json of every external scene in ``scenes`` (None if absent)."""
     found = {}
     for scene in (s for s in scenes if s.startswith(CUSTOM_PREFIX)):
         path = Path(results_dir) / "scenes" / scene / "manifest.json"
@@ -259,10 +290,11 @@ def external_manifests(results_dir: Path, scenes: list[str]) -> dict[str, dict |
     return found
 
 
-def _collect_robustness(cfg: dict, results_dir: Path, specs: list[MethodSpec], scenes: list[str]) -> pd.DataFrame:
+def _collect_robustness(cfg: dict, results_dir: Path, specs: list[MethodSpec], scenes: list[str],
+                        ledger: DigestLedger) -> pd.DataFrame:
     import pandas as pd
 
-    spp = cfg["evaluation"]["robustness"]["spp"]
+    spp, lineage = cfg["evaluation"]["robustness"]["spp"], Lineage(cfg)
     rows = []
     for spec in specs:
         for scene in scenes:
@@ -271,6 +303,7 @@ def _collect_robustness(cfg: dict, results_dir: Path, specs: list[MethodSpec], s
                 continue
             table = pd.read_csv(folder / ROBUSTNESS_CSV)
             summary = json.loads((folder / ROBUSTNESS_SUMMARY).read_text())
+            ledger.add(folder / ROBUSTNESS_SUMMARY, summary.get(DIGEST_KEY), lineage.robustness(spec, scene, spp))
             rows.append({"method_id": spec.id, "scene": scene, "spp": spp,
                          **{f"{m}_spiked": table[m].mean() for m in ALL_METRICS},
                          "nonfinite_inputs": summary["nonfinite_inputs"],

@@ -15,6 +15,7 @@ from denoisers.report.outputs import report_outputs
 from denoisers.report.stats import LABELS, formatted, frame_to_markdown, markdown_table, with_ci_columns
 from denoisers.reproductions import all_claims, all_reproductions
 from scenegen.atomic import write_text_atomic
+from scenegen.config import output_root
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -41,7 +42,9 @@ def _setup_lines(res: Results) -> list[str]:
         "the 95 % Student-t confidence interval over per-scene means (absent with one scene).",
         f"- Timing: in-process seconds per `denoise()` call with {cfg['evaluation']['threads']} torch thread(s), "
         "first frame (warm-up) and all I/O excluded; Mpix/s = pixels / mean seconds. Peak memory: RSS sampled "
-        "with psutil every 5 ms during the denoise loop, minus the RSS before it.", "",
+        "with psutil every 5 ms during the denoise loop, minus the RSS before it.",
+        *([f"- Settings digests: {res.digests.summary()}; outputs of other settings (another seed, other render "
+           "or method settings) are refused, not combined."] if res.digests else []), "",
         "Provenance of this report (each trained model records its own in summary.json; see the training table):",
         "", *describe(provenance({"evaluation": cfg["evaluation"]["threads"],
                                   "training": cfg.get("training", {}).get("threads", 0)})), ""]
@@ -185,10 +188,11 @@ def _core_tables(res: Results, tables: Path) -> dict[str, str]:
     return {"summary": summary_md, "equal_time": equal_time_md, "noise": noise_md}
 
 
-def build_report(cfg: dict, results_dir: Path, out_dir: Path | None = None) -> list[Path]:
-    """Compute every table, figure and REPORT.md from the evaluation outputs under ``results_dir``;
-    write them under ``out_dir`` (default ``results_dir``). Returns the written paths."""
-    results_dir = Path(results_dir)
+def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | None = None) -> list[Path]:
+    """Compute every table, figure and REPORT.md from the evaluation outputs under ``results_dir`` (default:
+    the config's output_dir); write them under ``out_dir`` (default ``results_dir``). Returns the written
+    paths. Raises SettingsMismatchError if outputs were computed from other settings (collect)."""
+    results_dir = Path(results_dir) if results_dir is not None else output_root(cfg)
     out_dir = Path(out_dir) if out_dir is not None else results_dir
     tables, figures = out_dir / "tables", out_dir / "figures"
     tables.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,5 @@
 """One training job of the workflow (rule train_denoiser): train a configured model on the rendered
-training scenes and publish it as ``results/models/<id>/``.
+training scenes and publish it as ``<output_dir>/models/<id>/``.
 
 The trainer works in ``<models>/.work/<id>-<digest>/`` (digest of everything that determines the
 weights except the budget), so a killed job resumes from its last checkpoint when rerun, and raising
@@ -9,7 +9,9 @@ finished is the output directory written (atomically) with:
 * ``best.pt``         the model with the best validation loss (what evaluation rows load)
 * ``curves.csv/.png`` training loss, validation loss and image metrics per step
 * ``validation.csv``  per validation sequence: loss, loss terms, SSIM, PSNR, RMSE of ``best.pt``
-* ``summary.json``    steps, wall time, which budget stopped training, parameters, best step, scenes
+* ``summary.json``    steps, wall time, which budget stopped training, parameters, best step, scenes, and
+                      ``settings_digest``: the digest of the model's settings and training data (the
+                      workflow's rerun trigger, denoisers.experiment), which the report checks
 * ``settings.json``   the resolved model settings
 """
 from __future__ import annotations
@@ -24,6 +26,7 @@ from scenegen.atomic import atomic_directory, write_text_atomic
 
 from denoisers.provenance import provenance
 from denoisers.training.models import ModelSpec, model_spec, settings_digest, training_split
+from scenegen.config import short_digest
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +130,8 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
                     "train_scenes": train_scenes, "validation_scenes": validation_scenes, "stopped_by": stopped_by,
                     "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
                     "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1),
+                    # = denoisers.experiment.Lineage(cfg).model(model_id) (that module imports this one).
+                    "settings_digest": short_digest(settings_digest(spec, data_settings(cfg))),
                     "provenance": provenance({"training": int(threads)})})
     if hasattr(task, "config") and hasattr(task.config, "width"):
         from denoisers.nets import build_net, count_parameters

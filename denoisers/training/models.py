@@ -10,7 +10,7 @@ Scene split: the ``train_*`` scenes minus the last ``training.validation_scenes`
 those last ones validate. Test scenes are never read by training.
 
 Evaluation rows use a model through ``params: {model: <id>}``; :func:`resolve_method_params` turns
-that into the method's ``checkpoint`` (``results/models/<id>/best.pt``).
+that into the method's ``checkpoint`` (``<output_dir>/models/<id>/best.pt``).
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from typing import Any
 
 from denoisers.training.spec import ModelSpec
 from denoisers.training.tasks import task_problems
-from scenegen.config import SCENE_SPLITS, load_schema, scene_ids
+from scenegen.config import SCENE_SPLITS, load_schema, output_root, scene_ids
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
 #: Files a finished model directory holds (the rule's output directory).
@@ -116,13 +116,15 @@ def settings_digest(spec: ModelSpec, extra: Mapping[str, Any] | None = None) -> 
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
-def resolve_method_params(cfg: dict, params: Mapping[str, Any], results: Path | str = "results", *,
+def resolve_method_params(cfg: dict, params: Mapping[str, Any], results: Path | str | None = None, *,
                           method: str | None = None) -> dict[str, Any]:
     """Constructor parameters of an evaluation row: ``model: <id>`` becomes ``checkpoint: <model dir>/best.pt``;
     ``tuned: true`` adds ``method``'s parameters from <results>/tuning/{method}.json (the row's own params
-    win). With ``method`` None (planning, before any tuning ran) ``tuned`` is dropped without reading."""
+    win). ``results`` defaults to the config's output_dir. With ``method`` None (planning, before any tuning
+    ran) ``tuned`` is dropped without reading."""
     from denoisers.tuning import TUNED_KEY, tuned_params
 
+    results = output_root(cfg) if results is None else results
     resolved = dict(params)
     if resolved.pop(TUNED_KEY, False) and method is not None:
         resolved = {**tuned_params(results, method), **resolved}

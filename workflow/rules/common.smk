@@ -13,16 +13,16 @@ from scenegen.config import (
     config_digest,
     config_problems,
     extra_scene,
-    scene_frame_count,
+    output_root,
     scene_ids,
 )
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
+from denoisers import experiment
 from denoisers.evaluate import evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids
 from denoisers.report import report_outputs
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
-from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, settings_digest,
-                                       training_problems, training_split)
+from denoisers.training.models import method_model, model_dir, model_specs, training_problems, training_split
 
 
 # ---------------------------------------------------------------------------------------------
@@ -53,36 +53,140 @@ wildcard_constraints:
 
 
 SCENES = scene_ids(config)
+# The experiment's folder (config key output_dir): every output, log and benchmark of every rule is below it,
+# so two configs with different output_dir never share a file.
+OUT = output_root(config).as_posix()
+
+
+def results_path(path: str) -> str:
+    """``path`` (may hold {wildcards}) inside the experiment folder: <output_dir>/<path>."""
+    return f"{OUT}/{path}"
+
+
+def results_root(wildcards, output) -> str:
+    """Param: the experiment folder, handed to the CLIs (derived from `output`: not a rerun trigger)."""
+    return OUT
+
+
+def render_root(wildcards, output) -> str:
+    """Param: the folder of every scene's renders (the training job reads the training scenes below it)."""
+    return results_path("renders")
 
 
 def scene_dirs() -> list[str]:
     """Output directories of all scenes (stage target `scenes`)."""
-    return [f"results/scenes/{scene}" for scene in SCENES]
+    return [results_path(f"scenes/{scene}") for scene in SCENES]
 
 
 def chunk_dirs(kind: str) -> list[str]:
     """Output directories of all render chunks of one kind ('noisy' or 'reference')."""
     return [
-        f"results/renders/{scene}/{kind}/chunk_{chunk:03d}"
+        results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}")
         for scene in SCENES
         for chunk in range(chunk_count(config, scene))
     ]
 
 
 # ---------------------------------------------------------------------------------------------
+# Targets that cannot exist for this config (a training scene's denoised clip, a chunk out of range, a
+# scene, row, model or spp the config does not have) are rejected while the DAG is built: the first
+# input function of every job rule checks its wildcards and raises a WorkflowError naming the target
+# and what is allowed (the wildcard constraints above only check the shape of ids).
+# ---------------------------------------------------------------------------------------------
+def impossible_target(job_rule: str, pattern: str, wildcards, problem: str) -> WorkflowError:
+    target = results_path(pattern).format(**dict(wildcards.items()))
+    # Split before the colon: the linter reads a line holding the word rule followed by a colon as a rule.
+    return WorkflowError(f"impossible target {target} (rule {job_rule}) for this config (output_dir {OUT})"
+                         f": {problem}")
+
+
+def _listing(values) -> str:
+    return ", ".join(map(str, values)) or "none"
+
+
+def check_scene_target(wildcards, job_rule: str = "generate_scene", pattern: str = "scenes/{scene}") -> list:
+    if wildcards.scene not in SCENES:
+        raise impossible_target(job_rule, pattern, wildcards,
+                                f"scene {wildcards.scene} is not in this config; scenes: {_listing(SCENES)}")
+    return []
+
+
+def check_chunk_target(kind: str):
+    """Input function of render_{kind}: the scene exists and has the chunk."""
+    job_rule, pattern = f"render_{kind}", f"renders/{{scene}}/{kind}/chunk_{{chunk}}"
+
+    def check(wildcards) -> list:
+        check_scene_target(wildcards, job_rule, pattern)
+        count = chunk_count(config, wildcards.scene)
+        if int(wildcards.chunk) >= count:
+            raise impossible_target(job_rule, pattern, wildcards, f"scene {wildcards.scene} has {count} chunk(s) of "
+                                    f"scenes.frames_per_chunk = {config['scenes']['frames_per_chunk']} frames: "
+                                    f"chunk_000..chunk_{count - 1:03d}")
+        return []
+
+    return check
+
+
+def check_model_target(wildcards) -> list:
+    ids = [spec.id for spec in model_specs(config)]
+    if wildcards.model not in ids:
+        raise impossible_target("train_denoiser", "models/{model}", wildcards,
+                                f"no model {wildcards.model} in training.models or training.ablations; "
+                                f"models: {_listing(ids)}")
+    return []
+
+
+def check_tuning_target(wildcards) -> list:
+    if wildcards.method not in tuning_methods():
+        raise impossible_target("tune_method", "tuning/{method}.json", wildcards,
+                                f"method {wildcards.method} has no tuning.methods entry; tuned methods: "
+                                f"{_listing(tuning_methods())}")
+    return []
+
+
+def check_evaluation_target(job_rule: str, pattern: str, kind: str = "evaluation"):
+    """Input function of the evaluation rules: an evaluated scene, an evaluation row and an spp it runs at
+    (kind 'robustness': a row of the spike/NaN scenario at evaluation.robustness.spp)."""
+
+    def check(wildcards) -> list:
+        scene, method = wildcards.scene, wildcards.method
+        if scene not in EVALUATED_SCENES:
+            why = "training scenes are never evaluated" if scene.startswith("train_") else "not in this config"
+            raise impossible_target(job_rule, pattern, wildcards, f"scene {scene}: {why}; evaluated scenes: "
+                                    f"{_listing(EVALUATED_SCENES)}")
+        if method not in METHOD_SPECS:
+            raise impossible_target(job_rule, pattern, wildcards, f"no evaluation row {method}; rows: "
+                                    f"{_listing(METHOD_SPECS)}")
+        allowed = sorted(run.spp for run in planned_runs(kind) if run.spec.id == method)
+        if int(wildcards.spp) not in allowed:
+            if kind == "robustness" and not allowed:
+                problem = (f"row {method} is not in the robustness scenario (robustness disabled, robustness: "
+                           "false, an ablation row, or more sample layers needed than rendered)")
+            else:
+                where = "in the robustness scenario" if kind == "robustness" else "evaluated"
+                problem = (f"row {method} is {where} at spp: {_listing(allowed)} (its spp, within the rendered "
+                           "sample layers)")
+            raise impossible_target(job_rule, pattern, wildcards, problem)
+        return []
+
+    return check
+
+
+# ---------------------------------------------------------------------------------------------
 # Passing the config to the CLI and rerunning jobs when it changes.
 #
 # The validated config (defaults filled, --config overrides applied) is dumped once per distinct
-# config to a content-addressed file results/.config/<digest>.yaml at parse time; every job
+# config to a content-addressed file <output_dir>/.config/<digest>.yaml at parse time; every job
 # reads it with `--config`. Because the file name changes whenever any key changes, the path is
 # handed over by a param function taking `output`: Snakemake treats such params as derived and
 # leaves them out of the "params" rerun trigger. What does trigger reruns is a second param, the
 # SHA-256 of only the config keys that job's output depends on; Snakemake records params in
 # .snakemake/metadata and (default --rerun-triggers) reruns a job whose params changed. So e.g.
 # raising n_train adds scenes without touching existing ones, and changing reference_spp reruns
-# only the reference renders.
+# only the reference renders. The digests are computed by denoisers.experiment, which also combines
+# them into the lineage digests that outputs record and the report checks.
 # ---------------------------------------------------------------------------------------------
-RESOLVED_CONFIG_FILE = f"results/.config/{config_digest(config)[:16]}.yaml"
+RESOLVED_CONFIG_FILE = results_path(f".config/{config_digest(config)[:16]}.yaml")
 
 
 def write_resolved_config(path: str) -> None:
@@ -104,29 +208,9 @@ def resolved_config_file(wildcards, output) -> str:
     return RESOLVED_CONFIG_FILE
 
 
-# Keys that do not change a scene's content or renders: they only say how many scenes exist or
-# how frames are batched into jobs (frames_per_chunk is added back for the render jobs).
-SCENE_LAYOUT_KEYS = {"n_train", "n_test", "frames_per_chunk"}
-NOISY_ONLY_KEYS = {"spp", "extra_radiance_spp"}
-REFERENCE_ONLY_KEYS = {"reference_spp", "reference_batch_spp"}
-# Render keys that change both noisy and reference images (resolution, variant, path depth); the
-# scene generator's preview render may use them too, so they are part of the scene digest.
-RENDER_SHARED_KEYS = [
-    f"render.{key}" for key in config["render"] if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS
-]
-
-
-def scene_settings(scene: str) -> dict:
-    """The config values a scene's content depends on (not the number of scenes)."""
-    if scene.startswith("custom_"):
-        procedural = {"extra_scene": extra_scene(config, scene)}
-    else:
-        procedural = {key: value for key, value in config["scenes"].items() if key not in SCENE_LAYOUT_KEYS}
-    return {"seed": config["seed"], "scenes": procedural, "render_shared": config_digest(config, *RENDER_SHARED_KEYS)}
-
-
 def generate_scene_input(wildcards) -> dict[str, str]:
     """Named inputs of generate_scene: the XML file of a custom scene, nothing for procedural ones."""
+    check_scene_target(wildcards)
     if wildcards.scene.startswith("custom_"):
         return {"xml": extra_scene(config, wildcards.scene)["xml"]}
     return {}
@@ -134,21 +218,14 @@ def generate_scene_input(wildcards) -> dict[str, str]:
 
 def generate_scene_digest(wildcards) -> str:
     """Param: digest of the config values that determine the scene (rerun trigger)."""
-    return config_digest(scene_settings(wildcards.scene))
+    return experiment.scene_digest(config, wildcards.scene)
 
 
 def render_digest(kind: str):
     """Param function: digest of the config values that determine a noisy/reference chunk."""
-    own_keys = NOISY_ONLY_KEYS if kind == "noisy" else REFERENCE_ONLY_KEYS
 
     def digest(wildcards) -> str:
-        settings = {
-            "scene": scene_settings(wildcards.scene),
-            "frames": scene_frame_count(config, wildcards.scene),
-            "frames_per_chunk": config["scenes"]["frames_per_chunk"],
-            "render": {key: config["render"][key] for key in sorted(own_keys)},
-        }
-        return config_digest(settings)
+        return experiment.render_digest(config, wildcards.scene, kind)
 
     return digest
 
@@ -178,7 +255,7 @@ def method_spec(method_id: str):
     return METHOD_SPECS[method_id]
 
 
-REPORT_OUTPUTS = report_outputs(config)
+REPORT_OUTPUTS = report_outputs(config, root=OUT)
 _planned_runs = {}
 
 
@@ -194,24 +271,20 @@ def planned_runs(kind: str = "evaluation") -> list:
 
 def denoised_dirs(wildcards=None) -> list[str]:
     """Every denoised output directory (stage target `denoise`)."""
-    return [
-        f"results/denoised/{run.spec.id}/{scene}/spp{run.spp}" for run in planned_runs() for scene in EVALUATED_SCENES
-    ]
+    return [results_path(f"denoised/{run.spec.id}/{scene}/spp{run.spp}")
+            for run in planned_runs() for scene in EVALUATED_SCENES]
 
 
 def metrics_files(wildcards=None) -> list[str]:
     """Every per-frame metrics CSV."""
-    return [f"results/metrics/{run.spec.id}/{scene}/spp{run.spp}.csv"
+    return [results_path(f"metrics/{run.spec.id}/{scene}/spp{run.spp}.csv")
             for run in planned_runs() for scene in EVALUATED_SCENES]
 
 
 def robustness_dirs(wildcards=None) -> list[str]:
     """Every output directory of the spike/NaN scenario."""
-    return [
-        str(robustness_dir("results", run.spec.id, scene, run.spp))
-        for run in planned_runs("robustness")
-        for scene in EVALUATED_SCENES
-    ]
+    return [robustness_dir(OUT, run.spec.id, scene, run.spp).as_posix()
+            for run in planned_runs("robustness") for scene in EVALUATED_SCENES]
 
 
 def evaluate_targets(wildcards=None) -> list[str]:
@@ -228,14 +301,14 @@ TRAIN_SCENES, VALIDATION_SCENES = training_split(config)
 
 def model_dirs(wildcards=None) -> list[str]:
     """Every trained model directory (stage target `train`)."""
-    return [str(model_dir("results", spec.id)) for spec in model_specs(config)]
+    return [model_dir(OUT, spec.id).as_posix() for spec in model_specs(config)]
 
 
 def training_chunk_dirs(kind: str):
     """Input function: noisy or reference chunks of the training and validation scenes."""
 
     def chunk_dirs_of_training(wildcards) -> list[str]:
-        return [f"results/renders/{scene}/{kind}/chunk_{chunk:03d}" for scene in TRAIN_SCENES + VALIDATION_SCENES
+        return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for scene in TRAIN_SCENES + VALIDATION_SCENES
                 for chunk in range(chunk_count(config, scene))]
 
     return chunk_dirs_of_training
@@ -243,15 +316,13 @@ def training_chunk_dirs(kind: str):
 
 def train_digest(wildcards) -> str:
     """Param: digest of the model's settings and of what its training data depend on (rerun trigger)."""
-    from denoisers.training.job import data_settings
-
-    return settings_digest(model_spec(config, wildcards.model), data_settings(config))
+    return experiment.train_digest(config, wildcards.model)
 
 
 def method_model_dir(wildcards) -> list[str]:
     """Input function: the trained model an evaluation row uses (params.model), or nothing."""
     model = method_model(method_spec(wildcards.method).params)
-    return [str(model_dir("results", model))] if model else []
+    return [model_dir(OUT, model).as_posix()] if model else []
 
 
 def scene_chunk_dirs(kind: str):
@@ -259,53 +330,45 @@ def scene_chunk_dirs(kind: str):
 
     def chunk_dirs_of_scene(wildcards) -> list[str]:
         count = chunk_count(config, wildcards.scene)
-        return [f"results/renders/{wildcards.scene}/{kind}/chunk_{chunk:03d}" for chunk in range(count)]
+        return [results_path(f"renders/{wildcards.scene}/{kind}/chunk_{chunk:03d}") for chunk in range(count)]
 
     return chunk_dirs_of_scene
 
 
 def render_dir(wildcards) -> str:
     """Param: the scene's render directory (parent of its chunk directories)."""
-    return f"results/renders/{wildcards.scene}"
+    return results_path(f"renders/{wildcards.scene}")
 
 
 def report_input(wildcards) -> dict[str, list[str]]:
     """Named inputs of build_report: every metrics CSV, denoised directory (timing, grid images),
     robustness output, the evaluated scenes' references (grids) and the external scenes' manifests
     (their substitutions)."""
-    reference = [f"results/renders/{scene}/reference/chunk_{c:03d}" for scene in EVALUATED_SCENES
+    reference = [results_path(f"renders/{scene}/reference/chunk_{c:03d}") for scene in EVALUATED_SCENES
                  for c in range(chunk_count(config, scene))]
-    external = [f"results/scenes/{scene}" for scene in EVALUATED_SCENES if scene.startswith("custom_")]
-    tuning = sorted({f"results/tuning/{run.spec.method}.json" for run in planned_runs()
+    external = [results_path(f"scenes/{scene}") for scene in EVALUATED_SCENES if scene.startswith("custom_")]
+    tuning = sorted({results_path(f"tuning/{run.spec.method}.json") for run in planned_runs()
                      if run.spec.params.get("tuned")})
     return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
             "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning}
 
 
-def _method_settings(wildcards) -> dict:
-    spec = method_spec(wildcards.method)
-    return {"method": spec.method, "params": spec.params}
-
-
 def denoise_digest(wildcards) -> str:
     """Param: digest of what a denoised clip depends on besides its input files (rerun trigger)."""
-    settings = {key: config["evaluation"][key] for key in ("threads", "out_of_range_factor")}
-    return config_digest({**_method_settings(wildcards), **settings})
+    return experiment.denoise_digest(config, method_spec(wildcards.method))
 
 
 def evaluate_digest(wildcards) -> str:
-    return config_digest({"warmup_frames": config["evaluation"]["warmup_frames"]})
+    return experiment.evaluate_digest(config)
 
 
 def robustness_digest(wildcards) -> str:
-    settings = {key: config["evaluation"][key]
-                for key in ("robustness", "warmup_frames", "threads", "out_of_range_factor")}
-    return config_digest({**_method_settings(wildcards), **settings, "seed": config["seed"]})
+    return experiment.robustness_digest(config, method_spec(wildcards.method))
 
 
 def report_digest(wildcards) -> str:
     """The report states the whole configuration (split, render settings, evaluation)."""
-    return config_digest(config)
+    return experiment.report_digest(config)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -316,16 +379,14 @@ def tuning_methods() -> list[str]:
 
 
 def training_render_dirs(wildcards=None) -> list[str]:
-    return [f"results/renders/{scene}" for scene in TRAIN_SCENES + VALIDATION_SCENES]
+    return [results_path(f"renders/{scene}") for scene in TRAIN_SCENES + VALIDATION_SCENES]
 
 
 def method_tuning_file(wildcards) -> list[str]:
     """Input function: the tuning result an evaluation row with params {tuned: true} reads, or nothing."""
     spec = method_spec(wildcards.method)
-    return [f"results/tuning/{spec.method}.json"] if spec.params.get("tuned") else []
+    return [results_path(f"tuning/{spec.method}.json")] if spec.params.get("tuned") else []
 
 
 def tuning_digest(wildcards) -> str:
-    settings = {key: value for key, value in config["tuning"].items() if key != "methods"}
-    entry = next(e for e in config["tuning"]["methods"] if e["method"] == wildcards.method)
-    return config_digest({**settings, **entry})
+    return experiment.tuning_digest(config, wildcards.method)

@@ -1,29 +1,34 @@
 # Stage 3: denoising and evaluation of the test scenes and the external (custom_*) scenes, and the generated report.
-# A row with params {model: <id>} reads results/models/<id>/ (rule train_denoiser) and depends on it.
-#   denoise_clip:    results/denoised/{method}/{scene}/spp{spp}/frame_{t:04d}.exr + .png, timing.json
-#   evaluate_clip:   results/metrics/{method}/{scene}/spp{spp}.csv (per-frame metrics)
-#   robustness_clip: results/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected)
-#   build_report:    results/tables/, results/figures/, results/REPORT.md
+# All paths are below the config's output_dir (<out>). A row with params {model: <id>} reads <out>/models/<id>/
+# (rule train_denoiser) and depends on it.
+#   denoise_clip:    <out>/denoised/{method}/{scene}/spp{spp}/frame_{t:04d}.exr + .png, timing.json
+#   evaluate_clip:   <out>/metrics/{method}/{scene}/spp{spp}.csv (per-frame metrics) + .json (its settings digest)
+#   robustness_clip: <out>/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected)
+#   build_report:    <out>/tables/, <out>/figures/, <out>/REPORT.md
+# Each output records the digest of the settings it came from (denoisers.experiment); the report refuses
+# to combine outputs whose digests disagree with its config.
 # {method} is a row id: of evaluation.methods, or a trained ablation variant's model id (evaluated at
 # evaluation.ablation_spp, not in the robustness scenario); the targets request the test_* and custom_* scenes
-# (denoisers.evaluate.evaluated_scene_ids), never train_*.
+# (denoisers.evaluate.evaluated_scene_ids), never train_*; other targets are rejected when the DAG is built.
 
 
 rule denoise_clip:
     input:
+        valid=check_evaluation_target("denoise_clip", "denoised/{method}/{scene}/spp{spp}"),
         noisy=scene_chunk_dirs("noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
     output:
-        out_dir=directory("results/denoised/{method}/{scene}/spp{spp}"),
+        out_dir=directory(results_path("denoised/{method}/{scene}/spp{spp}")),
     params:
         config_file=resolved_config_file,
         config_digest=denoise_digest,
         render_dir=render_dir,
+        results=results_root,
     log:
-        "results/logs/denoise/{method}/{scene}/spp{spp}.log",
+        results_path("logs/denoise/{method}/{scene}/spp{spp}.log"),
     benchmark:
-        "results/benchmarks/denoise/{method}/{scene}/spp{spp}.tsv"
+        results_path("benchmarks/denoise/{method}/{scene}/spp{spp}.tsv")
     conda:
         "../envs/harness.yaml"
     # Timings are recorded in-process with this many torch threads; with 2 on a 2-core machine the
@@ -35,23 +40,25 @@ rule denoise_clip:
     shell:
         "python -m denoisers denoise --config {params.config_file} --method-id {wildcards.method}"
         " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
-        " --out {output.out_dir} --threads {threads} > {log} 2>&1"
+        " --results {params.results} --out {output.out_dir} --threads {threads} > {log} 2>&1"
 
 
 rule evaluate_clip:
     input:
-        denoised="results/denoised/{method}/{scene}/spp{spp}",
+        valid=check_evaluation_target("evaluate_clip", "metrics/{method}/{scene}/spp{spp}.csv"),
+        denoised=results_path("denoised/{method}/{scene}/spp{spp}"),
         reference=scene_chunk_dirs("reference"),
     output:
-        csv="results/metrics/{method}/{scene}/spp{spp}.csv",
+        csv=results_path("metrics/{method}/{scene}/spp{spp}.csv"),
+        sidecar=results_path("metrics/{method}/{scene}/spp{spp}.json"),
     params:
         config_file=resolved_config_file,
         config_digest=evaluate_digest,
         render_dir=render_dir,
     log:
-        "results/logs/evaluate/{method}/{scene}/spp{spp}.log",
+        results_path("logs/evaluate/{method}/{scene}/spp{spp}.log"),
     benchmark:
-        "results/benchmarks/evaluate/{method}/{scene}/spp{spp}.tsv"
+        results_path("benchmarks/evaluate/{method}/{scene}/spp{spp}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: 1
@@ -65,20 +72,22 @@ rule evaluate_clip:
 
 rule robustness_clip:
     input:
+        valid=check_evaluation_target("robustness_clip", "robustness/{method}/{scene}/spp{spp}", "robustness"),
         noisy=scene_chunk_dirs("noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
         reference=scene_chunk_dirs("reference"),
     output:
-        out_dir=directory("results/robustness/{method}/{scene}/spp{spp}"),
+        out_dir=directory(results_path("robustness/{method}/{scene}/spp{spp}")),
     params:
         config_file=resolved_config_file,
         config_digest=robustness_digest,
         render_dir=render_dir,
+        results=results_root,
     log:
-        "results/logs/robustness/{method}/{scene}/spp{spp}.log",
+        results_path("logs/robustness/{method}/{scene}/spp{spp}.log"),
     benchmark:
-        "results/benchmarks/robustness/{method}/{scene}/spp{spp}.tsv"
+        results_path("benchmarks/robustness/{method}/{scene}/spp{spp}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: config["evaluation"]["threads"]
@@ -88,7 +97,7 @@ rule robustness_clip:
     shell:
         "python -m denoisers robustness --config {params.config_file} --method-id {wildcards.method}"
         " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
-        " --out {output.out_dir} --threads {threads} > {log} 2>&1"
+        " --results {params.results} --out {output.out_dir} --threads {threads} > {log} 2>&1"
 
 
 rule build_report:
@@ -108,10 +117,11 @@ rule build_report:
     params:
         config_file=resolved_config_file,
         config_digest=report_digest,
+        results=results_root,
     log:
-        "results/logs/build_report.log",
+        results_path("logs/build_report.log"),
     benchmark:
-        "results/benchmarks/build_report.tsv"
+        results_path("benchmarks/build_report.tsv")
     conda:
         "../envs/harness.yaml"
     threads: 1
@@ -119,5 +129,5 @@ rule build_report:
         mem_mb=4000,
         runtime=30,
     shell:
-        "OMP_NUM_THREADS={threads} python -m denoisers report --config {params.config_file} --results results"
-        " > {log} 2>&1"
+        "OMP_NUM_THREADS={threads} python -m denoisers report --config {params.config_file}"
+        " --results {params.results} > {log} 2>&1"

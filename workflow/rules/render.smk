@@ -1,22 +1,23 @@
 # Stage 2: Mitsuba 3 renders per (scene, chunk of frames).
-#   noisy:     results/renders/{scene}/noisy/chunk_{chunk}/frame_{t:04d}.exr + .json
-#   reference: results/renders/{scene}/reference/chunk_{chunk}/frame_{t:04d}.exr + .json
+#   noisy:     <output_dir>/renders/{scene}/noisy/chunk_{chunk}/frame_{t:04d}.exr + .json
+#   reference: <output_dir>/renders/{scene}/reference/chunk_{chunk}/frame_{t:04d}.exr + .json
 # {chunk} is the zero-padded chunk index (000, 001, ...); the CLI gets it as an integer.
 
 
 rule render_noisy:
     input:
-        scene_dir="results/scenes/{scene}",
+        valid=check_chunk_target("noisy"),
+        scene_dir=results_path("scenes/{scene}"),
     output:
-        chunk_dir=directory("results/renders/{scene}/noisy/chunk_{chunk}"),
+        chunk_dir=directory(results_path("renders/{scene}/noisy/chunk_{chunk}")),
     params:
         config_file=resolved_config_file,
         config_digest=render_digest("noisy"),
         chunk=lambda wildcards: int(wildcards.chunk),
     log:
-        "results/logs/render_noisy/{scene}/chunk_{chunk}.log",
+        results_path("logs/render_noisy/{scene}/chunk_{chunk}.log"),
     benchmark:
-        "results/benchmarks/render_noisy/{scene}/chunk_{chunk}.tsv"
+        results_path("benchmarks/render_noisy/{scene}/chunk_{chunk}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: 2
@@ -30,17 +31,18 @@ rule render_noisy:
 
 rule render_reference:
     input:
-        scene_dir="results/scenes/{scene}",
+        valid=check_chunk_target("reference"),
+        scene_dir=results_path("scenes/{scene}"),
     output:
-        chunk_dir=directory("results/renders/{scene}/reference/chunk_{chunk}"),
+        chunk_dir=directory(results_path("renders/{scene}/reference/chunk_{chunk}")),
     params:
         config_file=resolved_config_file,
         config_digest=render_digest("reference"),
         chunk=lambda wildcards: int(wildcards.chunk),
     log:
-        "results/logs/render_reference/{scene}/chunk_{chunk}.log",
+        results_path("logs/render_reference/{scene}/chunk_{chunk}.log"),
     benchmark:
-        "results/benchmarks/render_reference/{scene}/chunk_{chunk}.tsv"
+        results_path("benchmarks/render_reference/{scene}/chunk_{chunk}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: 2

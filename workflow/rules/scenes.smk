@@ -1,19 +1,19 @@
 # Stage 1: seeded procedural scenes (and imported custom XML scenes).
-# Output layout: results/scenes/{scene}/manifest.json, meshes/*.ply, textures/*.png
+# Output layout: <output_dir>/scenes/{scene}/manifest.json, meshes/*.ply, textures/*.png
 
 
 rule generate_scene:
     input:
         unpack(generate_scene_input),
     output:
-        scene_dir=directory("results/scenes/{scene}"),
+        scene_dir=directory(results_path("scenes/{scene}")),
     params:
         config_file=resolved_config_file,
         config_digest=generate_scene_digest,
     log:
-        "results/logs/generate_scene/{scene}.log",
+        results_path("logs/generate_scene/{scene}.log"),
     benchmark:
-        "results/benchmarks/generate_scene/{scene}.tsv"
+        results_path("benchmarks/generate_scene/{scene}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: 1

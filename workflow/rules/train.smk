@@ -1,22 +1,24 @@
 # Stage 3a: training of the learned denoisers on the train_* scenes (held-out validation scenes included).
-#   train_denoiser: results/models/{model}/ (best.pt, curves.csv/.png, validation.csv, summary.json, settings.json)
+#   train_denoiser: <output_dir>/models/{model}/ (best.pt, curves.csv/.png, validation.csv, summary.json, settings.json)
 # {model} is an id of training.models or an ablation variant {ablation}_{variant}. The trainer keeps
-# a resumable checkpoint in results/models/.work/ (not an output): a killed job continues from it.
+# a resumable checkpoint in <output_dir>/models/.work/ (not an output): a killed job continues from it.
 
 
 rule train_denoiser:
     input:
+        valid=check_model_target,
         noisy=training_chunk_dirs("noisy"),
         reference=training_chunk_dirs("reference"),
     output:
-        model_dir=directory("results/models/{model}"),
+        model_dir=directory(results_path("models/{model}")),
     params:
         config_file=resolved_config_file,
         config_digest=train_digest,
+        render_root=render_root,
     log:
-        "results/logs/train/{model}.log",
+        results_path("logs/train/{model}.log"),
     benchmark:
-        "results/benchmarks/train/{model}.tsv"
+        results_path("benchmarks/train/{model}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: config["training"]["threads"]
@@ -25,4 +27,4 @@ rule train_denoiser:
         runtime=120,
     shell:
         "python -m denoisers train --config {params.config_file} --model-id {wildcards.model}"
-        " --render-root results/renders --out {output.model_dir} --threads {threads} > {log} 2>&1"
+        " --render-root {params.render_root} --out {output.model_dir} --threads {threads} > {log} 2>&1"

@@ -1,0 +1,212 @@
+"""Settings digests: which config settings every output of an experiment was computed from.
+
+An experiment is one config with its own folder (config key ``output_dir``). Within a folder, outputs
+can still come from different settings, e.g. an interrupted ``--config seed=7`` run followed by stage
+targets of the default config. Every output therefore records a digest of the settings it came from,
+and the report refuses to combine outputs whose digests disagree with the config it is built for.
+
+Two kinds of digests (SHA-256 of canonical JSON, scenegen.config.config_digest):
+
+* job digests (``scene_digest``, ``render_digest``, ``denoise_digest``, ...): the config keys one job's
+  output depends on besides its input files. The workflow passes them as params, so Snakemake reruns a
+  job when they change (workflow/rules/common.smk).
+* lineage digests (:class:`Lineage`): a job's own digest combined with those of everything upstream of
+  it (scene, renders, model, tuning), in the recorded form (scenegen.config.short_digest). They are
+  recorded in timing.json (denoised clips), the JSON sidecar of every metrics CSV (spp{spp}.json), the
+  robustness summary.json, every model's summary.json and every tuning result. Keys that only say how many scenes or
+  rows exist (scenes.n_test, other evaluation rows) are in no clip's lineage, so adding a scene or a row
+  never flags existing outputs; the seed, scene and render settings are in all of them.
+
+Config level only (no torch): the Snakefile calls the job digests while it is parsed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from denoisers.training.models import method_model, model_spec, settings_digest, training_split
+from denoisers.tuning import TUNED_KEY, tuning_entry
+from scenegen.config import config_digest, extra_scene, scene_frame_count, short_digest
+
+#: Key of the recorded digest in timing.json, the metrics sidecars, summary.json and tuning results.
+DIGEST_KEY = "settings_digest"
+#: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
+SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
+NOISY_ONLY_KEYS = frozenset({"spp", "extra_radiance_spp"})
+REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp"})
+
+
+class SettingsMismatchError(ValueError):
+    """Outputs were computed from other settings than the config at hand (their digests disagree)."""
+
+
+class RowSpec(Protocol):
+    """What the digests need of an evaluation row (denoisers.evaluate.MethodSpec)."""
+
+    method: str
+    params: dict[str, Any]
+
+
+# ---------------------------------------------------------------------------------------- job digests
+def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
+    """The config values a scene's content depends on (not the number of scenes). Render keys shared by
+    the noisy and reference renders (resolution, variant, path depth) are included: the generator's
+    preview render uses them."""
+    if scene.startswith("custom_"):
+        procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
+    else:
+        procedural = {key: value for key, value in cfg["scenes"].items() if key not in SCENE_LAYOUT_KEYS}
+    shared = [f"render.{key}" for key in cfg["render"] if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS]
+    return {"seed": cfg["seed"], "scenes": procedural, "render_shared": config_digest(cfg, *shared)}
+
+
+def scene_digest(cfg: dict, scene: str) -> str:
+    """Rule generate_scene."""
+    return config_digest(scene_settings(cfg, scene))
+
+
+def render_digest(cfg: dict, scene: str, kind: str) -> str:
+    """Rules render_noisy (``kind`` 'noisy') and render_reference ('reference')."""
+    own_keys = NOISY_ONLY_KEYS if kind == "noisy" else REFERENCE_ONLY_KEYS
+    return config_digest({"scene": scene_settings(cfg, scene), "frames": scene_frame_count(cfg, scene),
+                          "frames_per_chunk": cfg["scenes"]["frames_per_chunk"],
+                          "render": {key: cfg["render"][key] for key in sorted(own_keys)}})
+
+
+def _row_settings(spec: RowSpec) -> dict[str, Any]:
+    return {"method": spec.method, "params": spec.params}
+
+
+def denoise_digest(cfg: dict, spec: RowSpec) -> str:
+    """Rule denoise_clip: the row's method and parameters, torch threads and the out-of-range factor."""
+    settings = {key: cfg["evaluation"][key] for key in ("threads", "out_of_range_factor")}
+    return config_digest({**_row_settings(spec), **settings})
+
+
+def evaluate_digest(cfg: dict) -> str:
+    """Rule evaluate_clip."""
+    return config_digest({"warmup_frames": cfg["evaluation"]["warmup_frames"]})
+
+
+def robustness_digest(cfg: dict, spec: RowSpec) -> str:
+    """Rule robustness_clip (the injected corruption depends on the global seed)."""
+    settings = {key: cfg["evaluation"][key] for key in ("robustness", "warmup_frames", "threads", "out_of_range_factor")}
+    return config_digest({**_row_settings(spec), **settings, "seed": cfg["seed"]})
+
+
+def train_digest(cfg: dict, model_id: str) -> str:
+    """Rule train_denoiser: the model's settings and what its training data depend on."""
+    from denoisers.training.job import data_settings
+
+    return settings_digest(model_spec(cfg, model_id), data_settings(cfg))
+
+
+def tuning_digest(cfg: dict, method: str) -> str:
+    """Rule tune_method: the shared tuning settings and the method's entry (its grid)."""
+    settings = {key: value for key, value in cfg["tuning"].items() if key != "methods"}
+    return config_digest({**settings, **tuning_entry(cfg, method)})
+
+
+def report_digest(cfg: dict) -> str:
+    """Rule build_report: the report states the whole configuration."""
+    return config_digest(cfg)
+
+
+# ------------------------------------------------------------------------------------ lineage digests
+class Lineage:
+    """Lineage digests (recorded form) of one config's outputs; model and tuning digests are cached."""
+
+    def __init__(self, cfg: dict) -> None:
+        self.cfg = cfg
+        self._cache: dict[tuple[str, str], str] = {}
+
+    def model(self, model_id: str) -> str:
+        """A trained model (models/{id}/summary.json): train_digest covers the data settings."""
+        key = ("model", model_id)
+        if key not in self._cache:
+            self._cache[key] = short_digest(train_digest(self.cfg, model_id))
+        return self._cache[key]
+
+    def tuning(self, method: str) -> str:
+        """A tuning result (tuning/{method}.json): its settings and the renders of the training scenes."""
+        key = ("tuning", method)
+        if key not in self._cache:
+            scenes = sum(training_split(self.cfg), [])
+            data = {scene: [render_digest(self.cfg, scene, kind) for kind in ("noisy", "reference")] for scene in scenes}
+            self._cache[key] = short_digest(config_digest({"tuning": tuning_digest(self.cfg, method), "data": data}))
+        return self._cache[key]
+
+    def _row(self, spec: RowSpec) -> dict[str, str | None]:
+        model = method_model(spec.params)
+        return {"model": self.model(model) if model else None,
+                "tuning": self.tuning(spec.method) if spec.params.get(TUNED_KEY) else None}
+
+    def _clip(self, scene: str, *kinds: str) -> dict[str, str]:
+        return {"scene": scene_digest(self.cfg, scene), **{kind: render_digest(self.cfg, scene, kind) for kind in kinds}}
+
+    def denoised(self, spec: RowSpec, scene: str, spp: int) -> str:
+        """A denoised clip (denoised/{row}/{scene}/spp{spp}/timing.json)."""
+        return short_digest(config_digest({"denoise": denoise_digest(self.cfg, spec), "spp": int(spp),
+                                           **self._row(spec), **self._clip(scene, "noisy")}))
+
+    def metrics(self, spec: RowSpec, scene: str, spp: int) -> str:
+        """A per-frame metrics CSV (metrics/{row}/{scene}/spp{spp}.csv; recorded in its .json sidecar)."""
+        return short_digest(config_digest({"denoised": self.denoised(spec, scene, spp),
+                                           "reference": render_digest(self.cfg, scene, "reference"),
+                                           "evaluate": evaluate_digest(self.cfg)}))
+
+    def robustness(self, spec: RowSpec, scene: str, spp: int) -> str:
+        """A robustness output (robustness/{row}/{scene}/spp{spp}/summary.json)."""
+        return short_digest(config_digest({"robustness": robustness_digest(self.cfg, spec), "spp": int(spp),
+                                           **self._row(spec), **self._clip(scene, "noisy", "reference")}))
+
+
+# ------------------------------------------------------------------------------------------ checking
+def mismatch_line(path: Path | str, recorded: str, expected: str) -> str:
+    return f"{path}: recorded settings digest {recorded}, this config's is {expected}"
+
+
+def check_recorded(path: Path | str, recorded: str | None, expected: str) -> None:
+    """SettingsMismatchError if ``path`` records a digest other than ``expected`` (None: nothing recorded)."""
+    if recorded is not None and recorded != expected:
+        raise SettingsMismatchError(f"{mismatch_line(path, recorded, expected)}: it was computed from other "
+                                    "settings (rerun its job, or remove it)")
+
+
+@dataclass
+class DigestLedger:
+    """The digests of every output a report reads: matching, disagreeing, or not recorded (older outputs)."""
+
+    matched: int = 0
+    mismatched: list[str] = field(default_factory=list)
+    unrecorded: list[str] = field(default_factory=list)
+
+    def add(self, path: Path | str, recorded: Any, expected: str) -> None:
+        if not isinstance(recorded, str) or not recorded:
+            self.unrecorded.append(str(path))
+        elif recorded == expected:
+            self.matched += 1
+        else:
+            self.mismatched.append(mismatch_line(path, recorded, expected))
+
+    def raise_if_mixed(self, cfg: dict, results_dir: Path) -> None:
+        """Refuse to combine outputs computed from other settings, naming every one."""
+        if not self.mismatched:
+            return
+        shown = self.mismatched[:30]
+        more = [f"... and {len(self.mismatched) - len(shown)} more"] if len(self.mismatched) > len(shown) else []
+        raise SettingsMismatchError(
+            f"{len(self.mismatched)} output(s) under {results_dir} were computed from other settings than this "
+            f"config (seed {cfg['seed']}, {cfg.get('description', 'no description')!r}); the report does not "
+            "combine them:\n  - " + "\n  - ".join(shown + more) + "\nRerun their jobs with this config (the "
+            "workflow reruns jobs whose settings changed; or --forcerun <rule>), or remove the experiment's outputs "
+            "(python -m denoisers clean --config <config file>).")
+
+    def summary(self) -> str:
+        """One line for REPORT.md."""
+        text = f"{self.matched} outputs record this config's settings digests"
+        if self.unrecorded:
+            text += (f"; {len(self.unrecorded)} record none (written before digests were recorded, unchecked), "
+                     f"e.g. {self.unrecorded[0]}")
+        return text
