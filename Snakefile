@@ -2,7 +2,7 @@
 # renders and high-spp references (OpenEXR) -> learned denoisers trained on the training scenes ->
 # denoised test clips, per-frame metrics and a generated report. Rules live in workflow/rules/, the
 # config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
-# `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake report`.
+# `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake timing`, `snakemake report`.
 # Every output goes below the config's output_dir (default results/; config/smoke.yaml: results/smoke/);
 # `python -m denoisers clean --config <file>` removes one experiment's outputs.
 
@@ -23,6 +23,7 @@ include: "workflow/rules/render.smk"
 include: "workflow/rules/train.smk"
 include: "workflow/rules/tune.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/timing.smk"
 
 
 localrules:
@@ -32,6 +33,7 @@ localrules:
     train,
     denoise,
     evaluate,
+    timing,
     report,
 
 
@@ -61,6 +63,11 @@ rule denoise:
 rule evaluate:
     input:
         evaluate_targets,
+
+
+rule timing:
+    input:
+        timing_outputs,
 
 
 rule report:

@@ -6,6 +6,7 @@
   denoise     one configured method on one test clip at one spp  -> <out>/denoised/{method}/{scene}/spp{spp}/
   evaluate    per-frame metrics of a denoised clip               -> <out>/metrics/{method}/{scene}/spp{spp}.csv
   robustness  one method on a clip with injected spikes/NaN/Inf  -> <out>/robustness/{method}/{scene}/spp{spp}/
+  time        every row timed on the same frames, interleaved, and the renderer's rate -> <out>/timing/timing.json
   report      tables, figures, claims and REPORT.md              -> <out>/tables/, <out>/figures/, <out>/REPORT.md
   clean       remove an experiment's outputs, or only its stale training work directories (--stale)
   methods     list the registered methods
@@ -38,6 +39,16 @@ def _parser() -> argparse.ArgumentParser:
         cmd.add_argument("--results", type=Path, default=None,
                          help="experiment folder (default: the config's output_dir); trained models are read "
                               "from <results>/models/<id>/, tuning results from <results>/tuning/")
+
+    timing = sub.add_parser("time", help="time every configured row on the same frames (interleaved rounds) and "
+                                         "the renderer's samples/s at the same threads")
+    timing.add_argument("--config", type=Path, required=True, help="resolved config YAML")
+    timing.add_argument("--scene", required=True, help="evaluated scene id (evaluation.timing.scene)")
+    timing.add_argument("--render-dir", type=Path, required=True, help="results/renders/{scene}")
+    timing.add_argument("--scene-dir", type=Path, required=True, help="results/scenes/{scene}")
+    timing.add_argument("--out", type=Path, required=True, help="results/timing/timing.json (written atomically)")
+    timing.add_argument("--threads", type=int, required=True, help="torch and Dr.Jit threads")
+    timing.add_argument("--results", type=Path, default=None, help="experiment folder (models, tuning results)")
 
     train = sub.add_parser("train", help="train one configured model (training.models / ablations)")
     train.add_argument("--config", type=Path, required=True, help="resolved config YAML")
@@ -167,6 +178,25 @@ def _run(args: argparse.Namespace) -> int:
         result[DIGEST_KEY] = Lineage(cfg).tuning(args.method)
         print(format_result(result))
         write_text_atomic(args.out, json.dumps(result, indent=1) + "\n")
+    elif args.command == "time":
+        import json
+
+        from denoisers.experiment import DIGEST_KEY, Lineage
+        from denoisers.timing import timed_runs, timing_settings, time_methods
+        from scenegen.atomic import write_text_atomic
+        from scenegen.config import output_root
+
+        settings = timing_settings(cfg)
+        record = time_methods(cfg, args.scene, args.render_dir, args.scene_dir, timed_runs(cfg),
+                              frames=settings["frames"], repeats=settings["repeats"], threads=args.threads,
+                              results=args.results or output_root(cfg))
+        record[DIGEST_KEY] = Lineage(cfg).timing(args.scene)
+        write_text_atomic(args.out, json.dumps(record, indent=1) + "\n")
+        for row in record["rows"]:
+            log.info("%-16s %2d spp: %8.2f ms/frame [%.2f, %.2f] (%.3g Mpix/s)", row["method_id"], row["spp"],
+                     row["ms_per_frame"], row["ms_per_frame_min"], row["ms_per_frame_max"], row["mpix_per_s"])
+        log.info("renderer: %.3g M samples/s with %d thread(s)", record["renderer"]["samples_per_s"] / 1e6,
+                 args.threads)
     elif args.command == "evaluate":
         table = evaluate.evaluate_clip(cfg, args.denoised, args.render_dir, args.out)
         log.info("%s: %d frames, mean PSNR %.2f dB", args.denoised, len(table), table["psnr"].mean())

@@ -186,6 +186,10 @@ def evaluation_problems(cfg: dict) -> list[str]:
     if robustness["enabled"] and robustness["spp"] not in evaluated:
         problems.append(f"config key 'evaluation.robustness.spp' = {robustness['spp']} is not one of "
                         f"'evaluation.spp' = {evaluation['spp']!r}; allowed: one of the evaluated spp")
+    timing_scene = evaluation.get("timing", {}).get("scene")
+    if timing_scene is not None and timing_scene not in evaluated_scene_ids(cfg):
+        problems.append(f"config key 'evaluation.timing.scene' = {timing_scene!r} is not an evaluated scene; allowed: "
+                        f"{', '.join(evaluated_scene_ids(cfg)) or 'none'} (or null: the first of them)")
     return problems
 
 

@@ -156,6 +156,15 @@ class Lineage:
                                            "reference": render_digest(self.cfg, scene, "reference"),
                                            "evaluate": evaluate_digest(self.cfg)}))
 
+    def timing(self, scene: str) -> str:
+        """The timing job (timing/timing.json): its settings and the denoised digests of the rows it times."""
+        from denoisers.evaluate import method_spec
+        from denoisers.timing import timed_runs, timing_settings
+
+        settings = {key: value for key, value in timing_settings(self.cfg).items() if key != "enabled"}
+        rows = [self.denoised(method_spec(self.cfg, row), scene, spp) for row, spp in timed_runs(self.cfg)]
+        return short_digest(config_digest({"timing": settings, "scene": scene, "rows": rows}))
+
     def robustness(self, spec: RowSpec, scene: str, spp: int) -> str:
         """A robustness output (robustness/{row}/{scene}/spp{spp}/summary.json)."""
         return short_digest(config_digest({"robustness": robustness_digest(self.cfg, spec), "spp": int(spp),

@@ -1,12 +1,16 @@
-"""The timing job: every evaluated (row, spp) timed one after another on the same frames and threads.
+"""The timing job (rule time_methods): every evaluated (row, spp) timed on the same frames and threads.
 
 Timings taken inside the denoise jobs vary with whatever else the machine runs at the time (two
-identical smoke runs gave OIDN 28.9 vs 14.1 ms/frame), so speed comparisons come from one job that
-runs alone (rule time_methods takes every core): for each runnable row and spp it loads the first
-``frames`` frames of one evaluated scene, runs the method over them once as a warm-up, then
-``repeats`` more times, each pass from a reset state, with ``threads`` torch threads. A pass's time is
-the median of its per-frame seconds, the first frame excluded (it pays one-off costs of temporal
-state); a row's time is the median over passes, its spread the smallest and largest pass.
+identical smoke runs gave OIDN 28.9 vs 14.1 ms/frame), so the report's speed numbers come from one job
+that runs alone (the rule takes every core). It loads the first ``frames`` frames of one evaluated
+scene for every (row, spp), runs each once as a warm-up, then makes ``repeats`` rounds; in each round
+every (row, spp) runs one pass from a reset state, one after another. Interleaving puts pass k of every
+row in the same stretch of time, so a slow spell of the machine hits all rows of a round alike and the
+per-round ratio between two rows is stable even when absolute times drift.
+
+A pass's time is the median of its per-frame seconds, the first frame excluded (it pays one-off costs of
+temporal state); a row's time is the median over rounds, its spread the smallest and largest pass.
+Speed claims compare two rows by their per-round ratios (:func:`speed_ratios`).
 
 In the same job, the renderer's rate is measured with the same thread count: the scene's first frame
 rendered as ``render.spp`` full-feature 1-spp layers (the noisy data every method reads), once as a
@@ -15,15 +19,22 @@ equal-time view reads this rate, so rows and renderer are compared at equal thre
 """
 from __future__ import annotations
 
+import json
+import logging
 import statistics
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-TIMING_SCHEMA = 1
+TIMING_SCHEMA = 2
+#: Where the timing job writes, below the experiment folder.
+TIMING_JOB_FILE = "timing/timing.json"
+
+log = logging.getLogger(__name__)
 
 
 def pass_seconds(per_frame: Sequence[float]) -> float:
@@ -42,22 +53,63 @@ def summarise_passes(passes: Sequence[float], pixels: int) -> dict[str, Any]:
             "mpix_per_s": pixels / (median / 1e3) / 1e6 if median > 0 else float("inf")}
 
 
-def time_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: int, repeats: int, threads: int,
-             results: Path | str) -> dict[str, Any]:
-    """Time one (row, spp) on the first ``frames`` frames of ``render_dir``: warm-up pass, then ``repeats``."""
-    from denoisers.evaluate import _frames, _load_method_clip, _prepare, run_method
+@dataclass
+class TimedRun:
+    """One (row, spp) prepared for timing: its built method and frames (loaded once, not timed)."""
 
-    if repeats < 1 or frames < 1:
-        raise ValueError(f"timing needs repeats >= 1 and frames >= 1, got {repeats}, {frames}")
+    spec: Any
+    spp: int
+    method: Any
+    frames: list
+    frame_ids: list[int]
+    passes: list[float] = field(default_factory=list)     # seconds per frame, one per round
+
+    @property
+    def pixels(self) -> int:
+        return int(self.frames[0].height * self.frames[0].width)
+
+    def run_pass(self, threads: int) -> float:
+        from denoisers.evaluate import run_method
+
+        return pass_seconds(run_method(self.method, self.frames, threads).seconds)
+
+    def record(self, threads: int) -> dict[str, Any]:
+        return {"method_id": self.spec.id, "method": self.spec.method, "spp": int(self.spp), "threads": int(threads),
+                "frames": self.frame_ids, "width": int(self.frames[0].width), "height": int(self.frames[0].height),
+                **summarise_passes(self.passes, self.pixels)}
+
+
+def prepare_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: int,
+                results: Path | str) -> TimedRun:
+    """Build row ``method_id`` and load the first ``frames`` frames of ``render_dir`` at ``spp``."""
+    from denoisers.evaluate import _frames, _load_method_clip, _prepare
+
+    if frames < 1:
+        raise ValueError(f"timing needs frames >= 1, got {frames}")
     spec, method, layers = _prepare(cfg, method_id, spp, results)
     clip = _load_method_clip(Path(render_dir), spec, method, layers, reference=False)
     frame_list = _frames(clip, method, layers)[:frames]
-    height, width = frame_list[0].height, frame_list[0].width
-    run_method(method, frame_list, threads)        # warm-up: caches, native kernels, allocator
-    passes = [pass_seconds(run_method(method, frame_list, threads).seconds) for _ in range(repeats)]
-    return {"method_id": spec.id, "method": spec.method, "spp": int(spp), "threads": int(threads),
-            "frames": [int(t) for t in clip.frames[:frames]], "width": int(width), "height": int(height),
-            **summarise_passes(passes, width * height)}
+    return TimedRun(spec, int(spp), method, frame_list, [int(t) for t in clip.frames[:frames]])
+
+
+def time_interleaved(runs: Sequence[TimedRun], *, repeats: int, threads: int) -> None:
+    """A warm-up pass of every run, then ``repeats`` rounds of one pass per run (appended to run.passes)."""
+    if repeats < 1:
+        raise ValueError(f"timing needs repeats >= 1, got {repeats}")
+    for run in runs:
+        run.run_pass(threads)                      # caches, native kernels, allocator
+    for round_index in range(repeats):
+        for run in runs:
+            run.passes.append(run.run_pass(threads))
+        log.info("timing round %d/%d done", round_index + 1, repeats)
+
+
+def time_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: int, repeats: int, threads: int,
+             results: Path | str) -> dict[str, Any]:
+    """Time one (row, spp) alone on the first ``frames`` frames of ``render_dir``: warm-up pass, then ``repeats``."""
+    run = prepare_run(cfg, method_id, spp, render_dir, frames=frames, results=results)
+    time_interleaved([run], repeats=repeats, threads=threads)
+    return run.record(threads)
 
 
 def render_rate(cfg: dict, manifest: dict, scene_dir: Path, *, repeats: int, threads: int) -> dict[str, Any]:
@@ -71,6 +123,7 @@ def render_rate(cfg: dict, manifest: dict, scene_dir: Path, *, repeats: int, thr
     init_mitsuba(settings.variant)
     dr.set_thread_count(max(1, int(threads)))
     scene = load_frame_scene(manifest, Path(scene_dir), 0, settings)
+    width, height = (int(v) for v in scene.sensors()[0].film().size())
 
     def render(seed: int) -> float:
         start = time.perf_counter()
@@ -79,23 +132,92 @@ def render_rate(cfg: dict, manifest: dict, scene_dir: Path, *, repeats: int, thr
 
     render(0)                                        # warm-up: kernel compilation
     seconds = [render(1 + k) for k in range(repeats)]
-    samples = settings.spp * settings.width * settings.height
+    samples = settings.spp * width * height
     median = float(statistics.median(seconds))
-    return {"threads": int(threads), "layers": settings.spp, "pixels": settings.width * settings.height,
+    return {"threads": int(threads), "layers": settings.spp, "pixels": width * height,
             "repeats": repeats, "seconds": seconds, "samples_per_s": samples / median,
             "samples_per_s_min": samples / max(seconds), "samples_per_s_max": samples / min(seconds)}
 
 
 def time_methods(cfg: dict, scene: str, render_dir: Path, scene_dir: Path, runs: Sequence[tuple[str, int]], *,
                  frames: int, repeats: int, threads: int, results: Path | str) -> dict[str, Any]:
-    """The timing job's record: every (row id, spp) of ``runs`` in order, then the renderer's rate."""
-    import json
-
+    """The timing job's record: every (row id, spp) of ``runs`` timed interleaved, then the renderer's rate."""
     from denoisers.provenance import provenance
 
     manifest = json.loads((Path(scene_dir) / "manifest.json").read_text())
-    rows = [time_run(cfg, method_id, spp, render_dir, frames=frames, repeats=repeats, threads=threads,
-                     results=results) for method_id, spp in runs]
+    prepared = [prepare_run(cfg, method_id, spp, render_dir, frames=frames, results=results)
+                for method_id, spp in runs]
+    log.info("timing %d (row, spp) on %s: %d frame(s), %d round(s), %d thread(s)", len(prepared), scene, frames,
+             repeats, threads)
+    time_interleaved(prepared, repeats=repeats, threads=threads)
     return {"schema": TIMING_SCHEMA, "scene": scene, "frames": frames, "repeats": repeats, "threads": threads,
-            "rows": rows, "renderer": render_rate(cfg, manifest, scene_dir, repeats=repeats, threads=threads),
+            "rows": [run.record(threads) for run in prepared],
+            "renderer": render_rate(cfg, manifest, scene_dir, repeats=repeats, threads=threads),
             "provenance": provenance({"timing": threads})}
+
+
+# ------------------------------------------------------------------------------------------ config
+def timing_settings(cfg: dict) -> dict[str, Any]:
+    """evaluation.timing with defaults (enabled, scene, frames, repeats, threads)."""
+    return {"enabled": True, "scene": None, "frames": 6, "repeats": 5, "threads": None,
+            **cfg["evaluation"].get("timing", {})}
+
+
+def timing_scene(cfg: dict) -> str | None:
+    """The scene the timing job reads: evaluation.timing.scene, else the first evaluated scene (None: none)."""
+    from denoisers.evaluate import evaluated_scene_ids
+
+    scene = timing_settings(cfg)["scene"]
+    scenes = evaluated_scene_ids(cfg)
+    return scene if scene is not None else (scenes[0] if scenes else None)
+
+
+def timed_runs(cfg: dict) -> list[tuple[str, int]]:
+    """(row id, spp) the timing job times: every runnable configured row (not the ablation variants, which
+    share their row's network) at every spp it is evaluated at, in table order."""
+    from denoisers.evaluate import plan_runs
+
+    if not timing_settings(cfg)["enabled"]:
+        return []
+    return [(run.spec.id, run.spp) for run in plan_runs(cfg) if run.runnable and run.spec.role == "method"]
+
+
+# ----------------------------------------------------------------------------------------- reading
+@dataclass
+class TimingJob:
+    """The timing job's record, looked up by (row id, spp)."""
+
+    record: dict[str, Any]
+    path: Path | None = None
+
+    @property
+    def rows(self) -> dict[tuple[str, int], dict[str, Any]]:
+        return {(row["method_id"], int(row["spp"])): row for row in self.record["rows"]}
+
+    def row(self, method_id: str, spp: int) -> dict[str, Any] | None:
+        return self.rows.get((method_id, int(spp)))
+
+    @property
+    def renderer_samples_per_s(self) -> float:
+        return float(self.record["renderer"]["samples_per_s"])
+
+    @property
+    def threads(self) -> int:
+        return int(self.record["threads"])
+
+
+def speed_ratios(job: TimingJob, a: tuple[str, int], b: tuple[str, int]) -> np.ndarray:
+    """Per-round ratios ms_a / ms_b of two timed (row, spp): pass k of a against pass k of b (same round)."""
+    row_a, row_b = job.row(*a), job.row(*b)
+    if row_a is None or row_b is None:
+        missing = [f"{r[0]} @ {r[1]} spp" for r, row in ((a, row_a), (b, row_b)) if row is None]
+        raise KeyError(f"timing job has no record for {', '.join(missing)}")
+    return np.asarray(row_a["pass_ms_per_frame"], np.float64) / np.asarray(row_b["pass_ms_per_frame"], np.float64)
+
+
+def read_timing_job(path: Path) -> TimingJob:
+    """The timing job's JSON (ValueError naming the file if it is not one)."""
+    record = json.loads(Path(path).read_text())
+    if record.get("schema") != TIMING_SCHEMA or not isinstance(record.get("rows"), list):
+        raise ValueError(f"{path}: not a timing-job record of schema {TIMING_SCHEMA} (rerun rule time_methods)")
+    return TimingJob(record, Path(path))

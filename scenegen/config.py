@@ -32,7 +32,7 @@ CUSTOM_PREFIX = "custom_"
 #: What a workflow run writes below the config's ``output_dir`` (the experiment folder); `python -m
 #: denoisers clean` removes exactly these entries, so another experiment nested inside the folder survives.
 OUTPUT_ENTRIES: tuple[str, ...] = ("scenes", "renders", "models", "tuning", "denoised", "metrics", "robustness",
-                                   "tables", "figures", "REPORT.md", "logs", "benchmarks", ".config")
+                                   "timing", "tables", "figures", "REPORT.md", "logs", "benchmarks", ".config")
 #: Hex characters of the settings digests that outputs record (64 bits: no accidental collisions).
 DIGEST_CHARS = 16
 

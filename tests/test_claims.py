@@ -21,6 +21,7 @@ from denoisers import evaluate
 from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED, Part, claims_table,
                                      evaluate_claim)
 from denoisers.report.collect import Results
+from denoisers.timing import TimingJob
 from denoisers.reproductions import all_claims, all_reproductions
 from scenegen.config import validate_config
 
@@ -42,8 +43,10 @@ PARTS = {
     "C1.4": [("rae", 4, "noisy", 4, "rmse", "lower"), ("rae", 4, "noisy", 4, "ssim", "higher")],
     "C1.5": [("rae", 1, "rae_per_frame", 1, "trmae", "lower")],
     "C4.1": [("wrls", 2, "svgf", 2, "psnr", "higher"), ("wrls", 2, "svgf", 2, "trmae", "lower")],
-    "C4.4": [("wrls", 2, "rae", 2, "ms_per_frame", "lower")],
 }
+#: C4.4 is a speed part: per-round time ratios wrls / rae of the timing job; d_i > 0 (as claimed) gives a
+#: ratio below 1 in round i.
+SPEED_PARTS = {"C4.4": (("wrls", 2), ("rae", 2))}
 DECIDED = ("C1.1", "C1.2", "C1.3", "C1.4", "C1.5", "C4.1", "C4.2", "C4.3", "C4.4")
 
 
@@ -69,8 +72,22 @@ class Table:
         self.values[a][metric] = [bv + sign * SCALE[metric] * di for bv, di in zip(self.values[b][metric], d)]
 
 
+def timing_job(cfg: dict, ratios: dict[tuple[str, int], list[float]] | None = None, rounds: int = 4) -> TimingJob:
+    """A timing-job record: every row at 10 ms per pass, except rows given per-round factors in ``ratios``."""
+    rows = []
+    for spec in evaluate.method_specs(cfg):
+        for spp in spec.spp:
+            passes = [10.0 * f for f in (ratios or {}).get((spec.id, spp), [1.0] * rounds)]
+            rows.append({"method_id": spec.id, "spp": spp, "threads": 2, "width": 64, "height": 64,
+                         "pass_ms_per_frame": passes, "ms_per_frame": float(np.median(passes)),
+                         "ms_per_frame_min": min(passes), "ms_per_frame_max": max(passes), "repeats": len(passes),
+                         "mpix_per_s": 64 * 64 / float(np.median(passes)) / 1e3})
+    return TimingJob({"schema": 2, "scene": "test_000", "frames": 4, "repeats": rounds, "threads": 2, "rows": rows,
+                      "renderer": {"samples_per_s": 1e6, "repeats": rounds, "layers": 8}})
+
+
 def build(cfg: dict, table: Table, drop: tuple[tuple[str, int], ...] = (), flagged: tuple[str, int] | None = None,
-          spiked: dict[str, list[float]] | None = None) -> Results:
+          spiked: dict[str, list[float]] | None = None, timing: TimingJob | None = None) -> Results:
     scenes = [f"test_{i:03d}" for i in range(table.n)]
     rows, runs = [], []
     for spec in evaluate.method_specs(cfg):
@@ -89,15 +106,19 @@ def build(cfg: dict, table: Table, drop: tuple[tuple[str, int], ...] = (), flagg
     if spiked is not None:
         robustness = pd.DataFrame([{"method_id": m, "scene": s, "spp": 2, "psnr_spiked": v[i]}
                                    for m, v in spiked.items() for i, s in enumerate(scenes)])
-    return Results(cfg, evaluate.method_specs(cfg), scenes, runs, pd.DataFrame(), pd.DataFrame(rows), robustness)
+    return Results(cfg, evaluate.method_specs(cfg), scenes, runs, pd.DataFrame(), pd.DataFrame(rows), robustness,
+                   timing=timing if timing is not None else timing_job(cfg, rounds=table.n))
 
 
 def results_for(claim: str, d: list[float], cfg: dict | None = None, **kwargs) -> Results:
     """Results where every part of ``claim`` has the paired differences d (positive = as claimed)."""
     cfg = cfg or claims_config()
     table = Table(cfg, len(d))
-    spiked = None
-    if claim in PARTS:
+    spiked, timing = None, None
+    if claim in SPEED_PARTS:
+        a, _ = SPEED_PARTS[claim]
+        timing = timing_job(cfg, {a: [1.0 - 0.1 * di for di in d]}, rounds=len(d))
+    elif claim in PARTS:
         for a, a_spp, b, b_spp, metric, claimed in PARTS[claim]:
             table.shift((a, a_spp), (b, b_spp), metric, claimed, d)
     elif claim == "C4.2":   # spiked PSNR wrls - rls = d; clean PSNR equal, so drop(wrls) - drop(rls) = -d
@@ -107,7 +128,7 @@ def results_for(claim: str, d: list[float], cfg: dict | None = None, **kwargs) -
             table.shift(("wrls", s), ("noisy", s), "psnr", "higher", d)
         table.values[("rae", 1)]["psnr"] = [v + 5.0 for v in table.values[("noisy", 1)]["psnr"]]
         table.values[("rae", 4)]["psnr"] = [v + 5.0 - di for v, di in zip(table.values[("noisy", 4)]["psnr"], d)]
-    return build(cfg, table, spiked=spiked, **kwargs)
+    return build(cfg, table, spiked=spiked, timing=timing, **kwargs)
 
 
 CLAIMS = {claim.id: claim for claim in all_claims()}
@@ -233,3 +254,20 @@ def test_every_claim_of_the_targets_is_in_one_paper_module() -> None:
     expected = [f"C{p}.{i}" for p, n in ((1, 5), (2, 5), (3, 5), (4, 4)) for i in range(1, n + 1)]
     assert ids == expected
     assert [r.key for r in all_reproductions()] == ["chaitanya2017", "hasselgren2020", "isik2021", "iglesias2022"]
+
+
+def test_speed_claims_are_decided_on_the_timing_jobs_ratio_spread() -> None:
+    """C4.4 compares per-round ratios of the timing job: one round where wRLS is not faster makes the claim
+    inconclusive however fast the other rounds were; without the timing job the claim is not run."""
+    cfg = claims_config()
+    table = Table(cfg, 4)
+    mixed = timing_job(cfg, {("wrls", 2): [0.2, 0.3, 0.25, 1.05]})
+    decision = evaluate_claim(build(cfg, table, timing=mixed), CLAIMS["C4.4"])
+    assert decision.verdict == INCONCLUSIVE and decision.parts[0].interval[2] == pytest.approx(1.05)
+    three_rounds = timing_job(cfg, {("wrls", 2): [0.5, 0.6, 0.7], ("rae", 2): [1.0, 1.0, 1.0]}, rounds=3)
+    decision = evaluate_claim(build(cfg, table, timing=three_rounds), CLAIMS["C4.4"])
+    assert decision.verdict == REPRODUCED and decision.parts[0].n == 3
+    results = build(cfg, table)
+    results.timing = None
+    decision = evaluate_claim(results, CLAIMS["C4.4"])
+    assert decision.verdict == NOT_RUN and "timing job" in decision.not_run

@@ -5,12 +5,14 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from denoisers import registry
 from denoisers.registry import Denoiser, Frame
-from denoisers.timing import pass_seconds, summarise_passes, time_run
+from denoisers.timing import (TimingJob, pass_seconds, prepare_run, speed_ratios, summarise_passes, time_interleaved,
+                              time_run, timed_runs, timing_scene)
 from tests.test_evaluate import smoke_config, write_synthetic_scene
 
 
@@ -22,8 +24,12 @@ class Sleeper(Denoiser):
         self.ms = float(ms)
 
     def denoise(self, frame: Frame) -> torch.Tensor:
+        CALLS.append(self.ms)
         time.sleep(self.ms / 1e3)
         return frame.samples["radiance"].mean(0)
+
+
+CALLS: list[float] = []     # the ms of every denoise() call, in order
 
 
 @pytest.fixture
@@ -53,3 +59,40 @@ def test_rows_are_timed_over_repeated_passes_on_the_same_frames(tmp_path: Path, 
     assert slow["ms_per_frame_min"] >= 20.0 and fast["ms_per_frame_min"] >= 5.0
     assert slow["ms_per_frame_min"] <= slow["ms_per_frame"] <= slow["ms_per_frame_max"]
     assert slow["ms_per_frame"] > 2.0 * fast["ms_per_frame"]
+
+
+def test_rounds_interleave_the_rows_and_ratios_pair_rounds(tmp_path: Path, sleeper: str) -> None:
+    """After one warm-up pass of each row, every round runs one pass of every row in turn (so a slow spell
+    of the machine falls on all rows of a round); speed_ratios pairs pass k of one row with pass k of the other."""
+    write_synthetic_scene(tmp_path / "test_000")
+    cfg = smoke_config(methods=[{"id": "slow", "method": sleeper, "params": {"ms": 8.0}},
+                                {"id": "fast", "method": sleeper, "params": {"ms": 2.0}}])
+    runs = [prepare_run(cfg, row, 1, tmp_path / "test_000", frames=2, results=tmp_path) for row in ("slow", "fast")]
+    CALLS.clear()
+    time_interleaved(runs, repeats=3, threads=1)
+    # 4 passes per row (warm-up + 3 rounds) of 2 frames each, alternating row by row.
+    assert CALLS == ([8.0, 8.0, 2.0, 2.0] * 4)
+    job = TimingJob({"rows": [run.record(1) for run in runs]})
+    ratios = speed_ratios(job, ("fast", 1), ("slow", 1))
+    assert len(ratios) == 3 and (ratios < 1.0).all()
+    assert ratios == pytest.approx(np.asarray(job.row("fast", 1)["pass_ms_per_frame"])
+                                   / np.asarray(job.row("slow", 1)["pass_ms_per_frame"]))
+    with pytest.raises(KeyError, match="nope @ 1 spp"):
+        speed_ratios(job, ("nope", 1), ("slow", 1))
+
+
+def test_the_timing_job_times_the_configured_rows_on_the_first_evaluated_scene() -> None:
+    cfg = smoke_config(methods=[{"id": "noisy", "method": "noisy"}, {"id": "eaw", "method": "eaw"}], spp=[1, 2])
+    assert timing_scene(cfg) == "test_000"
+    assert timed_runs(cfg) == [("noisy", 1), ("noisy", 2), ("eaw", 1), ("eaw", 2)]
+    cfg["evaluation"]["timing"] = {"enabled": False}
+    assert timed_runs(cfg) == []
+
+
+def test_a_timing_scene_that_is_not_evaluated_is_a_config_error() -> None:
+    from denoisers.evaluate import evaluation_problems
+
+    cfg = smoke_config(methods=[{"id": "noisy", "method": "noisy"}])
+    cfg["evaluation"]["timing"] = {"scene": "train_000"}
+    problems = evaluation_problems(cfg)
+    assert any("evaluation.timing.scene" in p and "'train_000'" in p and "test_000" in p for p in problems), problems

@@ -10,6 +10,11 @@ Its outcome:
 * ``contradicted`` -- n >= MIN_UNITS and the interval lies wholly on the other side;
 * ``inconclusive`` -- otherwise (the interval touches or spans 0, or n < MIN_UNITS).
 
+Speed parts (:class:`SpeedPart`) are the exception: the timing job times every row on one scene in
+interleaved rounds, so their units are the rounds and the statistic is the per-round time ratio a / b;
+reproduced when every round's ratio is on the claimed side of 1 (the whole spread), contradicted when
+every round's is on the other side, inconclusive otherwise or with fewer than MIN_UNITS rounds.
+
 A claim is reproduced when every part is, contradicted when any part is (a conjunction with one false
 part is false), inconclusive otherwise, and ``not run`` when a row, spp or model it needs is missing.
 *Facts* (e.g. "needs no training", read from the method registry) are shown beside the parts and do
@@ -37,6 +42,8 @@ MIN_UNITS = 3
 RULE = (f"each part: paired per-scene difference a−b; reproduced if its 95 % t-interval lies wholly on the "
         f"claimed side of 0 (n ≥ {MIN_UNITS}), contradicted if wholly on the other side, else inconclusive; "
         "the claim needs every part")
+SPEED_RULE = (f"; a speed part: per-round time ratio a/b of the timing job, reproduced if every round's ratio is on "
+              f"the claimed side of 1 (≥ {MIN_UNITS} rounds)")
 
 
 @dataclass
@@ -98,6 +105,42 @@ class Part:
 
     def claim_text(self) -> str:
         return f"{self.a} − {self.b} {'>' if self.claimed == 'higher' else '<'} 0 ({self.outcome})"
+
+
+@dataclass
+class SpeedPart(Part):
+    """A speed part: per-round ratios ms_a / ms_b of the timing job (``diffs`` holds the ratios), claimed
+    < 1 (a faster, 'lower') or > 1 ('higher'); decided on the whole spread of the ratios."""
+
+    @property
+    def interval(self) -> tuple[float, float, float]:
+        if not self.n:
+            return math.nan, math.nan, math.nan
+        return float(np.median(self.diffs)), float(self.diffs.min()), float(self.diffs.max())
+
+    @property
+    def outcome(self) -> str:
+        _, low, high = self.interval
+        if self.n < MIN_UNITS or math.isnan(low):
+            return INCONCLUSIVE
+        faster = high < 1.0 and low < 1.0
+        slower = low > 1.0 and high > 1.0
+        if (faster and self.claimed == "lower") or (slower and self.claimed == "higher"):
+            return REPRODUCED
+        if faster or slower:
+            return CONTRADICTED
+        return INCONCLUSIVE
+
+    def measured_text(self) -> str:
+        return (f"ms/frame (timing job, median over {self.n} rounds): {self.a} {fmt(self.mean_a, 'ms_per_frame')} "
+                f"vs {self.b} {fmt(self.mean_b, 'ms_per_frame')}")
+
+    def interval_text(self) -> str:
+        median, low, high = self.interval
+        return f"time ratio {median:.3g} [{low:.3g}, {high:.3g}] over {self.n} rounds"
+
+    def claim_text(self) -> str:
+        return f"{self.a} / {self.b} time {'<' if self.claimed == 'lower' else '>'} 1 ({self.outcome})"
 
 
 @dataclass
@@ -184,6 +227,23 @@ def compare_rows(res: Results, a: str, b: str, metric: str, spp: int, claimed: s
                        f"{a} @ {spp} spp", f"{b} @ {b_spp} spp", claimed, rows=((a, spp), (b, b_spp)))
 
 
+def compare_speed(res: Results, a: str, b: str, spp: int, claimed: str = "lower") -> SpeedPart | str:
+    """Speed part 'row a @ spp is faster (claimed 'lower') than row b @ spp' from the timing job's per-round
+    ratios, or the reason it cannot be decided (no timing job, or a row it did not time)."""
+    from denoisers.timing import speed_ratios
+
+    if res.timing is None:
+        return "no timing job output (rule time_methods; evaluation.timing.enabled)"
+    row_a, row_b = res.speed(a, spp), res.speed(b, spp)
+    if row_a is None or row_b is None:
+        absent = [f"{r} @ {spp} spp" for r, row in ((a, row_a), (b, row_b)) if row is None]
+        return f"the timing job did not time {', '.join(absent)}"
+    ratios = speed_ratios(res.timing, (a, spp), (b, spp))
+    return SpeedPart("ms_per_frame", f"{a} @ {spp} spp", f"{b} @ {spp} spp", claimed, ratios,
+                     [f"round {k + 1}" for k in range(len(ratios))], float(row_a["ms_per_frame"]),
+                     float(row_b["ms_per_frame"]), ((a, spp), (b, spp)))
+
+
 def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, object]:
     """One row of claims.csv."""
     parts = decision.parts
@@ -203,7 +263,7 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
                                for f in decision.facts),
             "flags": "; ".join(flags),
             "note": decision.not_run or decision.note,
-            "rule": RULE if parts else ""}
+            "rule": (RULE + (SPEED_RULE if any(isinstance(p, SpeedPart) for p in parts) else "")) if parts else ""}
 
 
 CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "mean_diff_ci_95", "parts", "measured", "facts",

@@ -1,6 +1,7 @@
 """Collecting what the report is computed from: per-frame metric CSVs, timing.json, the robustness
-scenario (rules evaluate_clip, denoise_clip, robustness_clip), the trained models (train_denoiser) and
-the manifests of the external scenes (generate_scene: what was rendered and what was substituted).
+scenario (rules evaluate_clip, denoise_clip, robustness_clip), the timing job (time_methods: every speed
+number of the report), the trained models (train_denoiser) and the manifests of the external scenes
+(generate_scene: what was rendered and what was substituted).
 
 Nothing here computes a verdict; :class:`Results` only answers lookups (which rows ran, per-scene
 values of a column, rows whose outputs were flagged as non-finite or absurd).
@@ -32,6 +33,7 @@ from denoisers.evaluate import (
 )
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
 from denoisers.report.stats import pooled_psnr
+from denoisers.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timing_scene, timing_settings
 from denoisers.training.models import ModelSpec, model_dir, model_specs
 from denoisers.tuning import TUNED_KEY, tuning_file
 from scenegen.config import CUSTOM_PREFIX, output_root
@@ -39,8 +41,11 @@ from scenegen.config import CUSTOM_PREFIX, output_root
 if TYPE_CHECKING:
     import pandas as pd
 
-#: Timing columns aggregated like metrics (from timing.json).
-TIMING_COLUMNS: tuple[str, ...] = ("ms_per_frame", "mpix_per_s", "peak_memory_mb")
+#: Cost columns aggregated over scenes like metrics (from each denoise job's timing.json).
+TIMING_COLUMNS: tuple[str, ...] = ("peak_memory_mb",)
+#: Speed columns: from the timing job only (median and range over its rounds), never from the denoise jobs,
+#: whose times depend on what else ran beside them (kept in per_scene.csv as clip_ms_per_frame).
+SPEED_COLUMNS: tuple[str, ...] = ("ms_per_frame", "mpix_per_s")
 #: Per-scene columns derived from the per-frame metrics (Isik et al. 2021 Eq. 14: MSE pooled over frames).
 DERIVED_METRICS: tuple[str, ...] = ("video_psnr",)
 #: Fraction of logged training steps whose mean is a model's final training loss.
@@ -122,6 +127,7 @@ class Results:
     models: TrainedModels | None = None
     external: dict[str, dict | None] = field(default_factory=dict)   # custom_* scene -> manifest (None: missing)
     digests: DigestLedger | None = None       # settings digests of the outputs read
+    timing: TimingJob | None = None           # the timing job's record (None: disabled or not run)
 
     def __post_init__(self) -> None:
         if self.results_dir is None:
@@ -181,6 +187,10 @@ class Results:
             parts.append(f"model {model.spec.id} trained only {steps} steps")
         return f"{method_id} @ {spp} spp: " + ", ".join(parts) if parts else ""
 
+    def speed(self, method_id: str | None, spp: int) -> dict[str, Any] | None:
+        """The timing job's record of (row, spp): ms_per_frame (median over rounds), its min/max, Mpix/s."""
+        return self.timing.row(method_id, spp) if self.timing is not None and method_id is not None else None
+
     def model_of(self, method_id: str) -> TrainedModel | None:
         if not any(spec.id == method_id for spec in self.specs):
             return None
@@ -205,14 +215,13 @@ def _plan_status(cfg: dict) -> dict[tuple[str, int], str]:
 
 def _timing_row(spec: MethodSpec, scene: str, spp: int, timing: dict) -> dict[str, Any]:
     return {"method_id": spec.id, "spp": spp, "scene": scene,
-            "ms_per_frame": timing["mean_seconds"] * 1e3, "mpix_per_s": timing["mpix_per_s"],
+            "clip_ms_per_frame": timing["mean_seconds"] * 1e3,
             "peak_memory_mb": timing["peak_memory_mb"], "nonfinite_inputs": timing["nonfinite_inputs"],
             "nonfinite_outputs": timing["nonfinite_outputs"],
             # Older timing files carry no range check: unknown, not zero.
             "out_of_range_outputs": timing.get("out_of_range_outputs", math.nan),
             "out_of_range_factor": timing.get("out_of_range_factor", math.nan),
             "samples_factor": timing.get("samples_factor", 1),
-            "render_samples_per_s": timing.get("render_samples_per_s") or math.nan,
             "pixels": timing["width"] * timing["height"]}
 
 
@@ -276,9 +285,14 @@ def collect(cfg: dict, results_dir: Path | None = None) -> Results:
         path = tuning_file(results_dir, method)
         if path.is_file():
             ledger.add(path, json.loads(path.read_text()).get(DIGEST_KEY), lineage.tuning(method))
+    timing = None
+    timing_path = results_dir / TIMING_JOB_FILE
+    if timing_settings(cfg)["enabled"] and timing_path.is_file():
+        timing = read_timing_job(timing_path)
+        ledger.add(timing_path, timing.record.get(DIGEST_KEY), lineage.timing(timing_scene(cfg)))
     ledger.raise_if_mixed(cfg, results_dir)
     return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir, models,
-                   external_manifests(results_dir, scenes), ledger)
+                   external_manifests(results_dir, scenes), ledger, timing)
 
 
 def external_manifests(results_dir: Path, scenes: list[str]) -> dict[str, dict | None]:

@@ -65,21 +65,29 @@ def save_step_plot(figure: Any, axes: Any, path: Path, ylabel: str, title: str, 
 
 
 def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[Path]) -> None:
-    """PSNR against denoiser throughput (Mpix/s, log x), a point per method and spp with 95 % CI bars;
-    the non-denoising rows (noisy input, plain path tracing) are horizontal reference lines."""
+    """PSNR against denoiser throughput (Mpix/s from the timing job, log x), a point per method and spp with
+    95 % CI bars over scenes (PSNR) and the range over timing rounds (throughput); the non-denoising rows
+    (noisy input, plain path tracing) are horizontal reference lines. Rows the timing job did not time are
+    left out."""
     plt = pyplot()
     lookup = summary_lookup(summary)
     colours = _colours(res.main_specs)
     fig, ax = plt.subplots(figsize=(8.5, 5.0))
     xs = []
     for spec in res.main_specs:
-        spps = [s for s in res.cfg["evaluation"]["spp"] if res.ran(spec.id, s)]
+        spps = [s for s in res.cfg["evaluation"]["spp"] if res.ran(spec.id, s) and res.speed(spec.id, s)]
         if not spps or spec.method in REFERENCE_METHODS:
             continue
-        x = [lookup[(spec.id, s, "mpix_per_s")][0] for s in spps]
+        speeds = [res.speed(spec.id, s) for s in spps]
+        x = [row["mpix_per_s"] for row in speeds]
+        # Throughput range over rounds: the fastest and slowest pass.
+        slowest = [row["mpix_per_s"] * row["ms_per_frame"] / row["ms_per_frame_max"] for row in speeds]
+        fastest = [row["mpix_per_s"] * row["ms_per_frame"] / row["ms_per_frame_min"] for row in speeds]
+        xerr = [[xi - lo for xi, lo in zip(x, slowest)], [hi - xi for xi, hi in zip(x, fastest)]]
         y = [lookup[(spec.id, s, "psnr")] for s in spps]
         err = [[0 if math.isnan(v[1]) else v[0] - v[1] for v in y], [0 if math.isnan(v[2]) else v[2] - v[0] for v in y]]
-        ax.errorbar(x, [v[0] for v in y], yerr=err, marker="o", color=colours[spec.id], label=spec.id, capsize=3)
+        ax.errorbar(x, [v[0] for v in y], xerr=xerr, yerr=err, marker="o", color=colours[spec.id], label=spec.id,
+                    capsize=3)
         # Only the spp next to each point (the colour says the method): long labels overlapped.
         for xi, yi, s in zip(x, y, spps):
             ax.annotate(str(s), (xi, yi[0]), textcoords="offset points", xytext=(4, -9), fontsize=7,
@@ -106,10 +114,12 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
     ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
     ax.xaxis.set_minor_formatter(NullFormatter())
-    ax.set_xlabel("throughput (Mpix/s, denoising only, log scale)")
+    threads = f", {res.timing.threads} thread(s)" if res.timing is not None else ", no timing job"
+    ax.set_xlabel(f"throughput (Mpix/s, denoising only, timing job{threads}, log scale)")
     ax.set_ylabel("PSNR (dB, tonemapped)")
-    ax.set_title(f"Quality vs speed ({len(res.scenes)} scene(s), mean ± 95 % CI; numbers = spp;\n"
-                 "dashed: noisy input / path tracing at that spp)", fontsize=9)
+    ax.set_title(f"Quality vs speed (PSNR: mean ± 95 % CI over {len(res.scenes)} scene(s); throughput: median, "
+                 "bars = range over timing rounds;\nnumbers = spp; dashed: noisy input / path tracing at that spp)",
+                 fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     if xs:   # outside the axes, so it covers no data
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)

@@ -10,15 +10,24 @@ import numpy as np
 
 from denoisers.evaluate import ALL_METRICS, REFERENCE_METHODS
 from denoisers.report.collect import DERIVED_METRICS, TIMING_COLUMNS, Results, TrainedModels
-from denoisers.report.stats import HIGHER_IS_BETTER, LABELS, fmt_ci, markdown_table, mean_ci
+from denoisers.report.stats import HIGHER_IS_BETTER, LABELS, fmt, fmt_ci, markdown_table, mean_ci
 from scenegen.config import SCENE_SPLITS, scene_ids
 
 if TYPE_CHECKING:
     import pandas as pd
 
 SUMMARY_METRICS: tuple[str, ...] = (*ALL_METRICS, *DERIVED_METRICS, *TIMING_COLUMNS)
-#: Columns of the Markdown summary (video PSNR is in the Isik layouts).
+#: Columns of the Markdown summary (video PSNR is in the Isik layouts); ms/frame from the timing job follows.
 SUMMARY_SHOWN: tuple[str, ...] = (*ALL_METRICS, *TIMING_COLUMNS)
+
+
+def speed_text(res: Results, method_id: str, spp: int) -> str:
+    """'median [min, max]' ms/frame of the timing job, or '–' when it did not time the row."""
+    row = res.speed(method_id, spp)
+    if row is None:
+        return "–"
+    return (f"{fmt(row['ms_per_frame'], 'ms_per_frame')} [{fmt(row['ms_per_frame_min'], 'ms_per_frame')}, "
+            f"{fmt(row['ms_per_frame_max'], 'ms_per_frame')}]")
 
 
 def summary_table(res: Results) -> pd.DataFrame:
@@ -49,13 +58,13 @@ def summary_markdown(res: Results, summary: pd.DataFrame) -> str:
     parts = []
     for spp in res.cfg["evaluation"]["spp"]:
         rows = [[spec.id, *[fmt_ci(*lookup[(spec.id, spp, m)][:3], m) for m in SUMMARY_SHOWN],
-                 "⚠" if res.flag(spec.id, spp) else "ok"]
+                 speed_text(res, spec.id, spp), "⚠" if res.flag(spec.id, spp) else "ok"]
                 for spec in res.main_specs if res.ran(spec.id, spp)]
         flags = [res.flag(spec.id, spp) for spec in res.main_specs if res.ran(spec.id, spp)]
         n = max((lookup[k][3] for k in lookup if k[1] == spp), default=0)
         parts.append(f"### {spp} spp ({n} scene{'s' if n != 1 else ''})\n\n")
         parts.append(markdown_table(["method", *[f"{LABELS[m]} {arrows[HIGHER_IS_BETTER[m]]}" for m in SUMMARY_SHOWN],
-                                     "outputs"],
+                                     "ms/frame ↓ (timing job: median [range])", "outputs"],
                                     rows) if rows else "no method ran at this spp\n")
         parts += [f"\n⚠ {flag}\n" for flag in flags if flag]
         parts.append("\n")
@@ -63,7 +72,9 @@ def summary_markdown(res: Results, summary: pd.DataFrame) -> str:
 
 
 def timing_table(res: Results) -> pd.DataFrame:
-    """Per row and spp: timing means with CIs and the summed non-finite / out-of-range counts."""
+    """Per row and spp: the timing job's ms/frame (median over rounds, min, max, spread = range / median) and
+    Mpix/s, the denoise jobs' peak memory (mean with CI over scenes) and the summed non-finite / out-of-range
+    counts."""
     import pandas as pd
 
     rows = []
@@ -73,7 +84,11 @@ def timing_table(res: Results) -> pd.DataFrame:
         values = {c: res.scene_values(run["id"], run["spp"], c) for c in
                   (*TIMING_COLUMNS, "nonfinite_inputs", "nonfinite_outputs", "out_of_range_outputs")}
         out_of_range = values["out_of_range_outputs"]
+        speed = res.speed(run["id"], run["spp"]) or {}
         rows.append({"method_id": run["id"], "spp": run["spp"],
+                     **{key: speed.get(key, math.nan) for key in
+                        ("ms_per_frame", "ms_per_frame_min", "ms_per_frame_max", "spread", "mpix_per_s")},
+                     "timing_rounds": speed.get("repeats", 0), "timing_threads": speed.get("threads", math.nan),
                      **{f"{c}_{part}": value for c in TIMING_COLUMNS
                         for part, value in zip(("mean", "ci_low", "ci_high"), mean_ci(values[c].to_numpy(float))[:3])},
                      "nonfinite_inputs": int(values["nonfinite_inputs"].sum()),
@@ -85,8 +100,9 @@ def timing_table(res: Results) -> pd.DataFrame:
 
 def equal_time_table(res: Results) -> pd.DataFrame:
     """For each denoiser and spp: the spp plain path tracing reaches in the same time (render time of
-    spp samples + denoise time, with the renderer's measured samples/s), the plain path-tracing row
-    whose total spp is nearest to it (in log ratio), and which of the two has the higher PSNR."""
+    spp samples + denoise time; denoise time and the renderer's samples/s both from the timing job, at the
+    same threads), the plain path-tracing row whose total spp is nearest to it (in log ratio), and which of
+    the two has the higher PSNR. Rows the timing job did not time get no equal-time spp."""
     import pandas as pd
 
     main = {spec.id for spec in res.main_specs}
@@ -99,12 +115,13 @@ def equal_time_table(res: Results) -> pd.DataFrame:
     for run in res.runs:
         if run["status"] != "ran" or run["id"] not in main or res.spec(run["id"]).method in REFERENCE_METHODS:
             continue
-        ms = res.scene_values(run["id"], run["spp"], "ms_per_frame")
-        rate = res.scene_values(run["id"], run["spp"], "render_samples_per_s")
-        pixels = res.scene_values(run["id"], run["spp"], "pixels")
-        equal_spp = float(np.mean(run["spp"] + ms / 1e3 * rate / pixels))
-        row = {"method_id": run["id"], "spp": run["spp"], "denoise_ms_per_frame": float(ms.mean()),
-               "render_msamples_per_s": float(rate.mean() / 1e6), "equal_time_spp": equal_spp,
+        speed = res.speed(run["id"], run["spp"])
+        ms = speed["ms_per_frame"] if speed else math.nan
+        rate = res.timing.renderer_samples_per_s if res.timing is not None else math.nan
+        pixels = speed["width"] * speed["height"] if speed else math.nan
+        equal_spp = run["spp"] + ms / 1e3 * rate / pixels
+        row = {"method_id": run["id"], "spp": run["spp"], "denoise_ms_per_frame": ms,
+               "render_msamples_per_s": rate / 1e6, "equal_time_spp": equal_spp,
                "path_tracing_row": None, "path_tracing_spp": math.nan, "psnr_denoiser": math.nan,
                "psnr_path_tracing": math.nan, "psnr_diff_mean": math.nan, "psnr_diff_ci_low": math.nan,
                "psnr_diff_ci_high": math.nan, "better": "no path-tracing row"}
@@ -192,12 +209,12 @@ def split_table(cfg: dict) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-EXTERNAL_COLUMNS: tuple[str, ...] = (*ALL_METRICS, "video_psnr", "ms_per_frame")
+EXTERNAL_COLUMNS: tuple[str, ...] = (*ALL_METRICS, "video_psnr")
 SUBSTITUTION_COLUMNS: tuple[str, ...] = ("scene", "what", "authored", "used", "why")
 
 
 def external_table(res: Results) -> pd.DataFrame:
-    """Per row, spp and external scene: the frame means of every metric, video PSNR and ms/frame."""
+    """Per row, spp and external scene: the frame means of every metric and video PSNR."""
     rows = res.per_scene[res.per_scene.scene.isin(res.external_scenes)]
     roles = {spec.id: spec.role for spec in res.specs}
     table = rows[["method_id", "spp", "scene", *[c for c in EXTERNAL_COLUMNS if c in rows]]].copy()

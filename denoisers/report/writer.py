@@ -40,14 +40,30 @@ def _setup_lines(res: Results) -> list[str]:
         "- Aggregation: a metric is averaged over a clip's frames (PSNR: the mean of per-frame PSNR, except the "
         "Isik layouts, which pool the MSE over frames as their Eq. 14), then over scenes; ± is the half-width of "
         "the 95 % Student-t confidence interval over per-scene means (absent with one scene).",
-        f"- Timing: in-process seconds per `denoise()` call with {cfg['evaluation']['threads']} torch thread(s), "
-        "first frame (warm-up) and all I/O excluded; Mpix/s = pixels / mean seconds. Peak memory: RSS sampled "
-        "with psutil every 5 ms during the denoise loop, minus the RSS before it.",
+        f"- {_timing_line(res)} Peak memory: RSS sampled with psutil every 5 ms during each denoise job's loop, "
+        "minus the RSS before it.",
         *([f"- Settings digests: {res.digests.summary()}; outputs of other settings (another seed, other render "
            "or method settings) are refused, not combined."] if res.digests else []), "",
         "Provenance of this report (each trained model records its own in summary.json; see the training table):",
         "", *describe(provenance({"evaluation": cfg["evaluation"]["threads"],
                                   "training": cfg.get("training", {}).get("threads", 0)})), ""]
+
+
+def _timing_line(res: Results) -> str:
+    """How the report's speed numbers were measured (the timing job), or why there are none."""
+    if res.timing is None:
+        why = ("evaluation.timing.enabled is false" if not res.cfg["evaluation"].get("timing", {}).get("enabled", True)
+               else "the timing job's output is missing")
+        return f"Timing: none ({why}); speed columns are empty and speed claims are not run."
+    job = res.timing.record
+    renderer = job["renderer"]
+    return (f"Timing: one job alone on the machine (rule time_methods) timed every configured row on the first "
+            f"{job['frames']} frames of {job['scene']} with {job['threads']} thread(s), in {job['repeats']} "
+            "interleaved rounds after a warm-up round (one pass of every row per round, all I/O excluded); a pass "
+            "is the median seconds per `denoise()` call without the first frame, a row's ms/frame the median over "
+            "rounds with [min, max]; Mpix/s = pixels / median. Renderer in the same job and threads: "
+            f"{renderer['samples_per_s'] / 1e6:.3g} M samples/s (median of {renderer['repeats']} renders of "
+            f"{renderer['layers']} full-feature layers).")
 
 
 def _claims_section(claims: pd.DataFrame) -> list[str]:
@@ -84,7 +100,7 @@ def _external_section(res: Results, tables: Path) -> list[str]:
              "design allows it (the XML integrator's max_depth, rr_depth and hide_emitters; every authored shape "
              "keeps its own object id); every substitution the harness makes is listed per scene.", ""]
     main = {spec.id for spec in res.main_specs}
-    columns = ["psnr", "ssim", "relmse", "flip", "tpsnr", "ms_per_frame"]
+    columns = ["psnr", "ssim", "relmse", "flip", "tpsnr"]
     for scene in res.external_scenes:
         manifest = res.external.get(scene) or {}
         render = manifest.get("render")
@@ -164,11 +180,14 @@ def _core_tables(res: Results, tables: Path) -> dict[str, str]:
     tab.write_table(summary, tables, "summary", summary_md)
     per_scene = res.per_scene.drop(columns=["pixels"], errors="ignore")
     tab.write_table(per_scene, tables, "per_scene", frame_to_markdown(formatted(
-        per_scene, {c: c for c in (*ALL_METRICS, "video_psnr", *tab.TIMING_COLUMNS)})))
+        per_scene, {**{c: c for c in (*ALL_METRICS, "video_psnr", *tab.TIMING_COLUMNS)},
+                    "clip_ms_per_frame": "ms_per_frame"})))
     timing = tab.timing_table(res)
+    speed = {"ms_per_frame": "ms_per_frame", "ms_per_frame_min": "ms_per_frame", "ms_per_frame_max": "ms_per_frame",
+             "spread": "", "mpix_per_s": "mpix_per_s"}
     tab.write_table(timing, tables, "timing", frame_to_markdown(formatted(
-        timing, {c: c.rsplit("_", 1)[0].replace("_ci", "") for c in timing.columns
-                 if c.endswith(("_mean", "_low", "_high"))})))
+        timing, {**{c: c.rsplit("_", 1)[0].replace("_ci", "") for c in timing.columns
+                    if c.endswith(("_mean", "_low", "_high")) and c not in speed}, **speed})))
     equal_time = tab.equal_time_table(res)
     equal_time_md = frame_to_markdown(with_ci_columns(
         formatted(equal_time, {"denoise_ms_per_frame": "ms_per_frame", "render_msamples_per_s": "",
@@ -218,9 +237,10 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
         if section:
             lines += [section, ""]
     lines += ["## Equal-time view", "",
-              "Plain path tracing gets the samples it could render in the time of denoising (renderer speed measured "
-              "during the reference renders: large batches, all feature buffers included); the nearest rendered row "
-              "is compared, paired over scenes.", "", inline["equal_time"], ""]
+              "Plain path tracing gets the samples it could render in the time of denoising (denoising time and "
+              "renderer speed both from the timing job, at the same thread count; the renderer renders full-feature "
+              "sample layers, as for the noisy inputs); the nearest rendered row is compared, paired over scenes.",
+              "", inline["equal_time"], ""]
     lines += _robustness_section(res, tables)
     lines += _training_section(res, tables, figures)
     lines += ["## Reference noise floor", "", inline["noise"], "", "## Per-scene figures", ""]

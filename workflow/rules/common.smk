@@ -20,6 +20,7 @@ from scenegen.config import (
 from denoisers import experiment
 from denoisers.evaluate import evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids
 from denoisers.report import report_outputs
+from denoisers.timing import timed_runs, timing_scene, timing_settings
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
 from denoisers.training.models import method_model, model_dir, model_specs, training_problems, training_split
@@ -288,8 +289,8 @@ def robustness_dirs(wildcards=None) -> list[str]:
 
 
 def evaluate_targets(wildcards=None) -> list[str]:
-    """Stage target `evaluate`: metrics CSVs and the robustness scenario."""
-    return metrics_files() + robustness_dirs()
+    """Stage target `evaluate`: metrics CSVs, the robustness scenario and the timing job."""
+    return metrics_files() + robustness_dirs() + timing_outputs()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -350,7 +351,8 @@ def report_input(wildcards) -> dict[str, list[str]]:
     tuning = sorted({results_path(f"tuning/{run.spec.method}.json") for run in planned_runs()
                      if run.spec.params.get("tuned")})
     return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
-            "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning}
+            "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning,
+            "timing": timing_outputs()}
 
 
 def denoise_digest(wildcards) -> str:
@@ -369,6 +371,51 @@ def robustness_digest(wildcards) -> str:
 def report_digest(wildcards) -> str:
     """The report states the whole configuration (split, render settings, evaluation)."""
     return experiment.report_digest(config)
+
+
+# ---------------------------------------------------------------------------------------------
+# The timing job (workflow/rules/timing.smk): every configured row timed on one scene, alone.
+# ---------------------------------------------------------------------------------------------
+TIMING_SCENE = timing_scene(config) if timing_settings(config)["enabled"] else None
+_timed_runs = []
+
+
+def timed_run_list() -> list[tuple[str, int]]:
+    """(row id, spp) of the timing job; planned (importing torch) only when a job needs it."""
+    if TIMING_SCENE and not _timed_runs:
+        _timed_runs.append(timed_runs(config))
+    return _timed_runs[0] if _timed_runs else []
+
+
+def timing_outputs(wildcards=None) -> list[str]:
+    """The timing job's file, when the config times anything."""
+    return [results_path("timing/timing.json")] if timed_run_list() else []
+
+
+def timing_scene_dir(wildcards=None) -> str:
+    return results_path(f"scenes/{TIMING_SCENE}")
+
+
+def timing_chunk_dirs(wildcards=None) -> list[str]:
+    return [results_path(f"renders/{TIMING_SCENE}/noisy/chunk_{chunk:03d}")
+            for chunk in range(chunk_count(config, TIMING_SCENE))]
+
+
+def timing_model_dirs(wildcards=None) -> list[str]:
+    models = {method_model(METHOD_SPECS[row].params) for row, _ in timed_run_list()}
+    return sorted(model_dir(OUT, model).as_posix() for model in models if model)
+
+
+def timing_tuning_files(wildcards=None) -> list[str]:
+    return sorted({results_path(f"tuning/{METHOD_SPECS[row].method}.json") for row, _ in timed_run_list()
+                   if METHOD_SPECS[row].params.get("tuned")})
+
+
+def timing_digest(wildcards) -> str:
+    return experiment.Lineage(config).timing(TIMING_SCENE)
+
+
+TIMING_THREADS = timing_settings(config)["threads"] or workflow.cores
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,37 @@
+# The timing job (denoisers/timing.py): every configured row at every evaluated spp, timed on the same frames of
+# one evaluated scene (evaluation.timing.scene) in interleaved rounds, and the renderer's samples/s at the same
+# thread count. It takes every core, so no other job runs beside it; the report's speed numbers, the
+# quality-versus-speed chart, the equal-time view and the speed claims read only this file.
+#   time_methods: <out>/timing/timing.json
+
+
+rule time_methods:
+    input:
+        scene=timing_scene_dir,
+        noisy=timing_chunk_dirs,
+        models=timing_model_dirs,
+        tuning=timing_tuning_files,
+    output:
+        timing=results_path("timing/timing.json"),
+    params:
+        config_file=resolved_config_file,
+        config_digest=timing_digest,
+        scene=TIMING_SCENE,
+        render_dir=results_path(f"renders/{TIMING_SCENE}"),
+        results=results_root,
+        threads=TIMING_THREADS,
+    log:
+        results_path("logs/time_methods.log"),
+    benchmark:
+        results_path("benchmarks/time_methods.tsv")
+    conda:
+        "../envs/harness.yaml"
+    # Every core: the scheduler runs nothing else while the methods are timed.
+    threads: workflow.cores
+    resources:
+        mem_mb=8000,
+        runtime=120,
+    shell:
+        "python -m denoisers time --config {params.config_file} --scene {params.scene}"
+        " --render-dir {params.render_dir} --scene-dir {input.scene} --results {params.results}"
+        " --out {output.timing} --threads {params.threads} > {log} 2>&1"
