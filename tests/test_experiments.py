@@ -135,6 +135,12 @@ def test_lineage_digests_follow_the_settings_they_depend_on() -> None:
     more["scenes"]["n_test"] = 3
     more["evaluation"]["methods"] = more["evaluation"]["methods"][:1]
     assert Lineage(more).metrics(row, "test_000", 1) == base.metrics(row, "test_000", 1)
+    # A trained model depends on its training renders, not on how many test or external scenes exist.
+    more["extra_scenes"] = []
+    assert Lineage(more).model("rae") == base.model("rae")
+    spp = copy.deepcopy(cfg)
+    spp["render"]["reference_spp"] = 32
+    assert Lineage(spp).model("rae") != base.model("rae")
     # warmup_frames: the metrics, not the denoised clip; reference_spp: the metrics, not the clip.
     for section, key, value in (("evaluation", "warmup_frames", 2), ("render", "reference_spp", 32)):
         changed = copy.deepcopy(cfg)

@@ -34,9 +34,14 @@ WORK_DIR_NAME = ".work"
 
 
 def data_settings(cfg: dict) -> dict[str, Any]:
-    """Config values the rendered training data depend on (changing them invalidates checkpoints)."""
-    return {"seed": cfg["seed"], "scenes": cfg["scenes"], "render": cfg["render"],
-            "split": training_split(cfg), "validation_sequences": cfg["training"]["validation_sequences"],
+    """Config values the rendered training data depend on (changing them invalidates checkpoints): the
+    settings digests of the training and validation scenes' renders, not the whole scenes/render sections,
+    so that adding a test scene (scenes.n_test) or an external scene retrains nothing."""
+    from denoisers.experiment import render_digest
+
+    split = training_split(cfg)
+    renders = {scene: [render_digest(cfg, scene, kind) for kind in ("noisy", "reference")] for scene in sum(split, [])}
+    return {"renders": renders, "split": split, "validation_sequences": cfg["training"]["validation_sequences"],
             "validate_every": cfg["training"]["validate_every"],
             # Validation image metrics skip these first frames of each sequence (see trainer_config).
             "validation_warmup_frames": cfg["evaluation"]["warmup_frames"]}
