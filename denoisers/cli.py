@@ -190,7 +190,8 @@ def _run(args: argparse.Namespace) -> int:
         record = time_methods(cfg, args.scene, args.render_dir, args.scene_dir, timed_runs(cfg),
                               frames=settings["frames"], repeats=settings["repeats"], threads=args.threads,
                               results=args.results or output_root(cfg))
-        record[DIGEST_KEY] = Lineage(cfg).timing(args.scene)
+        runs = [(evaluate.method_spec(cfg, row), spp) for row, spp in timed_runs(cfg)]
+        record[DIGEST_KEY] = Lineage(cfg).timing(args.scene, runs)
         write_text_atomic(args.out, json.dumps(record, indent=1) + "\n")
         for row in record["rows"]:
             log.info("%-16s %2d spp: %8.2f ms/frame [%.2f, %.2f] (%.3g Mpix/s)", row["method_id"], row["spp"],

@@ -27,16 +27,13 @@ from typing import Any, Protocol
 
 from denoisers.training.models import method_model, model_spec, settings_digest, training_split
 from denoisers.tuning import TUNED_KEY, tuning_entry
-from scenegen.config import config_digest, extra_scene, scene_frame_count, short_digest
+from scenegen.config import config_digest, short_digest
+# The scene and render digests live with the scene generator (the training job needs them too); re-exported.
+from scenegen.digests import (NOISY_ONLY_KEYS, REFERENCE_ONLY_KEYS, SCENE_LAYOUT_KEYS, render_digest,  # noqa: F401
+                              scene_digest, scene_settings)
 
 #: Key of the recorded digest in timing.json, the metrics sidecars, summary.json and tuning results.
 DIGEST_KEY = "settings_digest"
-#: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
-SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
-NOISY_ONLY_KEYS = frozenset({"spp", "extra_radiance_spp"})
-REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp"})
-
-
 class SettingsMismatchError(ValueError):
     """Outputs were computed from other settings than the config at hand (their digests disagree)."""
 
@@ -49,31 +46,6 @@ class RowSpec(Protocol):
 
 
 # ---------------------------------------------------------------------------------------- job digests
-def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
-    """The config values a scene's content depends on (not the number of scenes). Render keys shared by
-    the noisy and reference renders (resolution, variant, path depth) are included: the generator's
-    preview render uses them."""
-    if scene.startswith("custom_"):
-        procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
-    else:
-        procedural = {key: value for key, value in cfg["scenes"].items() if key not in SCENE_LAYOUT_KEYS}
-    shared = [f"render.{key}" for key in cfg["render"] if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS]
-    return {"seed": cfg["seed"], "scenes": procedural, "render_shared": config_digest(cfg, *shared)}
-
-
-def scene_digest(cfg: dict, scene: str) -> str:
-    """Rule generate_scene."""
-    return config_digest(scene_settings(cfg, scene))
-
-
-def render_digest(cfg: dict, scene: str, kind: str) -> str:
-    """Rules render_noisy (``kind`` 'noisy') and render_reference ('reference')."""
-    own_keys = NOISY_ONLY_KEYS if kind == "noisy" else REFERENCE_ONLY_KEYS
-    return config_digest({"scene": scene_settings(cfg, scene), "frames": scene_frame_count(cfg, scene),
-                          "frames_per_chunk": cfg["scenes"]["frames_per_chunk"],
-                          "render": {key: cfg["render"][key] for key in sorted(own_keys)}})
-
-
 def _row_settings(spec: RowSpec) -> dict[str, Any]:
     return {"method": spec.method, "params": spec.params}
 
@@ -156,13 +128,11 @@ class Lineage:
                                            "reference": render_digest(self.cfg, scene, "reference"),
                                            "evaluate": evaluate_digest(self.cfg)}))
 
-    def timing(self, scene: str) -> str:
-        """The timing job (timing/timing.json): its settings and the denoised digests of the rows it times."""
-        from denoisers.evaluate import method_spec
-        from denoisers.timing import timed_runs, timing_settings
-
-        settings = {key: value for key, value in timing_settings(self.cfg).items() if key != "enabled"}
-        rows = [self.denoised(method_spec(self.cfg, row), scene, spp) for row, spp in timed_runs(self.cfg)]
+    def timing(self, scene: str, runs: list[tuple[RowSpec, int]]) -> str:
+        """The timing job (timing/timing.json): its settings and the denoised digests of the (row, spp) it
+        times (denoisers.timing.timed_runs)."""
+        settings = {key: value for key, value in self.cfg["evaluation"].get("timing", {}).items() if key != "enabled"}
+        rows = [self.denoised(spec, scene, spp) for spec, spp in runs]
         return short_digest(config_digest({"timing": settings, "scene": scene, "rows": rows}))
 
     def robustness(self, spec: RowSpec, scene: str, spp: int) -> str:

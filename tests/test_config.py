@@ -50,8 +50,10 @@ def test_shipped_configs_validate(path: Path) -> None:
     cfg = load_config(path)
     assert cfg["render"]["variant"] == "llvm_ad_rgb"
     assert cfg["render"]["spp"] + cfg["render"]["extra_radiance_spp"] <= 32
-    # The README's example XML scene, shipped in examples/ and evaluated by both configs.
-    assert [entry["name"] for entry in cfg["extra_scenes"]] == ["spheres_room"]
+    # The README's example XML scene, shipped in examples/, is evaluated by the default config (the smoke
+    # config stays small; the pipeline test adds it there).
+    names = [entry["name"] for entry in cfg["extra_scenes"]]
+    assert names == (["spheres_room"] if path == DEFAULT_CONFIG else [])
     assert all((REPO_ROOT / entry["xml"]).is_file() for entry in cfg["extra_scenes"])
 
 
@@ -67,8 +69,8 @@ def test_default_config_matches_the_shared_contract() -> None:
 def test_smoke_config_is_tiny() -> None:
     cfg = load_config(SMOKE_CONFIG)
     # Two training scenes: one trains, one is held out for validation.
-    assert scene_ids(cfg) == ["train_000", "train_001", "test_000", "custom_spheres_room"]
-    assert [chunk_count(cfg, scene) for scene in scene_ids(cfg)] == [2, 2, 2, 2]
+    assert scene_ids(cfg) == ["train_000", "train_001", "test_000"]
+    assert [chunk_count(cfg, scene) for scene in scene_ids(cfg)] == [2, 2, 2]
     assert (cfg["render"]["width"], cfg["render"]["height"], cfg["render"]["spp"]) == (48, 48, 4)
     assert cfg["render"]["reference_spp"] == 64
     assert cfg["scenes"]["objects"] == [3, 6]

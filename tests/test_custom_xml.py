@@ -101,7 +101,7 @@ def test_a_box_filtered_path_scene_substitutes_only_what_it_must(tmp_path: Path)
 
 
 def test_extra_scene_depth_keys_are_validated() -> None:
-    cfg = copy.deepcopy(load_config(REPO / "config" / "smoke.yaml"))
+    cfg = copy.deepcopy(load_config(REPO / "config" / "config.yaml"))     # it has an extra scene
     cfg["extra_scenes"][0]["max_depth"] = 0
     with pytest.raises(ConfigError, match=r"extra_scenes\[0\]\.max_depth' = 0 is not allowed"):
         validate_config(copy.deepcopy(cfg))

@@ -96,7 +96,7 @@ IMPOSSIBLE = [
     ("metrics/eaw/test_000/spp4.csv", "evaluate_clip", "row eaw is evaluated at spp: 1, 2"),
     ("renders/test_000/noisy/chunk_005", "render_noisy", "has 2 chunk(s)"),
     ("renders/test_003/reference/chunk_000", "render_reference", "scene test_003 is not in this config"),
-    ("scenes/test_007", "generate_scene", "scenes: train_000, train_001, test_000, custom_spheres_room"),
+    ("scenes/test_007", "generate_scene", "scenes: train_000, train_001, test_000"),
     ("robustness/rae_inputs_color/test_000/spp2", "robustness_clip", "not in the robustness scenario"),
     ("denoised/nope/test_000/spp1", "denoise_clip", "no evaluation row nope"),
     ("models/nope", "train_denoiser", "no model nope"),
@@ -117,7 +117,7 @@ def test_impossible_targets_fail_when_the_dag_is_built(workflow_copy: Path, targ
 
 @pytest.mark.slow
 def test_possible_path_targets_still_build(workflow_copy: Path) -> None:
-    counts = dry_run("results/smoke/metrics/eaw/custom_spheres_room/spp2.csv",
+    counts = dry_run("results/smoke/metrics/eaw/test_000/spp2.csv",
                      "results/smoke/renders/test_000/noisy/chunk_001", "--configfile", SMOKE, cwd=workflow_copy)
     assert counts["evaluate_clip"] == 1 and counts["denoise_clip"] == 1 and counts["tune_method"] == 1
 

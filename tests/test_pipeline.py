@@ -4,9 +4,10 @@ One copy of the workflow (Snakefile, workflow/, config/, examples/) in a tempora
 first the stage target `scenes` alone, then the default target (renders, every configured method on
 the test scene, metrics, the robustness scenario and the report). That checks the stage target on a
 fresh tree, that the full run reuses the scenes, the complete dataset and the evaluation outputs in
-a single DAG. The smoke config evaluates one test scene and the README's example XML scene
-(custom_spheres_room). Its outputs go to its output_dir (results/smoke); afterwards a second config
-(seed 7, its own output_dir) runs `scenes` next to it, which must leave the smoke experiment untouched.
+a single DAG. The run uses the smoke config plus the README's example XML scene (custom_spheres_room, as
+in the default config), so one test scene and one external scene are evaluated. Its outputs go to its
+output_dir (results/smoke); afterwards a second config (seed 7, its own output_dir) runs `scenes` next to
+it, which must leave the smoke experiment untouched.
 """
 
 from __future__ import annotations
@@ -43,6 +44,10 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 SMOKE_CONFIG = "config/smoke.yaml"
+# The smoke config with the README's example XML scene added (written into the work directory).
+PIPELINE_CONFIG = "smoke-external.yaml"
+EXTERNAL_SCENE = {"name": "spheres_room", "xml": "examples/scenes/spheres_room/scene.xml", "frames": 4,
+                  "camera": {"path": "dolly"}}
 # The second experiment: the smoke config with another seed and its own folder.
 SEED7_CONFIG, SEED7_OUT = "seed7.yaml", "results/seed7"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference")
@@ -55,7 +60,7 @@ SNAKEMAKE_MARKER = ".snakemake_timestamp"
 SNAKEMAKE_TIMEOUT_S = 2400
 
 
-def _snakemake(workdir: Path, *args: str, config: str = SMOKE_CONFIG) -> subprocess.CompletedProcess:
+def _snakemake(workdir: Path, *args: str, config: str = PIPELINE_CONFIG) -> subprocess.CompletedProcess:
     """Run the venv's snakemake in ``workdir`` with the venv first on PATH (the rules call `python`)."""
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     # conftest's init_mitsuba may have set DRJIT_LIBLLVM_PATH in this process; dict(os.environ) passes it on.
@@ -105,7 +110,9 @@ def pipeline(tmp_path_factory) -> PipelineRun:
     for folder in ("workflow", "config", "examples"):
         shutil.copytree(REPO_ROOT / folder, workdir / folder)
 
-    cfg = load_config(workdir / SMOKE_CONFIG)
+    smoke = yaml.safe_load((workdir / SMOKE_CONFIG).read_text())
+    (workdir / PIPELINE_CONFIG).write_text(yaml.safe_dump(smoke | {"extra_scenes": [EXTERNAL_SCENE]}))
+    cfg = load_config(workdir / PIPELINE_CONFIG)
     results = workdir / cfg["output_dir"]
     scenes_run = _snakemake(workdir, "scenes")
     _check_ok(scenes_run, "snakemake scenes", workdir)
@@ -115,7 +122,7 @@ def pipeline(tmp_path_factory) -> PipelineRun:
     full = _snakemake(workdir)
     _check_ok(full, "snakemake (default target)", workdir)
     after_full = _tree(results)
-    seed7 = yaml.safe_load((workdir / SMOKE_CONFIG).read_text()) | {"seed": 7, "output_dir": SEED7_OUT}
+    seed7 = yaml.safe_load((workdir / PIPELINE_CONFIG).read_text()) | {"seed": 7, "output_dir": SEED7_OUT}
     (workdir / SEED7_CONFIG).write_text(yaml.safe_dump(seed7))
     _check_ok(_snakemake(workdir, "scenes", config=SEED7_CONFIG), "snakemake scenes (seed 7)", workdir)
     dry_rerun = _snakemake(workdir, "-n")
@@ -334,7 +341,7 @@ def test_every_configured_model_is_trained_and_reported(pipeline: PipelineRun) -
     tables = pipeline.results / "tables"
     training = pd.read_csv(tables / "training.csv")
     assert list(training["model"]) == [spec.id for spec in specs] and set(training["status"]) == {"trained"}
-    assert len(pd.read_csv(tables / "rae_inputs.csv")) == 6 and len(pd.read_csv(tables / "rae_loss.csv")) == 2
+    assert len(pd.read_csv(tables / "rae_inputs.csv")) == 3 and len(pd.read_csv(tables / "rae_loss.csv")) == 2
     # Each ablation variant is scored on the test scene (what C1.2 / C1.3 are decided on).
     for name in ("rae_inputs", "rae_loss"):
         assert np.isfinite(pd.read_csv(tables / f"{name}.csv")["test_rmse_mean"]).all(), name
@@ -389,3 +396,27 @@ def test_every_output_records_the_settings_digest_of_this_config(pipeline: Pipel
         checked += 1
     report = (pipeline.results / "REPORT.md").read_text()
     assert f"Settings digests: {checked} outputs record this config's settings digests;" in report
+
+
+def test_the_timing_job_times_every_configured_row_and_the_report_uses_it(pipeline: PipelineRun) -> None:
+    """Rule time_methods: every runnable configured row at every evaluated spp, in interleaved rounds, with
+    the renderer's rate at the same threads; the timing table and C4.4 read it, not the denoise jobs."""
+    from denoisers.timing import TIMING_JOB_FILE, read_timing_job, timed_runs, timing_settings
+
+    job = read_timing_job(pipeline.results / TIMING_JOB_FILE)
+    settings = timing_settings(pipeline.cfg)
+    assert [(row["method_id"], row["spp"]) for row in job.record["rows"]] == timed_runs(pipeline.cfg)
+    assert {run.spec.id for run in pipeline.runs() if run.spec.role == "method"} == \
+        {row["method_id"] for row in job.record["rows"]}
+    assert job.record["scene"] == "test_000" and job.threads == 2      # every core the job got (--cores 2)
+    assert job.record["renderer"]["threads"] == job.threads and job.renderer_samples_per_s > 0
+    for row in job.record["rows"]:
+        assert len(row["pass_ms_per_frame"]) == settings["repeats"] and row["frames"] == list(range(settings["frames"]))
+        assert row["ms_per_frame_min"] <= row["ms_per_frame"] <= row["ms_per_frame_max"]
+    timed = [(method_spec(pipeline.cfg, row), spp) for row, spp in timed_runs(pipeline.cfg)]
+    assert job.record[DIGEST_KEY] == Lineage(pipeline.cfg).timing("test_000", timed)
+    table = pd.read_csv(pipeline.results / "tables" / "timing.csv").set_index(["method_id", "spp"])
+    for row in job.record["rows"]:
+        assert table.loc[(row["method_id"], row["spp"]), "ms_per_frame"] == pytest.approx(row["ms_per_frame"])
+    claims = pd.read_csv(pipeline.results / "tables" / "claims.csv").set_index("claim")
+    assert "timing job" in claims.loc["C4.4", "note"] and "over 3 rounds" in claims.loc["C4.4", "mean_diff_ci_95"]

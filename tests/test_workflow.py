@@ -28,7 +28,7 @@ from scenegen.config import chunk_count, load_config, scene_ids
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
-             "robustness_clip", "build_report", "train_denoiser", "tune_method")
+             "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods")
 STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
@@ -118,7 +118,13 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
 
     training_inputs = train_scenes if all_models or tuned else []
     used_inputs = train_scenes if used_models or tuned else []
-    evaluation = {"denoise_clip": evaluated, "evaluate_clip": evaluated, "robustness_clip": robustness}
+    # The timing job (rule time_methods): one, if any configured row is runnable; its inputs (the timing
+    # scene's noisy renders, the rows' models and tuning results) are needed by the evaluation anyway.
+    from denoisers.timing import timed_runs
+
+    timed = 1 if test_scenes and timed_runs(cfg) else 0
+    evaluation = {"denoise_clip": evaluated, "evaluate_clip": evaluated, "robustness_clip": robustness,
+                  "time_methods": timed}
     jobs = {
         "scenes": {"generate_scene": len(scenes)},
         "renders": renders(scenes, scenes),
@@ -172,11 +178,10 @@ def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_cop
     (workflow_copy / "layers.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("--forceall", "--configfile", "layers.yaml", cwd=workflow_copy)
     # Hand count with 4 rendered layers: noisy runs at 1, 2, 4 spp; path_x2 needs 2, 4, 8 layers (runs
-    # at 1, 2); path_x4 needs 4, 8, 16 (runs at 1): 6 pairs x 3 evaluated scenes (2 test scenes and the
-    # smoke config's custom scene). Robustness at 2 spp: noisy and path_x2 (4 layers), not path_x4
-    # (8 layers): 2 x 3 evaluated scenes.
+    # at 1, 2); path_x4 needs 4, 8, 16 (runs at 1): 6 pairs x 2 evaluated (test) scenes. Robustness at
+    # 2 spp: noisy and path_x2 (4 layers), not path_x4 (8 layers): 2 x 2 evaluated scenes.
     assert {rule: counts.get(rule) for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
-        "denoise_clip": 18, "evaluate_clip": 18, "robustness_clip": 6}
+        "denoise_clip": 12, "evaluate_clip": 12, "robustness_clip": 4}
     assert counts == expected_jobs(load_config(workflow_copy / "layers.yaml"))
 
 
@@ -199,7 +204,7 @@ def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Pat
     cfg = load_config(workflow_copy / "config/smoke.yaml")
     variants = [spec.id for spec in model_specs(cfg) if spec.ablation]
     ablation_spp = cfg["evaluation"]["ablation_spp"]
-    assert len(variants) == 8 and ablation_spp == [1] and cfg["evaluation"]["spp"] == [1, 2]
+    assert len(variants) == 5 and ablation_spp == [1] and cfg["evaluation"]["spp"] == [1, 2]
     # The rows come after the configured ones, at ablation_spp only, and not in the robustness scenario.
     specs = method_specs(cfg)
     assert [spec.id for spec in specs] == [entry["id"] for entry in cfg["evaluation"]["methods"]] + variants
@@ -222,12 +227,17 @@ def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Pat
 
 @pytest.mark.slow
 def test_custom_scenes_are_denoised_evaluated_and_reported(workflow_copy: Path) -> None:
-    """The smoke config's extra scene is an evaluated scene: every runnable (row, spp) denoises and scores it,
-    every robustness row runs on it, and the report reads its manifest; it is rendered but never trained on."""
-    cfg = load_config(workflow_copy / "config/smoke.yaml")
+    """An extra scene (the default config's, added to the smoke config) is an evaluated scene: every runnable
+    (row, spp) denoises and scores it, every robustness row runs on it, and the report reads its manifest; it
+    is rendered but never trained on."""
+    smoke = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
+    default = yaml.safe_load((workflow_copy / "config/config.yaml").read_text())
+    extra = [dict(entry, frames=smoke["scenes"]["frames"]) for entry in default["extra_scenes"]]
+    (workflow_copy / "smoke-external.yaml").write_text(yaml.safe_dump(smoke | {"extra_scenes": extra}))
+    cfg = load_config(workflow_copy / "smoke-external.yaml")
     custom = [f"custom_{entry['name']}" for entry in cfg["extra_scenes"]]
     assert custom == ["custom_spheres_room"] and evaluated_scene_ids(cfg) == ["test_000", *custom]
-    jobs = dry_run_jobs("report", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
+    jobs = dry_run_jobs("report", "--forceall", "--configfile", "smoke-external.yaml", cwd=workflow_copy)
     outputs = {rule: {path for r, job in jobs if r == rule for path in job["output"].split(", ")} for rule in
                ("denoise_clip", "evaluate_clip", "robustness_clip", "generate_scene")}
     runs = [run for run in plan_runs(cfg) if run.runnable]
@@ -253,20 +263,19 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
     ])
     (workflow_copy / "rows.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
-    # Hand count per evaluated scene (the test scene and the custom scene): noisy at 1 and 2 spp, eaw at 2,
-    # path_x2 at none, the 8 ablation variants at 2: 11 denoise jobs, which need the 8 variant models (no
-    # row uses the base model rae).
-    assert counts["denoise_clip"] == 2 * 11 and counts["train_denoiser"] == 8
+    # Hand count on the one evaluated (test) scene: noisy at 1 and 2 spp, eaw at 2, path_x2 at none, the 5
+    # ablation variants at 2: 8 denoise jobs, which need the 5 variant models (no row uses the base model rae).
+    assert counts["denoise_clip"] == 8 and counts["train_denoiser"] == 5
     counts = dry_run("evaluate", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
     # Robustness: noisy and path_x2 (its evaluated spp do not matter), not eaw or the variants.
     assert {rule: counts[rule] for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
-        "denoise_clip": 2 * 11, "evaluate_clip": 2 * 11, "robustness_clip": 2 * 2}
+        "denoise_clip": 8, "evaluate_clip": 8, "robustness_clip": 2}
     assert counts == expected_jobs(load_config(workflow_copy / "rows.yaml"), "evaluate")
 
     cfg["evaluation"]["ablation_spp"] = []
     (workflow_copy / "no_ablation.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "no_ablation.yaml", cwd=workflow_copy)
-    assert counts["denoise_clip"] == 2 * 3 and "train_denoiser" not in counts
+    assert counts["denoise_clip"] == 3 and "train_denoiser" not in counts
 
 
 def failing_dry_run(workflow_copy: Path, tmp_path: Path, cfg: dict) -> str:
@@ -390,21 +399,22 @@ def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> Non
     assert (work / SMOKE_OUT / "renders/test_000/reference/chunk_001/stub.txt").is_file()
     assert dry_run("renders", "--configfile", "config/smoke.yaml", cwd=work) == {}
 
-    # The smoke config: 3 procedural scenes and the custom scene, 2 chunks each.
+    # The smoke config: 3 procedural scenes, 2 chunks each.
     noisy_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "spp", 2), cwd=work)
-    assert noisy_only == {"render_noisy": 8, "renders": 1}
+    assert noisy_only == {"render_noisy": 6, "renders": 1}
 
     reference_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "reference_spp", 32), cwd=work)
-    assert reference_only == {"render_reference": 8, "renders": 1}
+    assert reference_only == {"render_reference": 6, "renders": 1}
 
     one_more_scene = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "n_train", 3), cwd=work)
     assert one_more_scene == {"generate_scene": 1, "render_noisy": 2, "render_reference": 2, "renders": 1}
 
-    # Every procedural scene; the custom scene depends on its extra_scenes entry, not on scenes.*.
+    # Every procedural scene; adding an external scene renders only it.
     everything = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "objects", [3, 7]), cwd=work)
     assert everything == {"generate_scene": 3, "render_noisy": 6, "render_reference": 6, "renders": 1}
     custom = yaml.safe_load((work / "config/smoke.yaml").read_text())
-    custom["extra_scenes"][0]["max_depth"] = 3
+    custom["extra_scenes"] = [{"name": "spheres_room", "xml": "examples/scenes/spheres_room/scene.xml", "frames": 4,
+                               "camera": {"path": "dolly"}, "max_depth": 3}]
     (work / "custom_depth.yaml").write_text(yaml.safe_dump(custom))
     assert dry_run("renders", "--configfile", "custom_depth.yaml", cwd=work) == {
         "generate_scene": 1, "render_noisy": 2, "render_reference": 2, "renders": 1}
@@ -450,16 +460,16 @@ def test_training_reruns_only_when_its_settings_or_data_change(stub_workflow: Pa
     # An ablation's budget: only its variants. The base model's network: the base and every variant.
     ablation = dry_run("train", "--configfile", variant("a.yaml", lambda c: c["training"]["ablations"][0].update(
         budget={"max_steps": 3})), cwd=work)
-    assert ablation == {"train_denoiser": 6, "train": 1}
+    assert ablation == {"train_denoiser": 3, "train": 1}
     base = dry_run("train", "--configfile", variant("b.yaml", lambda c: c["training"]["models"][0]["net"].update(
         width=0.5)), cwd=work)
-    assert base == {"train_denoiser": 9, "train": 1}
+    assert base == {"train_denoiser": 6, "train": 1}
     # Evaluation settings do not touch the models; the training data's render settings retrain all.
     evaluation = dry_run("train", "--configfile", variant("c.yaml", lambda c: c["evaluation"].update(threads=2)),
                          cwd=work)
     assert evaluation == {}
     data = dry_run("train", "--configfile", variant("d.yaml", lambda c: c["render"].update(max_depth=6)), cwd=work)
-    assert data["train_denoiser"] == 9
+    assert data["train_denoiser"] == 6
 
 
 def rule_names() -> set[str]:

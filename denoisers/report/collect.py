@@ -26,6 +26,7 @@ from denoisers.evaluate import (
     MethodSpec,
     denoised_dir,
     evaluated_scene_ids,
+    method_spec,
     method_specs,
     metrics_csv,
     metrics_sidecar,
@@ -33,7 +34,7 @@ from denoisers.evaluate import (
 )
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
 from denoisers.report.stats import pooled_psnr
-from denoisers.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timing_scene, timing_settings
+from denoisers.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timed_runs, timing_scene, timing_settings
 from denoisers.training.models import ModelSpec, model_dir, model_specs
 from denoisers.tuning import TUNED_KEY, tuning_file
 from scenegen.config import CUSTOM_PREFIX, output_root
@@ -289,7 +290,8 @@ def collect(cfg: dict, results_dir: Path | None = None) -> Results:
     timing_path = results_dir / TIMING_JOB_FILE
     if timing_settings(cfg)["enabled"] and timing_path.is_file():
         timing = read_timing_job(timing_path)
-        ledger.add(timing_path, timing.record.get(DIGEST_KEY), lineage.timing(timing_scene(cfg)))
+        timed = [(method_spec(cfg, row), spp) for row, spp in timed_runs(cfg)]
+        ledger.add(timing_path, timing.record.get(DIGEST_KEY), lineage.timing(timing_scene(cfg), timed))
     ledger.raise_if_mixed(cfg, results_dir)
     return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir, models,
                    external_manifests(results_dir, scenes), ledger, timing)

@@ -25,6 +25,7 @@ from typing import Any
 from scenegen.atomic import atomic_directory, write_text_atomic
 
 from denoisers.provenance import provenance
+from scenegen.digests import render_digest
 from denoisers.training.models import ModelSpec, model_spec, settings_digest, training_split
 from scenegen.config import short_digest
 
@@ -37,8 +38,6 @@ def data_settings(cfg: dict) -> dict[str, Any]:
     """Config values the rendered training data depend on (changing them invalidates checkpoints): the
     settings digests of the training and validation scenes' renders, not the whole scenes/render sections,
     so that adding a test scene (scenes.n_test) or an external scene retrains nothing."""
-    from denoisers.experiment import render_digest
-
     split = training_split(cfg)
     renders = {scene: [render_digest(cfg, scene, kind) for kind in ("noisy", "reference")] for scene in sum(split, [])}
     return {"renders": renders, "split": split, "validation_sequences": cfg["training"]["validation_sequences"],

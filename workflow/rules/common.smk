@@ -412,10 +412,12 @@ def timing_tuning_files(wildcards=None) -> list[str]:
 
 
 def timing_digest(wildcards) -> str:
-    return experiment.Lineage(config).timing(TIMING_SCENE)
+    return experiment.Lineage(config).timing(TIMING_SCENE, [(METHOD_SPECS[row], spp) for row, spp in timed_run_list()])
 
 
-TIMING_THREADS = timing_settings(config)["threads"] or workflow.cores
+def timing_threads(wildcards, threads) -> int:
+    """Param: torch and Dr.Jit threads of the timing job (evaluation.timing.threads, else the job's threads)."""
+    return timing_settings(config)["threads"] or threads
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,15 +19,16 @@ rule time_methods:
         scene=TIMING_SCENE,
         render_dir=results_path(f"renders/{TIMING_SCENE}"),
         results=results_root,
-        threads=TIMING_THREADS,
+        threads=timing_threads,
     log:
         results_path("logs/time_methods.log"),
     benchmark:
         results_path("benchmarks/time_methods.tsv")
     conda:
         "../envs/harness.yaml"
-    # Every core: the scheduler runs nothing else while the methods are timed.
-    threads: workflow.cores
+    # Every core of the machine (Snakemake caps it at --cores): the scheduler runs nothing else while the
+    # methods are timed. The SLURM profile sets its threads explicitly.
+    threads: os.cpu_count() or 1
     resources:
         mem_mb=8000,
         runtime=120,

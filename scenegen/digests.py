@@ -1,0 +1,42 @@
+"""Job digests of the scene generator's outputs: which config settings a scene and its renders depend on.
+
+SHA-256 of canonical JSON (scenegen.config.config_digest). The workflow passes them as params of
+generate_scene, render_noisy and render_reference, so Snakemake reruns exactly the jobs whose settings
+changed; denoisers.experiment combines them into the lineage digests that outputs record, and the
+training job keys its data on the training scenes' render digests. Config level only (no Mitsuba).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from scenegen.config import config_digest, extra_scene, scene_frame_count
+
+#: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
+SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
+NOISY_ONLY_KEYS = frozenset({"spp", "extra_radiance_spp"})
+REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp"})
+
+
+def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
+    """The config values a scene's content depends on (not the number of scenes). Render keys shared by
+    the noisy and reference renders (resolution, variant, path depth) are included: the generator's
+    preview render uses them."""
+    if scene.startswith("custom_"):
+        procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
+    else:
+        procedural = {key: value for key, value in cfg["scenes"].items() if key not in SCENE_LAYOUT_KEYS}
+    shared = [f"render.{key}" for key in cfg["render"] if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS]
+    return {"seed": cfg["seed"], "scenes": procedural, "render_shared": config_digest(cfg, *shared)}
+
+
+def scene_digest(cfg: dict, scene: str) -> str:
+    """Rule generate_scene."""
+    return config_digest(scene_settings(cfg, scene))
+
+
+def render_digest(cfg: dict, scene: str, kind: str) -> str:
+    """Rules render_noisy (``kind`` 'noisy') and render_reference ('reference')."""
+    own_keys = NOISY_ONLY_KEYS if kind == "noisy" else REFERENCE_ONLY_KEYS
+    return config_digest({"scene": scene_settings(cfg, scene), "frames": scene_frame_count(cfg, scene),
+                          "frames_per_chunk": cfg["scenes"]["frames_per_chunk"],
+                          "render": {key: cfg["render"][key] for key in sorted(own_keys)}})
