@@ -45,7 +45,8 @@ def _parser() -> argparse.ArgumentParser:
     timing.add_argument("--config", type=Path, required=True, help="resolved config YAML")
     timing.add_argument("--scene", required=True, help="evaluated scene id (evaluation.timing.scene)")
     timing.add_argument("--render-dir", type=Path, required=True, help="results/renders/{scene}")
-    timing.add_argument("--scene-dir", type=Path, required=True, help="results/scenes/{scene}")
+    timing.add_argument("--scenes-root", type=Path, required=True,
+                        help="results/scenes (the renderer's rate is measured on every evaluated scene)")
     timing.add_argument("--out", type=Path, required=True, help="results/timing/timing.json (written atomically)")
     timing.add_argument("--threads", type=int, required=True, help="torch and Dr.Jit threads")
     timing.add_argument("--results", type=Path, default=None, help="experiment folder (models, tuning results)")
@@ -187,7 +188,10 @@ def _run(args: argparse.Namespace) -> int:
         from scenegen.config import output_root
 
         settings = timing_settings(cfg)
-        record = time_methods(cfg, args.scene, args.render_dir, args.scene_dir, timed_runs(cfg),
+        from denoisers.evaluate import evaluated_scene_ids
+
+        scene_dirs = {scene: args.scenes_root / scene for scene in evaluated_scene_ids(cfg)}
+        record = time_methods(cfg, args.scene, args.render_dir, scene_dirs, timed_runs(cfg),
                               frames=settings["frames"], repeats=settings["repeats"], threads=args.threads,
                               results=args.results or output_root(cfg))
         runs = [(evaluate.method_spec(cfg, row), spp) for row, spp in timed_runs(cfg)]
@@ -196,8 +200,9 @@ def _run(args: argparse.Namespace) -> int:
         for row in record["rows"]:
             log.info("%-16s %2d spp: %8.2f ms/frame [%.2f, %.2f] (%.3g Mpix/s)", row["method_id"], row["spp"],
                      row["ms_per_frame"], row["ms_per_frame_min"], row["ms_per_frame_max"], row["mpix_per_s"])
-        log.info("renderer: %.3g M samples/s with %d thread(s)", record["renderer"]["samples_per_s"] / 1e6,
-                 args.threads)
+        for scene, rate in record["renderers"].items():
+            log.info("renderer on %s: %.3g M samples/s with %d thread(s)", scene, rate["samples_per_s"] / 1e6,
+                     args.threads)
     elif args.command == "evaluate":
         table = evaluate.evaluate_clip(cfg, args.denoised, args.render_dir, args.out)
         log.info("%s: %d frames, mean PSNR %.2f dB", args.denoised, len(table), table["psnr"].mean())

@@ -12,10 +12,11 @@ A pass's time is the median of its per-frame seconds, the first frame excluded (
 temporal state); a row's time is the median over rounds, its spread the smallest and largest pass.
 Speed claims compare two rows by their per-round ratios (:func:`speed_ratios`).
 
-In the same job, the renderer's rate is measured with the same thread count: the scene's first frame
-rendered as ``render.spp`` full-feature 1-spp layers (the noisy data every method reads), once as a
-warm-up (kernel compilation), then ``repeats`` times; samples/s = layers x pixels / seconds. The
-equal-time view reads this rate, so rows and renderer are compared at equal threads.
+In the same job, the renderer's rate is measured with the same thread count for every evaluated scene
+(scenes differ in cost): its first frame rendered as ``render.spp`` full-feature 1-spp layers (the noisy
+data every method reads), once as a warm-up (kernel compilation), then ``repeats`` times; samples/s =
+layers x pixels / median seconds. The equal-time view reads each scene's rate, so rows and renderer are
+compared at equal threads.
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-TIMING_SCHEMA = 2
+TIMING_SCHEMA = 3
 #: Where the timing job writes, below the experiment folder.
 TIMING_JOB_FILE = "timing/timing.json"
 
@@ -139,12 +140,13 @@ def render_rate(cfg: dict, manifest: dict, scene_dir: Path, *, repeats: int, thr
             "samples_per_s_min": samples / max(seconds), "samples_per_s_max": samples / min(seconds)}
 
 
-def time_methods(cfg: dict, scene: str, render_dir: Path, scene_dir: Path, runs: Sequence[tuple[str, int]], *,
-                 frames: int, repeats: int, threads: int, results: Path | str) -> dict[str, Any]:
-    """The timing job's record: every (row id, spp) of ``runs`` timed interleaved, then the renderer's rate."""
+def time_methods(cfg: dict, scene: str, render_dir: Path, scene_dirs: dict[str, Path],
+                 runs: Sequence[tuple[str, int]], *, frames: int, repeats: int, threads: int,
+                 results: Path | str) -> dict[str, Any]:
+    """The timing job's record: every (row id, spp) of ``runs`` timed interleaved on ``scene``, then the
+    renderer's rate on every scene of ``scene_dirs`` ({scene id: scene folder})."""
     from denoisers.provenance import provenance
 
-    manifest = json.loads((Path(scene_dir) / "manifest.json").read_text())
     prepared = [prepare_run(cfg, method_id, spp, render_dir, frames=frames, results=results)
                 for method_id, spp in runs]
     log.info("timing %d (row, spp) on %s: %d frame(s), %d round(s), %d thread(s)", len(prepared), scene, frames,
@@ -152,7 +154,9 @@ def time_methods(cfg: dict, scene: str, render_dir: Path, scene_dir: Path, runs:
     time_interleaved(prepared, repeats=repeats, threads=threads)
     return {"schema": TIMING_SCHEMA, "scene": scene, "frames": frames, "repeats": repeats, "threads": threads,
             "rows": [run.record(threads) for run in prepared],
-            "renderer": render_rate(cfg, manifest, scene_dir, repeats=repeats, threads=threads),
+            "renderers": {name: render_rate(cfg, json.loads((Path(folder) / "manifest.json").read_text()), folder,
+                                            repeats=repeats, threads=threads)
+                          for name, folder in scene_dirs.items()},
             "provenance": provenance({"timing": threads})}
 
 
@@ -197,9 +201,10 @@ class TimingJob:
     def row(self, method_id: str, spp: int) -> dict[str, Any] | None:
         return self.rows.get((method_id, int(spp)))
 
-    @property
-    def renderer_samples_per_s(self) -> float:
-        return float(self.record["renderer"]["samples_per_s"])
+    def renderer_samples_per_s(self, scene: str) -> float:
+        """The renderer's samples/s on ``scene`` (NaN if the job did not render it)."""
+        rate = self.record["renderers"].get(scene)
+        return float(rate["samples_per_s"]) if rate else float("nan")
 
     @property
     def threads(self) -> int:

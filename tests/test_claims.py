@@ -82,8 +82,8 @@ def timing_job(cfg: dict, ratios: dict[tuple[str, int], list[float]] | None = No
                          "pass_ms_per_frame": passes, "ms_per_frame": float(np.median(passes)),
                          "ms_per_frame_min": min(passes), "ms_per_frame_max": max(passes), "repeats": len(passes),
                          "mpix_per_s": 64 * 64 / float(np.median(passes)) / 1e3})
-    return TimingJob({"schema": 2, "scene": "test_000", "frames": 4, "repeats": rounds, "threads": 2, "rows": rows,
-                      "renderer": {"samples_per_s": 1e6, "repeats": rounds, "layers": 8}})
+    return TimingJob({"schema": 3, "scene": "test_000", "frames": 4, "repeats": rounds, "threads": 2, "rows": rows,
+                      "renderers": {"test_000": {"samples_per_s": 1e6, "repeats": rounds, "layers": 8}}})
 
 
 def build(cfg: dict, table: Table, drop: tuple[tuple[str, int], ...] = (), flagged: tuple[str, int] | None = None,

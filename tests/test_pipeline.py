@@ -409,7 +409,9 @@ def test_the_timing_job_times_every_configured_row_and_the_report_uses_it(pipeli
     assert {run.spec.id for run in pipeline.runs() if run.spec.role == "method"} == \
         {row["method_id"] for row in job.record["rows"]}
     assert job.record["scene"] == "test_000" and job.threads == 2      # every core the job got (--cores 2)
-    assert job.record["renderer"]["threads"] == job.threads and job.renderer_samples_per_s > 0
+    assert set(job.record["renderers"]) == set(evaluated_scene_ids(pipeline.cfg))     # every evaluated scene
+    assert all(rate["threads"] == job.threads for rate in job.record["renderers"].values())
+    assert all(job.renderer_samples_per_s(scene) > 0 for scene in evaluated_scene_ids(pipeline.cfg))
     for row in job.record["rows"]:
         assert len(row["pass_ms_per_frame"]) == settings["repeats"] and row["frames"] == list(range(settings["frames"]))
         assert row["ms_per_frame_min"] <= row["ms_per_frame"] <= row["ms_per_frame_max"]

@@ -95,10 +95,10 @@ def write_results(root: Path, cfg: dict, *, psnr: dict | None = None, trmae: dic
                 "injected": {"spikes": 4, "nan_values": 6, "inf_values": 12}, "nonfinite_inputs": 24,
                 "nonfinite_outputs": 0}))
             evaluate.write_radiance_exr(robust / evaluate.ROBUSTNESS_LAST_EXR, image)
-    write_timing_job(root, cfg)
+    write_timing_job(root, cfg, list(offsets))
 
 
-def write_timing_job(root: Path, cfg: dict) -> None:
+def write_timing_job(root: Path, cfg: dict, scenes: list[str]) -> None:
     """The timing job's record: three rounds per runnable (row, spp) at 0.9, 1 and 1.2 x MS ms per frame."""
     layers, rows = cfg["render"]["spp"], []
     for spec in cfg["evaluation"]["methods"]:
@@ -111,9 +111,9 @@ def write_timing_job(root: Path, cfg: dict) -> None:
                              "spread": 0.3, "mpix_per_s": SIZE[0] * SIZE[1] / (MS[spec["id"]] / 1e3) / 1e6})
     (root / "timing").mkdir(parents=True, exist_ok=True)
     (root / "timing" / "timing.json").write_text(json.dumps({
-        "schema": 2, "scene": "test_000", "frames": FRAMES, "repeats": 3, "threads": 2, "rows": rows,
-        "renderer": {"samples_per_s": 1.0e6, "samples_per_s_min": 0.9e6, "samples_per_s_max": 1.1e6, "repeats": 3,
-                     "layers": layers, "threads": 2}}))
+        "schema": 3, "scene": "test_000", "frames": FRAMES, "repeats": 3, "threads": 2, "rows": rows,
+        "renderers": {scene: {"samples_per_s": 1.0e6, "samples_per_s_min": 0.9e6, "samples_per_s_max": 1.1e6,
+                              "repeats": 3, "layers": layers, "threads": 2} for scene in scenes}}))
 
 
 def report_config() -> dict:

@@ -100,9 +100,9 @@ def timing_table(res: Results) -> pd.DataFrame:
 
 def equal_time_table(res: Results) -> pd.DataFrame:
     """For each denoiser and spp: the spp plain path tracing reaches in the same time (render time of
-    spp samples + denoise time; denoise time and the renderer's samples/s both from the timing job, at the
-    same threads), the plain path-tracing row whose total spp is nearest to it (in log ratio), and which of
-    the two has the higher PSNR. Rows the timing job did not time get no equal-time spp."""
+    spp samples + denoise time; denoise time and each scene's renderer samples/s both from the timing job, at
+    the same threads; the equal-time spp is the mean over scenes), the plain path-tracing row whose total spp
+    is nearest to it (in log ratio), and which of the two has the higher PSNR. Rows the timing job did not time get no equal-time spp."""
     import pandas as pd
 
     main = {spec.id for spec in res.main_specs}
@@ -117,11 +117,14 @@ def equal_time_table(res: Results) -> pd.DataFrame:
             continue
         speed = res.speed(run["id"], run["spp"])
         ms = speed["ms_per_frame"] if speed else math.nan
-        rate = res.timing.renderer_samples_per_s if res.timing is not None else math.nan
+        # Per scene: its own renderer rate (scenes differ in cost); the denoiser's time from the timing scene.
+        rates = np.array([res.timing.renderer_samples_per_s(scene) if res.timing is not None else math.nan
+                          for scene in res.scenes], dtype=np.float64)
         pixels = speed["width"] * speed["height"] if speed else math.nan
-        equal_spp = run["spp"] + ms / 1e3 * rate / pixels
+        equal_spp = float(np.mean(run["spp"] + ms / 1e3 * rates / pixels)) if len(rates) else math.nan
         row = {"method_id": run["id"], "spp": run["spp"], "denoise_ms_per_frame": ms,
-               "render_msamples_per_s": rate / 1e6, "equal_time_spp": equal_spp,
+               "render_msamples_per_s": float(np.mean(rates)) / 1e6 if len(rates) else math.nan,
+               "equal_time_spp": equal_spp,
                "path_tracing_row": None, "path_tracing_spp": math.nan, "psnr_denoiser": math.nan,
                "psnr_path_tracing": math.nan, "psnr_diff_mean": math.nan, "psnr_diff_ci_low": math.nan,
                "psnr_diff_ci_high": math.nan, "better": "no path-tracing row"}

@@ -2,6 +2,7 @@
 Markdown, with one section per reproduced paper (denoisers.reproductions)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -56,14 +57,15 @@ def _timing_line(res: Results) -> str:
                else "the timing job's output is missing")
         return f"Timing: none ({why}); speed columns are empty and speed claims are not run."
     job = res.timing.record
-    renderer = job["renderer"]
+    rates = [rate["samples_per_s"] / 1e6 for rate in job["renderers"].values()]
+    renderer = next(iter(job["renderers"].values()), {"repeats": 0, "layers": 0})
     return (f"Timing: one job alone on the machine (rule time_methods) timed every configured row on the first "
             f"{job['frames']} frames of {job['scene']} with {job['threads']} thread(s), in {job['repeats']} "
             "interleaved rounds after a warm-up round (one pass of every row per round, all I/O excluded); a pass "
             "is the median seconds per `denoise()` call without the first frame, a row's ms/frame the median over "
-            "rounds with [min, max]; Mpix/s = pixels / median. Renderer in the same job and threads: "
-            f"{renderer['samples_per_s'] / 1e6:.3g} M samples/s (median of {renderer['repeats']} renders of "
-            f"{renderer['layers']} full-feature layers).")
+            "rounds with [min, max]; Mpix/s = pixels / median. Renderer in the same job and threads, on every "
+            f"evaluated scene: {min(rates, default=math.nan):.3g}-{max(rates, default=math.nan):.3g} M samples/s "
+            f"(median of {renderer['repeats']} renders of {renderer['layers']} full-feature layers per scene).")
 
 
 def _claims_section(claims: pd.DataFrame) -> list[str]:

@@ -392,8 +392,9 @@ def timing_outputs(wildcards=None) -> list[str]:
     return [results_path("timing/timing.json")] if timed_run_list() else []
 
 
-def timing_scene_dir(wildcards=None) -> str:
-    return results_path(f"scenes/{TIMING_SCENE}")
+def timing_scene_dirs(wildcards=None) -> list[str]:
+    """The evaluated scenes: the renderer's rate is measured on each."""
+    return [results_path(f"scenes/{scene}") for scene in EVALUATED_SCENES]
 
 
 def timing_chunk_dirs(wildcards=None) -> list[str]:

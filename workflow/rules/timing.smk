@@ -1,13 +1,13 @@
 # The timing job (denoisers/timing.py): every configured row at every evaluated spp, timed on the same frames of
-# one evaluated scene (evaluation.timing.scene) in interleaved rounds, and the renderer's samples/s at the same
-# thread count. It takes every core, so no other job runs beside it; the report's speed numbers, the
+# one evaluated scene (evaluation.timing.scene) in interleaved rounds, and the renderer's samples/s on every
+# evaluated scene at the same thread count. It takes every core, so no other job runs beside it; the report's speed numbers, the
 # quality-versus-speed chart, the equal-time view and the speed claims read only this file.
 #   time_methods: <out>/timing/timing.json
 
 
 rule time_methods:
     input:
-        scene=timing_scene_dir,
+        scenes=timing_scene_dirs,
         noisy=timing_chunk_dirs,
         models=timing_model_dirs,
         tuning=timing_tuning_files,
@@ -19,6 +19,7 @@ rule time_methods:
         scene=TIMING_SCENE,
         render_dir=results_path(f"renders/{TIMING_SCENE}"),
         results=results_root,
+        scenes_root=results_path("scenes"),
         threads=timing_threads,
     log:
         results_path("logs/time_methods.log"),
@@ -34,5 +35,5 @@ rule time_methods:
         runtime=120,
     shell:
         "python -m denoisers time --config {params.config_file} --scene {params.scene}"
-        " --render-dir {params.render_dir} --scene-dir {input.scene} --results {params.results}"
+        " --render-dir {params.render_dir} --scenes-root {params.scenes_root} --results {params.results}"
         " --out {output.timing} --threads {params.threads} > {log} 2>&1"
