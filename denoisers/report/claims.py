@@ -262,10 +262,14 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
             "facts": "; ".join(f"{f.text}: {'yes' if f.holds else 'NO'} (declared, not measured)"
                                for f in decision.facts),
             "flags": "; ".join(flags),
-            "note": decision.not_run or decision.note,
+            "note": decision.not_run or (UNDERTRAINED_NOTE if any(UNDERTRAINED in f for f in flags) else "")
+            + decision.note,
             "rule": (RULE + (SPEED_RULE if any(isinstance(p, SpeedPart) for p in parts) else "")) if parts else ""}
 
 
+UNDERTRAINED = "under-trained"
+UNDERTRAINED_NOTE = ("involves an under-trained model (see flags): the verdict tests the training budget, not the "
+                     "method; ")
 CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "mean_diff_ci_95", "parts", "measured", "facts",
                  "flags", "note", "rule")
 

@@ -74,6 +74,33 @@ class TrainedModel:
         tail = max(1, int(math.ceil(len(rows) * FINAL_FRACTION)))
         return float(rows["train_loss"].iloc[-tail:].mean())
 
+    def validation_improvement(self, window_fraction: float) -> float:
+        """Relative fall of the best validation loss over the last ``window_fraction`` of the steps run:
+        (best before the window - best overall) / best before the window; NaN when no validation lies
+        before the window (too few validations to tell)."""
+        if "val_loss" not in self.curves:
+            return math.nan
+        val = self.curves.dropna(subset=["val_loss"])
+        steps = int(self.summary.get("steps") or 0)
+        start = steps * (1.0 - window_fraction)
+        before = val[val["step"] <= start]["val_loss"]
+        if not len(before) or not len(val):
+            return math.nan
+        best_before, best = float(before.min()), float(val["val_loss"].min())
+        return (best_before - best) / best_before if best_before > 0 else math.nan
+
+    def undertrained(self, cfg: dict) -> str:
+        """'' or why the model counts as under-trained (training.convergence)."""
+        rule = {"window_fraction": 0.2, "min_improvement": 0.01, **cfg.get("training", {}).get("convergence", {})}
+        fall = self.validation_improvement(rule["window_fraction"])
+        window = f"the last {rule['window_fraction']:.0%} of its {self.summary.get('steps')} steps"
+        if math.isnan(fall):
+            return f"model {self.spec.id} convergence unknown: no validation before {window}"
+        if fall > rule["min_improvement"]:
+            return (f"model {self.spec.id} under-trained: best validation loss fell {fall:.1%} over {window} "
+                    f"(threshold {rule['min_improvement']:.1%})")
+        return ""
+
     def describe(self) -> str:
         s = self.summary
         width = s.get("net", {}).get("config", {}).get("width")
@@ -186,6 +213,8 @@ class Results:
         steps = model.summary.get("steps") if model else None
         if steps is not None and steps < MIN_TRAINING_STEPS:
             parts.append(f"model {model.spec.id} trained only {steps} steps")
+        elif model is not None and model.undertrained(self.cfg):
+            parts.append(model.undertrained(self.cfg))
         return f"{method_id} @ {spp} spp: " + ", ".join(parts) if parts else ""
 
     def speed(self, method_id: str | None, spp: int) -> dict[str, Any] | None:

@@ -255,9 +255,16 @@ def substitutions_table(res: Results) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=list(SUBSTITUTION_COLUMNS))
 
 
-def training_table(models: TrainedModels) -> pd.DataFrame:
-    """One row per configured model: size, budget used and validation metrics of best.pt."""
+def _converged(reason: str) -> str:
+    return "no (under-trained)" if "under-trained" in reason else "unknown" if reason else "yes"
+
+
+def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFrame:
+    """One row per configured model: size, budget used, validation metrics of best.pt and convergence (the
+    relative fall of the best validation loss over the last part of the run, training.convergence)."""
     import pandas as pd
+
+    rule = {"window_fraction": 0.2, "min_improvement": 0.01, **((cfg or {}).get("training", {}).get("convergence", {}))}
 
     rows = []
     for spec in models.specs:
@@ -273,6 +280,8 @@ def training_table(models: TrainedModels) -> pd.DataFrame:
                         "train_minutes": s.get("elapsed_seconds", math.nan) / 60.0,
                         "seconds_per_step": s.get("seconds_per_step"), "best_step": s.get("best_step"),
                         "final_train_loss": model.final_training_loss(),
+                        "val_loss_fall_in_window": model.validation_improvement(rule["window_fraction"]),
+                        "converged": _converged(model.undertrained(cfg or {})),
                         "commit": (s.get("provenance", {}).get("commit") or "")[:12],
                         "dirty": s.get("provenance", {}).get("dirty"),
                         **{f"val_{k}": float(validation[k].mean()) for k in ("loss", "ssim", "psnr", "rmse")

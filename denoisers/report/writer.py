@@ -80,7 +80,10 @@ def _claims_section(claims: pd.DataFrame) -> list[str]:
             "contradicts it. **not run**: a row, spp or model it needs is missing (a claim stated at an spp that was "
             "not evaluated is never moved to another). Facts (declared, not measured) do not decide. Flags name "
             "rows whose outputs held non-finite values or values far outside the input's range, and rows whose "
-            f"model trained fewer than {MIN_TRAINING_STEPS} steps (their numbers test the budget, not the method).",
+            f"model trained fewer than {MIN_TRAINING_STEPS} steps or is under-trained (its best validation loss still "
+            "fell over the last part of its run; see the training table): their numbers test the budget, not the "
+            "method. Speed parts are decided on the timing job instead: the per-round time ratio a/b, reproduced "
+            f"when every round is on the claimed side of 1 (at least {MIN_UNITS} rounds).",
             "",
             f"Verdicts: {tally}.", "", frame_to_markdown(claims[CLAIMS_SHOWN]), "",
             "[claims (CSV)](tables/claims.csv)", ""]
@@ -138,14 +141,17 @@ def _tuning_section(res: Results, tables: Path) -> list[str]:
 def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
     if not res.models or not res.models.specs:
         return []
-    training = tab.training_table(res.models)
+    training = tab.training_table(res.models, res.cfg)
+    conv = {"window_fraction": 0.2, "min_improvement": 0.01, **res.cfg.get("training", {}).get("convergence", {})}
     markdown = frame_to_markdown(formatted(training, {c: "" for c in TRAINING_COLUMNS if c in training}))
     tab.write_table(training, tables, "training", markdown)
     fig.plot_training_curves(res.models, figures / "training_curves.png")
     lines = ["## Learned denoisers", "",
              "Trained on the training scenes (never on evaluated scenes); validation on held-out training-"
              "distribution scenes. Sizes, budgets and validation metrics of each model's best (lowest validation "
-             "loss) checkpoint:", "", markdown, "![Training curves](figures/training_curves.png)", ""]
+             "loss) checkpoint. `converged` = no when the best validation loss still fell by more than "
+             f"{conv['min_improvement']:.0%} (relative) over the last {conv['window_fraction']:.0%} of the steps run "
+             "(`val_loss_fall_in_window`); claims that use such a model say so.", "", markdown, "![Training curves](figures/training_curves.png)", ""]
     if res.models.missing:
         lines += [f"Not trained (no complete model directory): {', '.join(res.models.missing)}", ""]
     return lines
