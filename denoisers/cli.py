@@ -161,8 +161,10 @@ def _run(args: argparse.Namespace) -> int:
                  "step %s", args.model_id, summary["steps"], summary["elapsed_seconds"], summary["seconds_per_step"],
                  summary["stopped_by"], summary["best_value"] or float("nan"), summary["best_step"])
     elif args.command == "denoise":
-        record = evaluate.denoise_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
-                                       threads=args.threads, results=args.results)
+        from denoisers.denoise_job import denoise_clip
+
+        record = denoise_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
+                              threads=args.threads, results=args.results)
         log.info("%s %s spp %d: %.2f ms/frame (%.3g Mpix/s), +%.0f MB peak RSS, %d non-finite inputs, "
                  "%d non-finite outputs, %d out-of-range outputs", record["method_id"], args.scene, args.spp,
                  record["mean_seconds"] * 1e3, record["mpix_per_s"], record["peak_memory_mb"],
@@ -204,11 +206,15 @@ def _run(args: argparse.Namespace) -> int:
             log.info("renderer on %s: %.3g M samples/s with %d thread(s)", scene, rate["samples_per_s"] / 1e6,
                      args.threads)
     elif args.command == "evaluate":
-        table = evaluate.evaluate_clip(cfg, args.denoised, args.render_dir, args.out)
+        from denoisers.scoring import evaluate_clip
+
+        table = evaluate_clip(cfg, args.denoised, args.render_dir, args.out)
         log.info("%s: %d frames, mean PSNR %.2f dB", args.denoised, len(table), table["psnr"].mean())
     elif args.command == "robustness":
-        summary = evaluate.robustness_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
-                                           threads=args.threads, results=args.results)
+        from denoisers.robustness import robustness_clip
+
+        summary = robustness_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
+                                  threads=args.threads, results=args.results)
         log.info("robustness %s %s: injected %s, %d non-finite outputs, %d out-of-range outputs, mean PSNR "
                  "%.2f dB", args.method_id, args.scene, summary["injected"], summary["nonfinite_outputs"],
                  summary["out_of_range_outputs"], summary["mean_psnr"])

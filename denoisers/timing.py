@@ -70,7 +70,7 @@ class TimedRun:
         return int(self.frames[0].height * self.frames[0].width)
 
     def run_pass(self, threads: int) -> float:
-        from denoisers.evaluate import run_method
+        from denoisers.denoise_job import run_method
 
         return pass_seconds(run_method(self.method, self.frames, threads).seconds)
 
@@ -83,7 +83,7 @@ class TimedRun:
 def prepare_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: int,
                 results: Path | str) -> TimedRun:
     """Build row ``method_id`` and load the first ``frames`` frames of ``render_dir`` at ``spp``."""
-    from denoisers.evaluate import _frames, _load_method_clip, _prepare
+    from denoisers.denoise_job import _frames, _load_method_clip, _prepare
 
     if frames < 1:
         raise ValueError(f"timing needs frames >= 1, got {frames}")

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from denoisers import evaluate
+from denoisers import denoise_job, evaluate, scoring
 from denoisers.clean import CleanError, clean_experiment
 from denoisers.experiment import DIGEST_KEY, Lineage, SettingsMismatchError
 from denoisers.report.collect import collect
@@ -161,8 +161,8 @@ def test_denoise_and_evaluate_record_digests_and_refuse_a_clip_of_other_settings
     write_synthetic_scene(render_dir)
     denoised = evaluate.denoised_dir(tmp_path, "noisy", "test_000", 1)
     csv = evaluate.metrics_csv(tmp_path, "noisy", "test_000", 1)
-    record = evaluate.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, denoised)
-    evaluate.evaluate_clip(cfg, denoised, render_dir, csv)
+    record = denoise_job.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, denoised)
+    scoring.evaluate_clip(cfg, denoised, render_dir, csv)
     row, lineage = evaluate.method_spec(cfg, "noisy"), Lineage(cfg)
     assert record[DIGEST_KEY] == lineage.denoised(row, "test_000", 1)
     sidecar = json.loads(evaluate.metrics_sidecar(csv).read_text())
@@ -171,7 +171,7 @@ def test_denoise_and_evaluate_record_digests_and_refuse_a_clip_of_other_settings
     # The clip was denoised with seed 2026; scoring it for a seed-7 config is refused, naming the file.
     seed7 = copy.deepcopy(cfg) | {"seed": 7}
     with pytest.raises(SettingsMismatchError, match=re.escape(str(denoised / evaluate.TIMING_FILE))):
-        evaluate.evaluate_clip(seed7, denoised, render_dir, tmp_path / "other.csv")
+        scoring.evaluate_clip(seed7, denoised, render_dir, tmp_path / "other.csv")
     assert not (tmp_path / "other.csv").exists()
 
 

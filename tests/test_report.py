@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from denoisers import evaluate
+from denoisers import denoise_job, evaluate, robustness, scoring
 from denoisers.report import build_report, report_outputs
 from denoisers.report.claims import claims_table
 from denoisers.report.collect import collect
@@ -290,12 +290,12 @@ def test_report_from_real_evaluation_outputs(tmp_path: Path) -> None:
     for run in evaluate.plan_runs(cfg):
         if run.runnable:
             out = evaluate.denoised_dir(tmp_path, run.spec.id, "test_000", run.spp)
-            evaluate.denoise_clip(cfg, run.spec.id, "test_000", run.spp, tmp_path / "renders" / "test_000", out)
-            evaluate.evaluate_clip(cfg, out, tmp_path / "renders" / "test_000",
-                                   evaluate.metrics_csv(tmp_path, run.spec.id, "test_000", run.spp))
+            denoise_job.denoise_clip(cfg, run.spec.id, "test_000", run.spp, tmp_path / "renders" / "test_000", out)
+            scoring.evaluate_clip(cfg, out, tmp_path / "renders" / "test_000",
+                                  evaluate.metrics_csv(tmp_path, run.spec.id, "test_000", run.spp))
     for run in evaluate.robustness_runs(cfg):
-        evaluate.robustness_clip(cfg, run.spec.id, "test_000", run.spp, tmp_path / "renders" / "test_000",
-                                 evaluate.robustness_dir(tmp_path, run.spec.id, "test_000", run.spp))
+        robustness.robustness_clip(cfg, run.spec.id, "test_000", run.spp, tmp_path / "renders" / "test_000",
+                                   evaluate.robustness_dir(tmp_path, run.spec.id, "test_000", run.spp))
     written = build_report(cfg, tmp_path)
     assert all(p.is_file() for p in written)
     summary = pd.read_csv(tmp_path / "tables" / "summary.csv")
