@@ -21,12 +21,13 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.test_workflow import copy_workflow
+
 pytestmark = pytest.mark.slow
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = REPO_ROOT / "scripts" / "slurm-local.sh"
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
-WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
 # "Job 2 has been submitted with SLURM jobid 7 (log: .../slurm_logs/rule_render_noisy/test_000_000/7.log)."
 SUBMITTED = re.compile(r"has been submitted with SLURM jobid (\d+) \(log: \S*/slurm_logs/rule_(\w+?)/")
 
@@ -62,12 +63,7 @@ def slurm() -> Iterator[list[str]]:
 
 
 def test_smoke_scene_and_render_chunk_run_through_sbatch(slurm: list[str], tmp_path: Path) -> None:
-    for name in WORKFLOW_FILES:
-        source = REPO_ROOT / name
-        if source.is_dir():
-            shutil.copytree(source, tmp_path / name)
-        else:
-            shutil.copy(source, tmp_path / name)
+    copy_workflow(tmp_path)
     config = yaml.safe_load((tmp_path / "config/smoke.yaml").read_text())
     out = Path(config.get("output_dir", "results"))
     chunk = out / "renders/test_000/noisy/chunk_000"
