@@ -9,7 +9,8 @@ finished is the output directory written (atomically) with:
 * ``best.pt``         the model with the best validation loss (what evaluation rows load)
 * ``curves.csv/.png`` training loss, validation loss and image metrics per step
 * ``validation.csv``  per validation sequence: loss, loss terms, SSIM, PSNR, RMSE of ``best.pt``
-* ``summary.json``    steps, wall time, which budget stopped training, parameters, best step, scenes, and
+* ``summary.json``    steps, wall time, which budget stopped training, parameters, best step, scenes, the
+                      step arithmetic used (``compute``: precision bf16 / fp32, channels_last, why), and
                       ``settings_digest``: the digest of the model's settings and training data (the
                       workflow's rerun trigger, denoisers.experiment), which the report checks
 * ``settings.json``   the resolved model settings
@@ -47,9 +48,13 @@ def data_settings(cfg: dict) -> dict[str, Any]:
 
 
 def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
-    """The trainer's resumable directory: keyed by every setting but the budget."""
+    """The trainer's resumable directory: keyed by every setting but the budget, and by the step arithmetic
+    ``compute`` resolves to on this machine (precision auto: bf16 or fp32), so a run moved to a machine that
+    resolves it otherwise starts afresh instead of mixing the two."""
+    from denoisers.training.precision import resolve_compute
+
     unbudgeted = ModelSpec(**{**spec.__dict__, "budget": {}})
-    digest = settings_digest(unbudgeted, data_settings(cfg))
+    digest = settings_digest(unbudgeted, {**data_settings(cfg), "compute": resolve_compute(spec.compute).fingerprint()})
     return Path(models_root) / WORK_DIR_NAME / f"{spec.id}-{digest[:12]}"
 
 
@@ -64,8 +69,10 @@ def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...]) -> Any:
 
 def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = True) -> Any:
     from denoisers.training.loop import TrainerConfig
+    from denoisers.training.precision import DEFAULT_COMPUTE
 
     optimizer, budget, training = spec.optimizer, spec.budget, cfg["training"]
+    compute = {**DEFAULT_COMPUTE, **spec.compute}
     warmup = min(int(cfg["evaluation"]["warmup_frames"]), spec.data["length"] - 1)
     return TrainerConfig(seed=spec.seed, batch_size=optimizer["batch_size"], max_steps=budget["max_steps"],
                          max_seconds=budget.get("max_seconds"), lr=optimizer["lr"], betas=tuple(optimizer["betas"]),
@@ -73,7 +80,8 @@ def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = Tr
                          log_every=max(1, min(10, budget["max_steps"] // 10 or 1)),
                          validate_every=training["validate_every"], checkpoint_every=training["validate_every"],
                          checkpoint_seconds=300.0, best_metric="loss", validation_warmup_frames=warmup,
-                         progress=progress, threads=threads)
+                         progress=progress, threads=threads, precision=compute["precision"],
+                         channels_last=compute["channels_last"])
 
 
 def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, threads: int = 2,

@@ -13,7 +13,10 @@ the output directory:
   and N uninterrupted steps give bit-identical weights to N/2 + kill + resume + N/2.
 * ``best.pt`` -- the model with the best validation metric so far (the last model without validation).
 * ``curves.csv`` / ``curves.png`` -- training loss (mean over each ``log_every`` steps) and validation
-  metrics per step; ``summary.json`` -- the outcome.
+  metrics per step; ``summary.json`` -- the outcome, with the step arithmetic used (``compute``).
+
+The step's arithmetic (``precision`` fp32 / bf16 autocast / auto, ``channels_last`` weights) is
+``denoisers.training.precision``; the resolved choice is logged once per run and fingerprinted.
 
 Errors: a non-finite loss stops training with :class:`NonFiniteLossError` naming the step and the batch
 (its sequences); an unreadable, truncated or foreign checkpoint raises :class:`CheckpointError` naming
@@ -37,6 +40,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from denoisers.training.curves import plot_curves
+from denoisers.training.precision import log_choice, loss_model, prepare_model, resolve
 from scenegen.atomic import write_text_atomic
 
 CHECKPOINT_FORMAT = "mcdenoise-checkpoint"
@@ -53,7 +58,8 @@ HIGHER_IS_BETTER: frozenset[str] = frozenset({"ssim", "psnr"})
 #: Trainer settings that do not change the weights after a given step (excluded from the fingerprint,
 #: so a run can be resumed with a longer budget or other logging).
 _NOT_FINGERPRINTED = frozenset({"max_steps", "max_seconds", "progress", "threads", "checkpoint_every",
-                                "checkpoint_seconds", "log_every"})
+                                "checkpoint_seconds", "log_every",
+                                "precision", "channels_last"})  # fingerprinted as resolved ("compute")
 
 
 class CheckpointError(RuntimeError):
@@ -126,6 +132,8 @@ class TrainerConfig:
     runs), must be set; training stops at whichever comes first. ``best_metric`` is a validation key
     ('loss', 'ssim', 'psnr', 'rmse'); ssim and psnr are maximised, the others minimised.
     ``validation_warmup_frames`` skips the first frames of each validation sequence in the image metrics.
+    ``precision`` ('fp32', 'bf16' or 'auto') and ``channels_last`` (bool or 'auto'): the training step's arithmetic
+    (:func:`denoisers.training.precision.resolve`); validation always runs in fp32.
     """
 
     seed: int = 0
@@ -147,6 +155,8 @@ class TrainerConfig:
     validation_warmup_frames: int = 0
     progress: bool = True
     threads: int | None = None
+    precision: str = "fp32"
+    channels_last: bool | str = False
 
     def __post_init__(self) -> None:
         self.betas = tuple(float(b) for b in self.betas)
@@ -155,6 +165,7 @@ class TrainerConfig:
         if self.batch_size < 1 or self.log_every < 1 or self.validate_every < 0 or self.checkpoint_every < 0:
             raise ValueError(f"need batch_size >= 1, log_every >= 1, validate_every >= 0, checkpoint_every >= 0: {self}")
         lr_factor(self.schedule, 0)  # rejects unknown schedules early
+        resolve(self.precision, self.channels_last)  # and unknown precisions
 
     def fingerprint_data(self) -> dict[str, Any]:
         return {k: v for k, v in asdict(self).items() if k not in _NOT_FINGERPRINTED}
@@ -261,15 +272,17 @@ class Trainer:
                  out_dir: Path | str, fingerprint_extra: Mapping[str, Any] | None = None) -> None:
         self.task, self.train_data, self.validation, self.config = task, train_data, list(validation), config
         self.out_dir = Path(out_dir)
+        self.compute = resolve(config.precision, config.channels_last)
         self.checkpoint_path = self.out_dir / CHECKPOINT_NAME
         self.best_path = self.out_dir / BEST_NAME
         self.fingerprint_data = {
             "trainer": config.fingerprint_data(), "task": task.describe(), "data": train_data.describe(),
             "validation": [getattr(b, "describe", lambda: repr(b))() for b in self.validation],
-            "extra": dict(fingerprint_extra or {}),
+            "extra": dict(fingerprint_extra or {}), "compute": self.compute.fingerprint(),
         }
         self.fingerprint = _fingerprint(self.fingerprint_data)
         self.model: nn.Module | None = None
+        self._loss_model: nn.Module | None = None          # what task.loss calls (see _setup)
         self.optimizer: torch.optim.Optimizer | None = None
         self.step = 0
         self.elapsed = 0.0
@@ -288,7 +301,8 @@ class Trainer:
         torch.manual_seed(config.seed)
         np.random.seed(config.seed % 2**32)
         random.seed(config.seed)
-        self.model = self.task.build_model()
+        self.model = prepare_model(self.task.build_model(), self.compute)
+        self._loss_model = loss_model(self.model, self.compute)  # the model, or its bf16 autocast forward
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr, betas=config.betas, eps=config.eps,
                                           weight_decay=config.weight_decay)
         if not self.checkpoint_path.exists():
@@ -338,6 +352,7 @@ class Trainer:
             torch.set_num_threads(int(config.threads))
         resumed_from = self._setup()
         assert self.model is not None and self.optimizer is not None
+        log_choice(self.compute, self.task.name)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         started = time.perf_counter()
         elapsed_at_start = self.elapsed
@@ -396,7 +411,7 @@ class Trainer:
             group["lr"] = lr
         model.train()
         optimizer.zero_grad(set_to_none=True)
-        loss, terms = self.task.loss(model, batch)
+        loss, terms = self.task.loss(self._loss_model, batch)
         if not bool(torch.isfinite(loss)):
             description = batch.describe() if hasattr(batch, "describe") else f"batch {self.step}"
             raise NonFiniteLossError(
@@ -543,44 +558,6 @@ class Trainer:
             "resumed_from": result.resumed_from, "best_step": result.best_step, "best_metric": result.best_metric,
             "best_value": result.best_value, "best_metrics": (self.best or {}).get("metrics", {}),
             "parameters": count_parameters(self.model), "net": self.task.net_spec(),
-            "fingerprint": self.fingerprint,
+            "fingerprint": self.fingerprint, "compute": self.compute.to_dict(),
         }
         write_text_atomic(self.out_dir / SUMMARY_NAME, json.dumps(summary, indent=1, sort_keys=True, default=str) + "\n")
-
-
-def plot_curves(history: Sequence[Mapping[str, Any]], path: Path, title: str = "training") -> None:
-    """Training loss (log scale) with the validation loss, and the validation image metrics, per step."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    rows = sorted(history, key=lambda r: r["step"])
-
-    def series(key: str) -> tuple[list[int], list[float]]:
-        points = [(r["step"], r[key]) for r in rows if r.get(key) is not None and math.isfinite(r[key])]
-        return [p[0] for p in points], [p[1] for p in points]
-
-    figure = Figure(figsize=(10, 4), constrained_layout=True)
-    FigureCanvasAgg(figure)
-    loss_axes, metric_axes = figure.subplots(1, 2)
-    for key, label in (("train_loss", "training loss"), ("val_loss", "validation loss")):
-        steps, values = series(key)
-        if steps:
-            loss_axes.plot(steps, values, marker="." if key.startswith("val") else None, label=label)
-    if any(v > 0 for r in rows for k, v in r.items() if k.endswith("loss") and v is not None and math.isfinite(v)):
-        loss_axes.set_yscale("log")
-    loss_axes.set_xlabel("step")
-    loss_axes.set_ylabel("loss")
-    loss_axes.set_title(title)
-    loss_axes.legend(loc="best")
-    steps, values = series("val_ssim")
-    if steps:
-        metric_axes.plot(steps, values, marker=".", label="validation SSIM")
-        metric_axes.set_ylabel("SSIM")
-        metric_axes.legend(loc="best")
-    else:
-        metric_axes.text(0.5, 0.5, "no validation metrics", ha="center", va="center", transform=metric_axes.transAxes)
-    metric_axes.set_xlabel("step")
-    path = Path(path)
-    staging = path.with_name(f".{path.name}.tmp-{os.getpid()}.png")
-    figure.savefig(staging, dpi=100)
-    os.replace(staging, path)

@@ -3,8 +3,9 @@
 ``training.models`` lists trained models; every entry of ``training.ablations`` adds one model per
 variant, id ``{ablation}_{variant}``, whose settings are the base model's with the variant's ``net`` /
 ``loss`` / ``data`` keys overriding and the ablation's ``budget`` replacing the base budget (so all
-variants of a comparison share data and budget). Missing data / optimizer / budget keys take the
-defaults of the config schema (workflow/schemas/config.schema.yaml, ``$defs``).
+variants of a comparison share data and budget) and the base model's ``compute`` (step arithmetic).
+Missing data / optimizer / budget / compute keys take the defaults of the config schema
+(workflow/schemas/config.schema.yaml, ``$defs``).
 
 Scene split: the ``train_*`` scenes minus the last ``training.validation_scenes`` of them train;
 those last ones validate. Test scenes are never read by training.
@@ -56,7 +57,8 @@ def _base_spec(cfg: dict, entry: Mapping[str, Any]) -> ModelSpec:
         net=copy.deepcopy(dict(entry.get("net") or {})), loss=copy.deepcopy(dict(entry.get("loss") or {})),
         data=_schema_defaults("training_data", entry.get("data")),
         optimizer=_schema_defaults("training_optimizer", entry.get("optimizer")),
-        budget=_schema_defaults("training_budget", entry.get("budget")))
+        budget=_schema_defaults("training_budget", entry.get("budget")),
+        compute=_schema_defaults("training_compute", entry.get("compute")))
 
 
 def model_specs(cfg: dict) -> list[ModelSpec]:
@@ -77,7 +79,7 @@ def model_specs(cfg: dict) -> list[ModelSpec]:
                 loss={**base.loss, **copy.deepcopy(variant.get("loss") or {})},
                 data=_schema_defaults("training_data", {**base.data, **(variant.get("data") or {})}),
                 optimizer=copy.deepcopy(base.optimizer), budget=copy.deepcopy(budget),
-                ablation=ablation["id"], variant=variant["id"]))
+                ablation=ablation["id"], variant=variant["id"], compute=copy.deepcopy(base.compute)))
     return specs
 
 

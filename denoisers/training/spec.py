@@ -24,9 +24,11 @@ class ModelSpec:
     budget: dict[str, Any] = field(hash=False, compare=False)
     ablation: str | None = None
     variant: str | None = None
+    #: Step arithmetic as configured (precision auto / bf16 / fp32, channels_last; denoisers.training.precision).
+    compute: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
 
     def settings(self) -> dict[str, Any]:
         """Everything that determines the trained weights (with the data), for digests and settings.json."""
         return {"id": self.id, "method": self.method, "seed": self.seed, "net": self.net, "loss": self.loss,
                 "data": self.data, "optimizer": self.optimizer, "budget": self.budget,
-                "ablation": self.ablation, "variant": self.variant}
+                "ablation": self.ablation, "variant": self.variant, "compute": self.compute}
