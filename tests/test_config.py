@@ -60,7 +60,9 @@ def test_shipped_configs_validate(path: Path) -> None:
 def test_default_config_matches_the_shared_contract() -> None:
     cfg = load_config(DEFAULT_CONFIG)
     assert cfg["seed"] == 2026
-    assert cfg["scenes"]["n_train"] == 8 and cfg["scenes"]["n_test"] == 4
+    assert cfg["scenes"]["n_train"] == 9 and cfg["scenes"]["n_test"] == 4
+    # Issue 11 §3: convergence is judged on at least two held-out training scenes.
+    assert cfg["training"]["validation_scenes"] >= 2
     assert cfg["scenes"]["frames"] == 16 and cfg["scenes"]["frames_per_chunk"] == 8
     assert cfg["render"]["width"] == cfg["render"]["height"] == 128
     assert cfg["render"]["spp"] == 8 and cfg["render"]["reference_spp"] == 1024
