@@ -48,7 +48,7 @@ LAYOUTS: dict[str, bool | str] = {"auto": "auto", "true": True, "false": False}
 
 def train(name: str, spec: ModelSpec, cfg: dict, dataset: SequenceDataset, validation: list, precision: str,
           args: argparse.Namespace, channels_last: bool | str | None = None) -> dict[str, Any]:
-    """Train one variant; its validation rows by step and its seconds per step."""
+    """Train one variant; its validation rows by step, its seconds per step and the trainer (final weights)."""
     layout = args.channels_last if channels_last is None else channels_last
     config = dataclasses.replace(trainer_config(cfg, spec, args.threads, progress=False), precision=precision,
                                  channels_last=layout, validate_every=args.validate_every,
@@ -57,7 +57,8 @@ def train(name: str, spec: ModelSpec, cfg: dict, dataset: SequenceDataset, valid
     print(f"{name}: {trainer.compute.describe()}", flush=True)
     result = trainer.run()
     rows = {row["step"]: row for row in trainer.history if "val_psnr" in row}
-    return {"rows": rows, "seconds_per_step": result.elapsed_seconds / max(result.steps, 1), "result": result}
+    return {"rows": rows, "seconds_per_step": result.elapsed_seconds / max(result.steps, 1), "result": result,
+            "trainer": trainer}
 
 
 def main() -> None:

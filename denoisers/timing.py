@@ -1,4 +1,5 @@
-"""The timing job (rule time_methods): every evaluated (row, spp) timed on the same frames and threads.
+"""The timing job (rule time_methods): every evaluated (row, spp) timed on the same frames and threads
+(the configured rows and the capacity ablations' variants, :func:`timed_runs`).
 
 Timings taken inside the denoise jobs vary with whatever else the machine runs at the time (two
 identical smoke runs gave OIDN 28.9 vs 14.1 ms/frame), so the report's speed numbers come from one job
@@ -177,13 +178,18 @@ def timing_scene(cfg: dict) -> str | None:
 
 
 def timed_runs(cfg: dict) -> list[tuple[str, int]]:
-    """(row id, spp) the timing job times: every runnable configured row (not the ablation variants, which
-    share their row's network) at every spp it is evaluated at, in table order."""
+    """(row id, spp) the timing job times, in table order: every runnable configured row at every spp it is
+    evaluated at, then the rows of the capacity ablations' variants (training.ablations with kind capacity) at
+    evaluation.ablation_spp, whose networks differ in size. Comparison variants are not timed: they share
+    their base row's network size."""
     from denoisers.evaluate import plan_runs
+    from denoisers.training.models import capacity_model_ids
 
     if not timing_settings(cfg)["enabled"]:
         return []
-    return [(run.spec.id, run.spp) for run in plan_runs(cfg) if run.runnable and run.spec.role == "method"]
+    capacity = capacity_model_ids(cfg)
+    return [(run.spec.id, run.spp) for run in plan_runs(cfg) if run.runnable and (
+        run.spec.role == "method" or run.spec.params.get("model") in capacity)]
 
 
 # ----------------------------------------------------------------------------------------- reading

@@ -28,6 +28,8 @@ MAX_SAMPLE_LAYERS = 32
 
 SCENE_SPLITS = ("train", "test")
 CUSTOM_PREFIX = "custom_"
+#: Scenes whose references render.train_reference_spp applies to (the training and validation scenes).
+TRAIN_PREFIX = "train_"
 
 #: What a workflow run writes below the config's ``output_dir`` (the experiment folder); `python -m
 #: denoisers clean` removes exactly these entries, so another experiment nested inside the folder survives.
@@ -134,7 +136,8 @@ def _describe_error(error: jsonschema.ValidationError) -> list[str]:
     if kind == "multipleOf":
         return [f"config key '{key}' = {value!r} must be a multiple of {error.validator_value}"]
     if kind == "type":
-        expected = _YAML_TYPE_NAMES.get(error.validator_value, error.validator_value)
+        types = error.validator_value if isinstance(error.validator_value, list) else [error.validator_value]
+        expected = " or ".join(_YAML_TYPE_NAMES.get(name, name) for name in types)
         return [f"config key '{key}' = {value!r} has the wrong type; allowed type: {expected}"]
     if kind in ("minItems", "maxItems"):
         low, high = subschema.get("minItems", 0), subschema.get("maxItems")
@@ -274,6 +277,25 @@ def scene_ids(cfg: dict[str, Any]) -> list[str]:
     ids = [f"{split}_{index:03d}" for split in SCENE_SPLITS for index in range(cfg["scenes"][f"n_{split}"])]
     ids += [f"{CUSTOM_PREFIX}{entry['name']}" for entry in cfg.get("extra_scenes", [])]
     return ids
+
+
+def training_scene_split(cfg: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """(scenes that train, validation scenes): the train_* ids with the last ``training.validation_scenes``
+    (default 2) held out for validation."""
+    train = [scene for scene in scene_ids(cfg) if scene.startswith(TRAIN_PREFIX)]
+    held_out = min(int((cfg.get("training") or {}).get("validation_scenes", 2)), len(train))
+    return train[:len(train) - held_out], train[len(train) - held_out:]
+
+
+def scene_reference_spp(cfg: dict[str, Any], scene_id: str) -> int:
+    """Reference spp of a scene: ``render.train_reference_spp`` for the train_* scenes that train, when it is
+    set (not null), else ``render.reference_spp``: always for the evaluated test_* and custom_* scenes, and
+    for the held-out validation scenes, whose references score every model and decide convergence."""
+    render = cfg["render"]
+    train_spp = render.get("train_reference_spp")
+    if train_spp is not None and scene_id in training_scene_split(cfg)[0]:
+        return int(train_spp)
+    return int(render["reference_spp"])
 
 
 def scene_frame_count(cfg: dict[str, Any], scene_id: str) -> int:

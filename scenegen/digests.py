@@ -9,12 +9,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from scenegen.config import config_digest, extra_scene, scene_frame_count
+from scenegen.config import config_digest, extra_scene, scene_frame_count, scene_reference_spp
 
 #: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
 SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
 NOISY_ONLY_KEYS = frozenset({"spp", "extra_radiance_spp"})
-REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp"})
+#: render.* keys only the references depend on; train_reference_spp enters a reference digest as the scene's
+#: effective reference_spp (scenegen.config.scene_reference_spp), so null or absent changes no digest.
+REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp", "train_reference_spp"})
 
 
 def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
@@ -36,7 +38,10 @@ def scene_digest(cfg: dict, scene: str) -> str:
 
 def render_digest(cfg: dict, scene: str, kind: str) -> str:
     """Rules render_noisy (``kind`` 'noisy') and render_reference ('reference')."""
-    own_keys = NOISY_ONLY_KEYS if kind == "noisy" else REFERENCE_ONLY_KEYS
+    if kind == "noisy":
+        own = {key: cfg["render"][key] for key in sorted(NOISY_ONLY_KEYS)}
+    else:   # the spp this scene's references are rendered with, under the key reference_spp
+        own = {"reference_batch_spp": cfg["render"]["reference_batch_spp"],
+               "reference_spp": scene_reference_spp(cfg, scene)}
     return config_digest({"scene": scene_settings(cfg, scene), "frames": scene_frame_count(cfg, scene),
-                          "frames_per_chunk": cfg["scenes"]["frames_per_chunk"],
-                          "render": {key: cfg["render"][key] for key in sorted(own_keys)}})
+                          "frames_per_chunk": cfg["scenes"]["frames_per_chunk"], "render": own})

@@ -5,6 +5,7 @@ place only when everything is written, so an interrupted job leaves nothing that
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -15,7 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen.atomic import atomic_directory, write_text_atomic
-from scenegen.config import CUSTOM_PREFIX, extra_scene
+from scenegen.config import CUSTOM_PREFIX, extra_scene, scene_reference_spp
 from scenegen.mitsuba_env import init_mitsuba
 from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_frame_seed,
                              psnr_between_halves, reference_batch_seeds,
@@ -148,11 +149,13 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
 
 
 def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
-    """Render the high-spp references (two independent halves) of one chunk."""
+    """Render the high-spp references (two independent halves) of one chunk, at the scene's reference spp
+    (render.train_reference_spp for train_* scenes when set, else render.reference_spp); the sidecars record it."""
     from scenegen.dataset import reference_channels
     from scenegen.exr import write_exr
 
-    settings = RenderSettings.from_config(cfg["render"])
+    settings = dataclasses.replace(RenderSettings.from_config(cfg["render"]),
+                                   reference_spp=scene_reference_spp(cfg, scene_id))
     variant = init_mitsuba(settings.variant)
     manifest = _load_manifest(scene_dir)
     frames = chunk_frames(manifest["n_frames"], cfg["scenes"]["frames_per_chunk"], chunk)
@@ -184,5 +187,5 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
             write_text_atomic(tmp_dir / f"frame_{frame:04d}.json", json.dumps(meta, indent=1, sort_keys=True))
             bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")
             rates.append(meta["samples_per_s"])
-    log.info("reference %s chunk %d: %d frames, mean %.3g samples/s", scene_id, chunk, len(frames),
-             np.mean(rates))
+    log.info("reference %s chunk %d: %d frames at %d spp, mean %.3g samples/s", scene_id, chunk, len(frames),
+             2 * half_spp, np.mean(rates))

@@ -405,7 +405,7 @@ def test_rows_have_their_own_spp_and_ablation_variants_get_rows() -> None:
     cfg = smoke_config(methods=[*BASIC_METHODS, {"id": "eaw", "method": "eaw", "spp": [2], "robustness": False}],
                        spp=[1, 2], ablation_spp=[1])
     variants = [model for model in model_specs(cfg) if model.ablation]
-    assert len(variants) == 5  # the smoke config's rae_inputs (3) and rae_loss (2) variants
+    assert len(variants) == 7  # the smoke config's rae_inputs (3), rae_loss (2) and rae_capacity (2) variants
     specs = evaluate.method_specs(cfg)
     assert [spec.id for spec in specs] == ["noisy", "path_x2", "eaw", *(model.id for model in variants)]
     assert specs[0] == evaluate.MethodSpec("noisy", "noisy", {}, (1, 2), True, evaluate.METHOD_ROLE)

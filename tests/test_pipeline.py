@@ -35,8 +35,9 @@ from denoisers.evaluate import evaluated_scene_ids
 from denoisers.report import report_outputs
 from denoisers.report.claims import INCONCLUSIVE, NOT_RUN
 from denoisers.reproductions import all_claims
-from denoisers.training.models import MODEL_FILES, model_dir, model_specs
-from scenegen.config import CUSTOM_PREFIX, chunk_count, chunk_frames, load_config, scene_frame_count, scene_ids
+from denoisers.training.models import MODEL_FILES, capacity_model_ids, model_dir, model_specs
+from scenegen.config import (CUSTOM_PREFIX, chunk_count, chunk_frames, load_config, scene_frame_count, scene_ids,
+                             scene_reference_spp)
 from scenegen.dataset import REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -202,7 +203,7 @@ def test_clips_load_with_configured_shapes_and_sane_metadata(pipeline: PipelineR
             assert meta["nonfinite_total"] < 1e-3 * n_values  # replaced NaN/inf must stay rare
             assert np.isfinite(meta["samples_per_s"]) and meta["samples_per_s"] > 0
         for t, meta in enumerate(clip.reference_meta):
-            assert meta["frame"] == t and meta["spp"] == render["reference_spp"]
+            assert meta["frame"] == t and meta["spp"] == scene_reference_spp(pipeline.cfg, scene)
             assert np.isfinite(meta["psnr_halves"]), meta["psnr_halves"]
             assert isinstance(meta["nonfinite_total"], int)
 
@@ -360,6 +361,11 @@ def test_every_configured_model_is_trained_and_reported(pipeline: PipelineRun) -
     assert "<!-- rae -->" in (pipeline.results / "figures" / "quality_vs_speed.svg").read_text()
     report = (pipeline.results / "REPORT.md").read_text()
     assert "## Learned denoisers" in report and "figures/rae_inputs_curves.png" in report
+    # The capacity sweep: both sizes and the base model (same 4-step budget) scored, timed and one selected.
+    capacity = pd.read_csv(tables / "capacity_rae_capacity.csv")
+    assert list(capacity["variant"]) == ["width0125", "levels4", "base"] and set(capacity["status"]) == {"ran"}
+    assert np.isfinite(capacity[["parameters", "psnr_mean", "ms_per_frame"]].to_numpy(float)).all()
+    assert capacity["selected"].sum() == 1 and "## Model capacity" in report and "Smallest size within 0.2 dB" in report
 
 
 def test_a_second_config_gets_its_own_complete_folder(pipeline: PipelineRun) -> None:
@@ -418,7 +424,8 @@ def test_the_timing_job_times_every_configured_row_and_the_report_uses_it(pipeli
     job = read_timing_job(pipeline.results / TIMING_JOB_FILE)
     settings = timing_settings(pipeline.cfg)
     assert [(row["method_id"], row["spp"]) for row in job.record["rows"]] == timed_runs(pipeline.cfg)
-    assert {run.spec.id for run in pipeline.runs() if run.spec.role == "method"} == \
+    # The configured rows and the capacity ablation's sizes (comparison variants share their row's network).
+    assert {run.spec.id for run in pipeline.runs() if run.spec.role == "method"} | capacity_model_ids(pipeline.cfg) == \
         {row["method_id"] for row in job.record["rows"]}
     assert job.record["scene"] == "test_000" and job.threads == 2      # every core the job got (--cores 2)
     assert set(job.record["renderers"]) == set(evaluated_scene_ids(pipeline.cfg))     # every evaluated scene

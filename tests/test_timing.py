@@ -84,7 +84,9 @@ def test_rounds_interleave_the_rows_and_ratios_pair_rounds(tmp_path: Path, sleep
 def test_the_timing_job_times_the_configured_rows_on_the_first_evaluated_scene() -> None:
     cfg = smoke_config(methods=[{"id": "noisy", "method": "noisy"}, {"id": "eaw", "method": "eaw"}], spp=[1, 2])
     assert timing_scene(cfg) == "test_000"
-    assert timed_runs(cfg) == [("noisy", 1), ("noisy", 2), ("eaw", 1), ("eaw", 2)]
+    # The configured rows, then the smoke config's capacity variants at ablation_spp (their sizes differ).
+    assert timed_runs(cfg) == [("noisy", 1), ("noisy", 2), ("eaw", 1), ("eaw", 2), ("rae_capacity_width0125", 1),
+                               ("rae_capacity_levels4", 1)]
     cfg["evaluation"]["timing"] = {"enabled": False}
     assert timed_runs(cfg) == []
 

@@ -76,7 +76,8 @@ def test_missing_keys_take_the_schema_defaults() -> None:
     cfg["training"]["ablations"] = []
     spec = model_spec(cfg, "plain")
     assert spec.data == {"length": 7, "crop": 64, "spp": 1, "rotate": True, "flip": True, "color_range": [0.0, 2.0],
-                         "backward_prob": 0.5, "stop_prob": 0.1}
+                         "backward_prob": 0.5, "stop_prob": 0.1, "layers": "random", "crops": "uniform",
+                         "importance_floor": 0.2}
     assert spec.optimizer["batch_size"] == 4 and spec.optimizer["schedule"]["name"] == "ramp_inv_sqrt"
     assert spec.budget == {"max_steps": 1000, "max_seconds": None}
 
@@ -84,7 +85,7 @@ def test_missing_keys_take_the_schema_defaults() -> None:
 def test_the_last_training_scenes_are_held_out_for_validation() -> None:
     cfg = load_config(REPO_ROOT / "config" / "config.yaml")
     train, validation = training_split(cfg)
-    assert train == [f"train_{i:03d}" for i in range(7)] and validation == ["train_007"]
+    assert train == [f"train_{i:03d}" for i in range(7)] and validation == ["train_007", "train_008"]
 
 
 @pytest.mark.parametrize("break_config, message", [

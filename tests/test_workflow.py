@@ -204,7 +204,7 @@ def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Pat
     cfg = load_config(workflow_copy / "config/smoke.yaml")
     variants = [spec.id for spec in model_specs(cfg) if spec.ablation]
     ablation_spp = cfg["evaluation"]["ablation_spp"]
-    assert len(variants) == 5 and ablation_spp == [1] and cfg["evaluation"]["spp"] == [1, 2]
+    assert len(variants) == 7 and ablation_spp == [1] and cfg["evaluation"]["spp"] == [1, 2]   # rae_capacity: 2
     # The rows come after the configured ones, at ablation_spp only, and not in the robustness scenario.
     specs = method_specs(cfg)
     assert [spec.id for spec in specs] == [entry["id"] for entry in cfg["evaluation"]["methods"]] + variants
@@ -263,13 +263,13 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
     ])
     (workflow_copy / "rows.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
-    # Hand count on the one evaluated (test) scene: noisy at 1 and 2 spp, eaw at 2, path_x2 at none, the 5
-    # ablation variants at 2: 8 denoise jobs, which need the 5 variant models (no row uses the base model rae).
-    assert counts["denoise_clip"] == 8 and counts["train_denoiser"] == 5
+    # Hand count on the one evaluated (test) scene: noisy at 1 and 2 spp, eaw at 2, path_x2 at none, the 7
+    # ablation variants at 2: 10 denoise jobs, which need the 7 variant models (no row uses the base model rae).
+    assert counts["denoise_clip"] == 10 and counts["train_denoiser"] == 7
     counts = dry_run("evaluate", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
     # Robustness: noisy and path_x2 (its evaluated spp do not matter), not eaw or the variants.
     assert {rule: counts[rule] for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
-        "denoise_clip": 8, "evaluate_clip": 8, "robustness_clip": 2}
+        "denoise_clip": 10, "evaluate_clip": 10, "robustness_clip": 2}
     assert counts == expected_jobs(load_config(workflow_copy / "rows.yaml"), "evaluate")
 
     cfg["evaluation"]["ablation_spp"] = []
@@ -405,6 +405,13 @@ def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> Non
 
     reference_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "reference_spp", 32), cwd=work)
     assert reference_only == {"render_reference": 6, "renders": 1}
+    # render.train_reference_spp: only the references of the scene that trains (train_000; train_001 validates
+    # and keeps reference_spp); null or the reference_spp itself: nothing.
+    train_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "train_reference_spp", 16), cwd=work)
+    assert train_only == {"render_reference": 2, "renders": 1}
+    for same in (None, 64):
+        assert dry_run("renders", "--configfile", smoke_variant(work, "render", "train_reference_spp", same),
+                       cwd=work) == {}
 
     one_more_scene = dry_run("renders", "--configfile", smoke_variant(work, "scenes", "n_train", 3), cwd=work)
     assert one_more_scene == {"generate_scene": 1, "render_noisy": 2, "render_reference": 2, "renders": 1}
@@ -479,13 +486,42 @@ def rule_names() -> set[str]:
     return names
 
 
+def config_threaded_rules() -> set[str]:
+    """Rules whose ``threads:`` is a config key."""
+    names = set()
+    for rule_file in (REPO_ROOT / "workflow/rules").glob("*.smk"):
+        for rule, body in re.findall(r"^rule (\w+):(.*?)(?=^rule |\Z)", rule_file.read_text(), flags=re.M | re.S):
+            if re.search(r"^\s+threads: config\[", body, flags=re.M):
+                names.add(rule)
+    return names
+
+
+def test_training_runtime_follows_the_budget() -> None:
+    from denoisers.training.models import (DEFAULT_TRAINING_RUNTIME_MIN, TRAINING_RUNTIME_MARGIN_MIN,
+                                           training_runtime_minutes)
+
+    cfg = load_config(REPO_ROOT / "config/config.yaml")
+    rae = next(m for m in cfg["training"]["models"] if m["id"] == "rae")
+    assert training_runtime_minutes(cfg, "rae") == -(-rae["budget"]["max_seconds"] * 11 // 600) + TRAINING_RUNTIME_MARGIN_MIN
+    rae["budget"]["max_seconds"] = None
+    assert training_runtime_minutes(cfg, "rae") == DEFAULT_TRAINING_RUNTIME_MIN
+
+
 def test_slurm_profile_sets_resources_for_every_rule() -> None:
     profile = yaml.safe_load((REPO_ROOT / "workflow/profiles/slurm/config.yaml").read_text())
     assert profile["executor"] == "slurm"
     assert {"slurm_partition", "slurm_account"} <= set(profile["default-resources"])
     assert set(profile["set-resources"]) == rule_names() == set(JOB_RULES)
+    config_threads = config_threaded_rules()
+    assert config_threads == {"denoise_clip", "robustness_clip", "train_denoiser", "tune_method"}
     for rule, resources in profile["set-resources"].items():
-        assert {"mem_mb", "runtime", "cpus_per_task"} <= set(resources), rule
+        assert "mem_mb" in resources, rule
+        # train_denoiser's runtime comes from the model's budget (the rule), every other rule's from here.
+        assert ("runtime" in resources) == (rule != "train_denoiser"), rule
+        # Rules threaded by a config key get as many CPUs as their threads (the executor's fallback);
+        # a fixed cpus_per_task would oversubscribe them when a config raises the key.
+        assert ("cpus_per_task" in resources) == (rule not in config_threads), rule
+        assert rule not in profile.get("set-threads", {}) or rule not in config_threads, rule
     # A job never gets more threads than the CPUs SLURM allocates to it.
     for rule, threads in profile.get("set-threads", {}).items():
         assert rule in rule_names() and threads <= profile["set-resources"][rule]["cpus_per_task"], rule

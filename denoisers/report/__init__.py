@@ -7,6 +7,7 @@ Everything is computed from the evaluation outputs and the trained models; nothi
 * ``tables``   -- cross-paper tables (summary, timing, equal time, noise floor, robustness, split, training)
 * ``figures``  -- quality vs speed, per-frame curves, image grids, training curves
 * ``claims``   -- paired comparisons over scenes and the four verdicts
+* ``capacity`` -- capacity ablations: size sweep table and chart, the smallest size within 0.2 dB of the best
 * ``writer``   -- REPORT.md and ``build_report``
 * ``outputs``  -- the list of written files (parse time)
 

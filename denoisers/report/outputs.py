@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from denoisers.evaluate import evaluated_scene_ids
+from denoisers.report.capacity import output_names as capacity_names
 from denoisers.reproductions import all_reproductions
 from denoisers.training.models import model_specs
 from scenegen.config import CUSTOM_PREFIX
@@ -16,7 +17,8 @@ EXTERNAL_TABLES: tuple[str, ...] = ("external", "external_substitutions")
 def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
     """Files the report writes, grouped: 'tables' (CSV), 'tables_md', 'quality' (chart PNG + SVG), 'curves'
     (per-frame error per scene), 'grids', 'markdown', 'training_tables' / 'training_figures' (empty without
-    training) and 'paper_tables' (CSV + Markdown) / 'paper_figures' of the reproduction modules."""
+    training), 'paper_tables' (CSV + Markdown) / 'paper_figures' of the reproduction modules and
+    'capacity_tables' / 'capacity_figures' (one per capacity ablation, denoisers.report.capacity)."""
     scenes = evaluated_scene_ids(cfg)
     core = (CORE_TABLES + (EXTERNAL_TABLES if any(s.startswith(CUSTOM_PREFIX) for s in scenes) else ())
             + (("tuning",) if (cfg.get("tuning") or {}).get("methods") else ()))
@@ -33,4 +35,6 @@ def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
             "training_tables": [f"{root}/tables/training.{ext}" for ext in ("csv", "md")] if trained else [],
             "training_figures": [f"{root}/figures/training_curves.png"] if trained else [],
             "paper_tables": [f"{root}/tables/{t}.{ext}" for t in paper_tables for ext in ("csv", "md")],
-            "paper_figures": [f"{root}/figures/{f}.png" for f in paper_figures]}
+            "paper_figures": [f"{root}/figures/{f}.png" for f in paper_figures],
+            "capacity_tables": [f"{root}/tables/{t}.{ext}" for t in capacity_names(cfg) for ext in ("csv", "md")],
+            "capacity_figures": [f"{root}/figures/{f}.png" for f in capacity_names(cfg)]}

@@ -230,7 +230,7 @@ def _resolved_use(cfg: dict, row: dict[str, str]) -> str:
     render = cfg["render"]
     if row["what"] == "resolution":
         return f"{render['width']}x{render['height']} (render.width x render.height)"
-    if row["what"] == "sampler":
+    if row["what"] == "sampler":     # external scenes always use reference_spp (train_reference_spp: train_* only)
         return (f"independent: {render['spp']} 1-spp layers (+{render['extra_radiance_spp']} radiance-only); "
                 f"references of {render['reference_spp']} spp in two halves")
     return row["used"]

@@ -10,6 +10,7 @@ from denoisers.evaluate import ALL_METRICS, EvaluationError
 from denoisers.provenance import describe, provenance
 from denoisers.report import figures as fig
 from denoisers.report import tables as tab
+from denoisers.report.capacity import capacity_section
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, MIN_UNITS, NOT_RUN, REPRODUCED, claims_table
 from denoisers.report.collect import MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.outputs import report_outputs
@@ -35,7 +36,7 @@ def _setup_lines(res: Results) -> list[str]:
         f"external XML scenes, each an independent unit); training scenes are never evaluated. Split and "
         f"per-scene seeds (global seed {cfg['seed']}): [tables/split.csv](tables/split.csv).",
         f"- Renders: {render['width']}x{render['height']} px, {render['spp']} sample layers "
-        f"(+{render['extra_radiance_spp']} radiance-only), references {render['reference_spp']} spp; "
+        f"(+{render['extra_radiance_spp']} radiance-only), references {_reference_spp_text(render)}; "
         f"evaluated at {', '.join(map(str, cfg['evaluation']['spp']))} spp; "
         f"temporal metrics skip {cfg['evaluation']['warmup_frames']} warm-up frame(s) per shot.",
         "- Aggregation: a metric is averaged over a clip's frames (PSNR: the mean of per-frame PSNR, except the "
@@ -50,6 +51,15 @@ def _setup_lines(res: Results) -> list[str]:
                                   "training": cfg.get("training", {}).get("threads", 0)})), ""]
 
 
+def _reference_spp_text(render: dict) -> str:
+    """The references' spp; both values when the training scenes' (render.train_reference_spp) differ."""
+    train = render.get("train_reference_spp")
+    if train is None or train == render["reference_spp"]:
+        return f"{render['reference_spp']} spp"
+    return (f"{render['reference_spp']} spp (evaluated scenes; training and validation scenes {train} spp, "
+            "render.train_reference_spp)")
+
+
 def _timing_line(res: Results) -> str:
     """How the report's speed numbers were measured (the timing job), or why there are none."""
     if res.timing is None:
@@ -59,7 +69,8 @@ def _timing_line(res: Results) -> str:
     job = res.timing.record
     rates = [rate["samples_per_s"] / 1e6 for rate in job["renderers"].values()]
     renderer = next(iter(job["renderers"].values()), {"repeats": 0, "layers": 0})
-    return (f"Timing: one job alone on the machine (rule time_methods) timed every configured row on the first "
+    return (f"Timing: one job alone on the machine (rule time_methods) timed every configured row (and the capacity "
+            f"ablations' sizes) on the first "
             f"{job['frames']} frames of {job['scene']} with {job['threads']} thread(s), in {job['repeats']} "
             "interleaved rounds after a warm-up round (one pass of every row per round, all I/O excluded); a pass "
             "is the median seconds per `denoise()` call without the first frame, a row's ms/frame the median over "
@@ -251,6 +262,7 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
               "", inline["equal_time"], ""]
     lines += _robustness_section(res, tables)
     lines += _training_section(res, tables, figures)
+    lines += capacity_section(res, tables, figures)
     lines += ["## Reference noise floor", "", inline["noise"], "", "## Per-scene figures", ""]
     for scene in res.scenes:
         fig.plot_frame_curves(res, scene, figures / f"frame_curves_{scene}.png")

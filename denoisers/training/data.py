@@ -8,15 +8,25 @@ One sequence (Chaitanya et al. 2017, §4.3) is made by
 2. "camera stops": with ``stop_prob`` per frame transition the camera does not advance; the output
    frame repeats the previous source frame (same target, same camera) with fresh noise, i.e. sample
    layers disjoint from the previous frame's whenever the stack has enough layers;
-3. drawing ``spp`` of the stored sample layers per output frame (each layer is an independent 1-spp
-   image, docs/data-format.md);
-4. a random square crop, the same for every frame;
+3. ``spp`` of the stored sample layers per output frame (each layer is an independent 1-spp image,
+   docs/data-format.md): with ``layers='random'`` (default) drawn without replacement from all stored
+   layers, so training sees every stored noise realisation; with ``layers='first'`` always layers
+   0..spp-1 (what a renderer producing exactly ``spp`` samples would give), except that a camera stop takes
+   the next ``spp`` layers (cyclically) so its noise is fresh whenever the stack has >= 2 spp layers;
+4. a square crop, the same for every frame: with ``crops='uniform'`` (default) at a uniform position;
+   with ``crops='importance'`` drawn where the noisy input differs most from the reference (Bako et al.
+   2017), mixed with uniform by ``importance_floor`` (denoisers/training/crops.py);
 5. a random rotation by 0/90/180/270 degrees and (``flip``) a left-right mirror, applied to every
    image buffer; motion vectors and the world-to-view rotation are transformed to match, so
    view-space normals and reprojection stay consistent with the rotated pixel grid;
 6. a per-channel colour modulation drawn from ``color_range`` (paper: [0, 2]) applied to every
    radiance-like buffer of the input and the target (never to albedo, so demodulated colour is
    modulated too).
+
+Validation (:meth:`SequenceConfig.without_augmentation`, :func:`fixed_batches`) always uses random layers
+and uniform crops, whatever the training switches say: the validation sequences are a function of the
+validation seed only, so every model of a config -- and every arm of a ``layers`` / ``crops`` comparison --
+is validated on identical sequences (paired comparisons).
 
 Determinism: batch ``i`` of a dataset is a pure function of (clips, config, seed, i) -- it draws from
 its own ``numpy`` generator seeded with (seed, i) -- so a trainer resumes the data stream exactly by
@@ -37,6 +47,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from denoisers.training.crops import CROP_MODES, RELATIVE_EPS, ImportanceCrops
 from scenegen.dataset import Clip, load_clip
 
 #: Buffers holding radiance: colour modulation scales these (input samples and reference).
@@ -50,6 +61,8 @@ _CAMERA_TO_VIEW = np.diag([-1.0, 1.0, -1.0])
 _QUARTER_TURN_VIEW = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 #: Left-right mirror of the image in view space.
 _MIRROR_VIEW = np.diag([-1.0, 1.0, 1.0])
+#: How a frame's sample layers are chosen (SequenceConfig.layers).
+LAYER_MODES: tuple[str, ...] = ("random", "first")
 
 _CLIP_CACHE: dict[tuple, Clip] = {}
 
@@ -83,7 +96,10 @@ class SequenceConfig:
     left-right mirror; color_range: per-channel modulation interval or None; backward_prob: chance of
     backward playback; stop_prob: chance per frame transition that the camera stops (the value is ours:
     the paper gives none). sample_buffers / reference_buffers / pixel_buffers: what a batch carries;
-    camera: add ``world_to_view`` (needs ``meta[t]['camera']['to_world']``).
+    camera: add ``world_to_view`` (needs ``meta[t]['camera']['to_world']``). layers: 'random' (draw from all
+    stored layers) or 'first' (layers 0..spp-1; camera stops take the next spp); crops: 'uniform' or
+    'importance' (error-weighted, Bako et al. 2017); importance_floor: weight of the uniform distribution
+    mixed into importance crops (0..1; > 0 keeps every position reachable; the default 0.2 is ours).
     """
 
     length: int = 7
@@ -98,6 +114,9 @@ class SequenceConfig:
     reference_buffers: tuple[str, ...] = ("radiance",)
     pixel_buffers: tuple[str, ...] = ()
     camera: bool = True
+    layers: str = "random"
+    crops: str = "uniform"
+    importance_floor: float = 0.2
 
     def __post_init__(self) -> None:
         for name in ("sample_buffers", "reference_buffers", "pixel_buffers"):
@@ -111,6 +130,12 @@ class SequenceConfig:
             raise ValueError(f"need length >= 1, spp >= 1, crop >= 1 or None; got {self}")
         if not (0 <= self.backward_prob <= 1 and 0 <= self.stop_prob <= 1):
             raise ValueError(f"backward_prob and stop_prob must lie in [0, 1]; got {self}")
+        if self.layers not in LAYER_MODES:
+            raise ValueError(f"data key 'layers' = {self.layers!r} is unknown; allowed: {', '.join(LAYER_MODES)}")
+        if self.crops not in CROP_MODES:
+            raise ValueError(f"data key 'crops' = {self.crops!r} is unknown; allowed: {', '.join(CROP_MODES)}")
+        if not 0 <= self.importance_floor <= 1:
+            raise ValueError(f"data key 'importance_floor' = {self.importance_floor!r} must lie in [0, 1]")
         unknown = [b for b in self.pixel_buffers if b not in PIXEL_KEYS]
         if unknown:
             raise ValueError(f"unknown per-pixel buffers {unknown}; known: {list(PIXEL_KEYS)}")
@@ -119,9 +144,10 @@ class SequenceConfig:
                              "set backward_prob to 0 when a sequence carries motion/valid")
 
     def without_augmentation(self) -> "SequenceConfig":
-        """The same cut (length, crop, spp, buffers) without any random augmentation: for validation."""
+        """The same cut (length, crop, spp, buffers) without any random augmentation, with random layers and
+        uniform crops whatever this config's switches (module docstring): for validation."""
         return SequenceConfig(**{**asdict(self), "rotate": False, "flip": False, "color_range": None,
-                                 "backward_prob": 0.0, "stop_prob": 0.0})
+                                 "backward_prob": 0.0, "stop_prob": 0.0, "layers": "random", "crops": "uniform"})
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -187,6 +213,9 @@ class SequenceDataset:
         if longest < config.length:
             raise ValueError(f"no shot of any clip has {config.length} consecutive frames (longest: {longest}); "
                              f"shorten the sequences or render longer clips")
+        # Crop-position distributions of importance crops: computed once per clip.
+        self._importance = ([ImportanceCrops(clip, config.crop) for clip in self.clips]
+                            if config.crops == "importance" and config.crop is not None else None)
 
     # ----------------------------------------------------------------------------------- checks
     def _check_clips(self) -> None:
@@ -254,20 +283,15 @@ class SequenceDataset:
             cursor += 0 if stopped else 1
             frames.append(source[cursor])
 
-        n_layers = self._layers(clip)
-        layers: list[tuple[int, ...]] = []
-        for i, t in enumerate(frames):
-            pool = np.arange(n_layers)
-            if i > 0 and frames[i - 1] == t:
-                fresh = np.setdiff1d(pool, layers[-1])
-                if fresh.size >= config.spp:
-                    pool = fresh
-            layers.append(tuple(int(s) for s in np.sort(rng.choice(pool, config.spp, replace=False))))
+        layers = self._plan_layers(rng, frames, self._layers(clip))
 
         height, width = clip.motion.shape[-2:]
         crop = config.crop
-        row = int(rng.integers(height - crop + 1)) if crop is not None else 0
-        column = int(rng.integers(width - crop + 1)) if crop is not None else 0
+        if self._importance is not None:
+            row, column = self._importance[clip_index].draw(rng, frames, config.importance_floor)
+        else:
+            row = int(rng.integers(height - crop + 1)) if crop is not None else 0
+            column = int(rng.integers(width - crop + 1)) if crop is not None else 0
         square = crop is not None or height == width
         rotation = int(rng.integers(4)) if config.rotate and square else 0
         flip = bool(rng.random() < 0.5) if config.flip else False
@@ -277,6 +301,28 @@ class SequenceDataset:
             color = (1.0, 1.0, 1.0)
         return SequencePlan(clip=clip_index, scene=clip.scene, frames=tuple(frames), layers=tuple(layers),
                             crop=(row, column), rotation=rotation, flip=flip, color=color, backward=backward)
+
+    def _plan_layers(self, rng: np.random.Generator, frames: Sequence[int], n_layers: int) -> list[tuple[int, ...]]:
+        """Sample layers per output frame (``config.layers``); a camera stop gets layers disjoint from the
+        previous frame's whenever ``n_layers`` allows it. 'first' draws nothing from ``rng``."""
+        spp = self.config.spp
+        layers: list[tuple[int, ...]] = []
+        start = 0
+        for i, t in enumerate(frames):
+            stop = i > 0 and frames[i - 1] == t
+            if self.config.layers == "first":
+                # The next spp layers after the previous frame's block (cyclically) at a stop, else 0..spp-1.
+                start = (start + spp) % n_layers if stop and n_layers >= 2 * spp else 0
+                block = np.sort((start + np.arange(spp)) % n_layers)
+                layers.append(tuple(int(s) for s in block))
+                continue
+            pool = np.arange(n_layers)
+            if stop:
+                fresh = np.setdiff1d(pool, layers[-1])
+                if fresh.size >= spp:
+                    pool = fresh
+            layers.append(tuple(int(s) for s in np.sort(rng.choice(pool, spp, replace=False))))
+        return layers
 
     # ----------------------------------------------------------------------------- materialising
     def sequence(self, plan: SequencePlan) -> dict[str, torch.Tensor]:
@@ -331,7 +377,8 @@ class SequenceDataset:
 
     def describe(self) -> dict[str, Any]:
         """What determines the data stream (for a checkpoint's fingerprint)."""
-        return {"config": self.config.to_dict(), "seed": self.seed,
+        crops = {"crop_error": {"eps": RELATIVE_EPS, "frames": "mean"}} if self.config.crops == "importance" else {}
+        return {"config": self.config.to_dict(), "seed": self.seed, **crops,
                 "clips": [{"scene": c.scene, "frames": [int(f) for f in c.frames],
                            "layers": self._layers(c), "size": list(c.motion.shape[-2:])} for c in self.clips]}
 

@@ -64,7 +64,8 @@ def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...]) -> Any:
     data = spec.data
     return SequenceConfig(length=data["length"], crop=data["crop"], spp=data["spp"], rotate=data["rotate"],
                           flip=data["flip"], color_range=data["color_range"], backward_prob=data["backward_prob"],
-                          stop_prob=data["stop_prob"], sample_buffers=sample_buffers)
+                          stop_prob=data["stop_prob"], sample_buffers=sample_buffers, layers=data["layers"],
+                          crops=data["crops"], importance_floor=data["importance_floor"])
 
 
 def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = True) -> Any:

@@ -4,6 +4,9 @@
 variant, id ``{ablation}_{variant}``, whose settings are the base model's with the variant's ``net`` /
 ``loss`` / ``data`` keys overriding and the ablation's ``budget`` replacing the base budget (so all
 variants of a comparison share data and budget) and the base model's ``compute`` (step arithmetic).
+An ablation of ``kind: capacity`` is a size sweep of the base network: its variants may override only
+``net`` (e.g. ``width``, ``levels``), so every size trains on the same data with the same seed and budget
+(:func:`training_problems` enforces it); denoisers.report.capacity reports it.
 Missing data / optimizer / budget / compute keys take the defaults of the config schema
 (workflow/schemas/config.schema.yaml, ``$defs``).
 
@@ -18,13 +21,14 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from denoisers.training.spec import ModelSpec
 from denoisers.training.tasks import task_problems
-from scenegen.config import SCENE_SPLITS, load_schema, output_root, scene_ids
+from scenegen.config import SCENE_SPLITS, load_schema, output_root, training_scene_split
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
 #: Files a finished model directory holds (the rule's output directory).
@@ -33,6 +37,9 @@ MODEL_FILES: tuple[str, ...] = (MODEL_FILE, "curves.csv", "curves.png", "summary
                                 "settings.json")
 #: Ablation ids the report knows how to read (Chaitanya et al. 2017 Fig. 3 and §4.4).
 INPUT_ABLATION, LOSS_ABLATION = "rae_inputs", "rae_loss"
+#: ``training.ablations[*].kind``: a comparison of variants (a paper's ablation) or a capacity sweep of the
+#: base network's size (variants override only ``net``; the report picks the smallest adequate size).
+COMPARISON_KIND, CAPACITY_KIND = "comparison", "capacity"
 
 
 def _schema_defaults(definition: str, value: Mapping[str, Any] | None) -> dict[str, Any]:
@@ -97,11 +104,28 @@ def ablation_variants(cfg: dict, ablation_id: str) -> dict[str, ModelSpec]:
     return {spec.variant: spec for spec in model_specs(cfg) if spec.ablation == ablation_id}
 
 
+def ablation_kind(ablation: Mapping[str, Any]) -> str:
+    """An ablation entry's ``kind`` (default ``comparison``)."""
+    return ablation.get("kind") or COMPARISON_KIND
+
+
+def capacity_ablations(cfg: dict) -> list[dict[str, Any]]:
+    """The ``training.ablations`` entries of kind ``capacity`` whose base model is configured, in config order."""
+    training = cfg.get("training") or {}
+    bases = {entry["id"] for entry in training.get("models", [])}
+    return [ablation for ablation in training.get("ablations", [])
+            if ablation_kind(ablation) == CAPACITY_KIND and ablation["model"] in bases]
+
+
+def capacity_model_ids(cfg: dict) -> set[str]:
+    """Model ids of the variants of every capacity ablation (their network sizes differ from the base's)."""
+    kinds = {ablation["id"] for ablation in capacity_ablations(cfg)}
+    return {spec.id for spec in model_specs(cfg) if spec.ablation in kinds}
+
+
 def training_split(cfg: dict) -> tuple[list[str], list[str]]:
     """(training scenes, validation scenes): the train_* ids, the last ``validation_scenes`` held out."""
-    train = [scene for scene in scene_ids(cfg) if scene.startswith(TRAIN_PREFIX)]
-    held_out = min(int((cfg.get("training") or {}).get("validation_scenes", 1)), len(train))
-    return train[:len(train) - held_out], train[len(train) - held_out:]
+    return training_scene_split(cfg)
 
 
 def model_dir(results: Path | str, model_id: str) -> Path:
@@ -137,6 +161,22 @@ def resolve_method_params(cfg: dict, params: Mapping[str, Any], results: Path | 
     return resolved
 
 
+#: Scheduler wall time of a training job without a ``max_seconds`` cap (minutes).
+DEFAULT_TRAINING_RUNTIME_MIN = 120
+#: Added to the ``max_seconds`` cap: loading the clips, the final per-sequence validation, copying outputs.
+TRAINING_RUNTIME_MARGIN_MIN = 20
+
+
+def training_runtime_minutes(cfg: dict, model_id: str) -> int:
+    """Wall time (minutes) a scheduler should allow the training job of ``model_id``: its ``budget.max_seconds``
+    cap (the trainer stops there) plus 10 % and :data:`TRAINING_RUNTIME_MARGIN_MIN`; without a cap
+    :data:`DEFAULT_TRAINING_RUNTIME_MIN`. The rule's ``runtime`` resource (SLURM ``--time``)."""
+    cap = model_spec(cfg, model_id).budget.get("max_seconds")
+    if cap is None:
+        return DEFAULT_TRAINING_RUNTIME_MIN
+    return int(math.ceil(round(float(cap) * 1.1 / 60.0, 6))) + TRAINING_RUNTIME_MARGIN_MIN  # round: 3600 s -> 66, not 67
+
+
 def method_model(params: Mapping[str, Any]) -> str | None:
     """The trained model an evaluation row uses (its ``model`` param), if any."""
     return params.get("model")
@@ -151,6 +191,13 @@ def training_problems(cfg: dict) -> list[str]:
         if ablation["model"] not in base_ids:
             problems.append(f"config key 'training.ablations' entry {ablation['id']!r} names model "
                             f"{ablation['model']!r}, which is not in training.models; allowed: {base_ids}")
+        if ablation_kind(ablation) == CAPACITY_KIND:
+            for variant in ablation["variants"]:
+                other = sorted(key for key in variant if key not in ("id", "net") and variant[key])
+                if other:
+                    problems.append(f"config key 'training.ablations' entry {ablation['id']!r} (kind capacity) variant "
+                                    f"{variant['id']!r} overrides {', '.join(other)}; allowed: only net (a capacity "
+                                    "ablation trains every size with the base model's data, seed and budget)")
         variant_ids = [v["id"] for v in ablation["variants"]]
         for dup in sorted({v for v in variant_ids if variant_ids.count(v) > 1}):
             problems.append(f"config key 'training.ablations' entry {ablation['id']!r} has variant {dup!r} twice")

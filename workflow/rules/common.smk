@@ -23,7 +23,8 @@ from denoisers.report import report_outputs
 from denoisers.timing import timed_runs, timing_scene, timing_settings
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
-from denoisers.training.models import method_model, model_dir, model_specs, training_problems, training_split
+from denoisers.training.models import (method_model, model_dir, model_specs, training_problems, training_runtime_minutes,
+                                       training_split)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -184,8 +185,9 @@ def check_evaluation_target(job_rule: str, pattern: str, kind: str = "evaluation
 # SHA-256 of only the config keys that job's output depends on; Snakemake records params in
 # .snakemake/metadata and (default --rerun-triggers) reruns a job whose params changed. So e.g.
 # raising n_train adds scenes without touching existing ones, and changing reference_spp reruns
-# only the reference renders. The digests are computed by denoisers.experiment, which also combines
-# them into the lineage digests that outputs record and the report checks.
+# only the reference renders (train_reference_spp: only the train_* scenes' ones). The digests are
+# computed by denoisers.experiment, which also combines them into the lineage digests that outputs
+# record and the report checks.
 # ---------------------------------------------------------------------------------------------
 RESOLVED_CONFIG_FILE = results_path(f".config/{config_digest(config)[:16]}.yaml")
 

@@ -114,6 +114,8 @@ rule build_report:
                         caption="../report/training.rst", category="Training"),
         papers=report(REPORT_OUTPUTS["paper_tables"] + REPORT_OUTPUTS["paper_figures"],
                       caption="../report/papers.rst", category="Papers"),
+        capacity=report(REPORT_OUTPUTS["capacity_tables"] + REPORT_OUTPUTS["capacity_figures"],
+                        caption="../report/capacity.rst", category="Training"),
     params:
         config_file=resolved_config_file,
         config_digest=report_digest,

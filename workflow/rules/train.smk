@@ -24,7 +24,7 @@ rule train_denoiser:
     threads: config["training"]["threads"]
     resources:
         mem_mb=8000,
-        runtime=120,
+        runtime=lambda wildcards: training_runtime_minutes(config, wildcards.model),  # from budget.max_seconds
     shell:
         "python -m denoisers train --config {params.config_file} --model-id {wildcards.model}"
         " --render-root {params.render_root} --out {output.model_dir} --threads {threads} > {log} 2>&1"

@@ -1,0 +1,148 @@
+"""Does a training-data switch help? Train the config's model once per arm -- arms differ only in training-data
+keys, e.g. ``layers=random layers=first`` or ``crops=uniform crops=importance`` (issue 11 §2) -- and compare
+validation loss / PSNR / SSIM at equal steps.
+
+Every arm uses the config's settings of ``--model`` (network, loss, optimiser, schedule, seed, compute), with
+the data's crop and sequence length overridden to fit the renders (``--crop``, ``--length``) and then the
+arm's data keys; the same seed, and the same fixed validation sequences (seeded by the global seed, without
+augmentation; validation always uses random layers and uniform crops, so the arms are validated on identical
+data). After training, each arm's final weights are scored per validation sequence, and every arm is compared
+with the first arm by the paired per-sequence PSNR difference, its mean and 95 % t-interval (scipy.stats.t).
+The interval covers the validation sequences only (one training run per arm, one seed): it says whether the
+difference is larger than the spread over validation data, not over training seeds.
+
+Training scenes come from ``--train-root`` (default ``--render-root``), validation scenes from ``--render-root``.
+Runs go to ``--out``/<arm>/ (trainer directories: a rerun with the same settings resumes, and finishes at once
+when done). Training is slow on a CPU: the check in the README uses tiny settings only.
+
+Usage: python benchmarks/train_data_choice.py [--config config/config.yaml] [--model rae]
+           [--render-root results/smoke/renders] [--train-root DIR] [--train train_000] [--validate train_001]
+           [--arms layers=random layers=first] [--steps 1000] [--crop 32] [--length 3] [--validate-every 100]
+           [--validation-sequences 8] [--threads 2] [--out /tmp/train_data_choice]
+Arm syntax: key=value[,key=value...] over the training_data keys of the schema, e.g.
+``crops=importance,importance_floor=0.1``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import re
+import statistics
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import torch
+import yaml
+from scipy import stats
+
+from train_precision_quality import train  # benchmarks/ is sys.path[0] when run as a script
+from denoisers.training.data import SequenceDataset, fixed_batches, load_training_clips
+from denoisers.training.job import sequence_config
+from denoisers.training.models import _schema_defaults, model_spec
+from denoisers.training.spec import ModelSpec
+from denoisers.training.tasks import task_builder
+from scenegen.config import load_config
+
+
+def parse_arm(text: str, base: dict[str, Any]) -> dict[str, Any]:
+    """``key=value[,key=value]`` -> ``base`` data with the keys overridden and checked against the schema
+    (``$defs/training_data``); ValueError naming the bad key."""
+    overrides: dict[str, Any] = {}
+    for part in filter(None, text.split(",")):
+        key, sep, value = part.partition("=")
+        if not sep:
+            raise ValueError(f"arm {text!r}: {part!r} is not key=value")
+        overrides[key.strip()] = yaml.safe_load(value)
+    try:
+        return _schema_defaults("training_data", {**base, **overrides})
+    except jsonschema.ValidationError as err:
+        where = ".".join(map(str, err.absolute_path)) or "data"
+        raise ValueError(f"arm {text!r}: data key {where!r}: {err.message}") from None
+
+
+def t_interval(values: list[float], level: float = 0.95) -> tuple[float, float, float]:
+    """(mean, low, high) of the Student-t interval of the mean of ``values`` (nan bounds for fewer than 2)."""
+    mean = statistics.fmean(values)
+    if len(values) < 2:
+        return mean, float("nan"), float("nan")
+    half = stats.t.ppf(0.5 + level / 2, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
+    return mean, mean - half, mean + half
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    parser.add_argument("--model", default="rae")
+    parser.add_argument("--render-root", type=Path, default=Path("results/smoke/renders"))
+    parser.add_argument("--train-root", type=Path, default=None, help="root of the training scenes (default: --render-root)")
+    parser.add_argument("--train", nargs="+", default=["train_000"])
+    parser.add_argument("--validate", nargs="+", default=["train_001"])
+    parser.add_argument("--arms", nargs="+", default=["layers=random", "layers=first"])
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--crop", type=int, default=32)
+    parser.add_argument("--length", type=int, default=3)
+    parser.add_argument("--validate-every", type=int, default=100)
+    parser.add_argument("--validation-sequences", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=Path("/tmp/train_data_choice"))
+    args = parser.parse_args()
+    if len(set(args.arms)) != len(args.arms):
+        parser.error(f"--arms repeats an arm: {args.arms}")
+    torch.set_num_threads(args.threads)
+    cfg = load_config(args.config)
+    spec = model_spec(cfg, args.model)
+    base_data = {**spec.data, "crop": args.crop, "length": args.length}
+    try:
+        arms = {arm: parse_arm(arm, base_data) for arm in args.arms}
+    except ValueError as err:
+        parser.error(str(err))
+    base = dataclasses.replace(spec, data=base_data, budget={**spec.budget, "max_steps": args.steps, "max_seconds": None})
+    args.channels_last = base.compute.get("channels_last", "auto")   # read by train()
+    buffers = task_builder(base.method).sample_buffers
+    train_root = args.train_root or args.render_root
+    train_clips = load_training_clips([train_root / s for s in args.train], buffers)
+    validation_clips = load_training_clips([args.render_root / s for s in args.validate], buffers)
+    validation = fixed_batches(validation_clips, sequence_config(base, buffers), args.validation_sequences,
+                               batch_size=1, seed=int(cfg["seed"]))
+    shape = train_clips[0].samples["radiance"].shape
+    print(f"torch {torch.__version__}; {args.threads} threads; load average "
+          f"{' / '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(f"model {base.id}: net {base.net}, loss {base.loss}, seed {base.seed}, batch {base.optimizer['batch_size']} x "
+          f"{args.length} frames x {args.crop}^2, {args.steps} steps; training {args.train} ({train_root}), "
+          f"validation {args.validate} ({args.render_root}, {args.validation_sequences} sequences); "
+          f"clips (frames, layers, C, H, W) = {tuple(shape)}")
+
+    runs: dict[str, dict[str, Any]] = {}
+    for arm, data in arms.items():
+        arm_spec: ModelSpec = dataclasses.replace(base, data=data)
+        dataset = SequenceDataset(train_clips, sequence_config(arm_spec, buffers), seed=arm_spec.seed)
+        name = re.sub(r"[^A-Za-z0-9_.=-]+", "_", arm)
+        runs[arm] = train(name, arm_spec, cfg, dataset, validation, arm_spec.compute.get("precision", "auto"), args)
+        trainer = runs[arm]["trainer"]
+        runs[arm]["sequences"] = [trainer.evaluate([batch]) for batch in validation]
+
+    names = list(runs)
+    width = max(len(arm) for arm in names)
+    steps = sorted(set.intersection(*(set(run["rows"]) for run in runs.values())))
+    print("\nvalidation at equal steps (mean over the validation sequences):")
+    print(f"  {'step':>6s}  {'arm':<{width}s}  {'val loss':>10s}  {'PSNR dB':>8s}  {'SSIM':>7s}")
+    for step in steps:
+        for arm in names:
+            row = runs[arm]["rows"][step]
+            print(f"  {step:6d}  {arm:<{width}s}  {row['val_loss']:10.5f}  {row['val_psnr']:8.3f}  {row['val_ssim']:7.4f}")
+    reference = names[0]
+    print(f"\npaired per-validation-sequence PSNR difference of the final weights (step {args.steps}), arm - {reference}:")
+    print(f"  {'arm':<{width}s}  {'mean dB':>8s}  {'95% t-interval':>20s}  {'wins':>7s}")
+    for arm in names[1:]:
+        differences = [a["psnr"] - b["psnr"] for a, b in zip(runs[arm]["sequences"], runs[reference]["sequences"])]
+        mean, low, high = t_interval(differences)
+        wins = sum(d > 0 for d in differences)
+        print(f"  {arm:<{width}s}  {mean:+8.3f}  [{low:+8.3f}, {high:+8.3f}]  {wins:3d}/{len(differences):<3d}")
+    print("  seconds/step (runs not interleaved; machine load differs): "
+          + ", ".join(f"{arm} {run['seconds_per_step']:.3f}" for arm, run in runs.items()))
+
+
+if __name__ == "__main__":
+    main()
