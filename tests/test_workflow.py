@@ -37,11 +37,11 @@ JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
 SMOKE_OUT = load_config(REPO_ROOT / "config/smoke.yaml")["output_dir"]
 
 
-def run_snakemake(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
+def run_snakemake(*args: str, cwd: Path, check: bool = True, timeout: float = 120) -> subprocess.CompletedProcess:
     """Run the venv's snakemake in ``cwd`` with `python` (used by the rules) resolving to this interpreter."""
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     result = subprocess.run(
-        [str(SNAKEMAKE), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=120
+        [str(SNAKEMAKE), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
     )
     if check:
         assert result.returncode == 0, f"snakemake {' '.join(args)} failed:\n{result.stdout}\n{result.stderr}"
@@ -146,6 +146,24 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
 def test_lint_is_clean(workflow_copy: Path) -> None:
     result = run_snakemake("--lint", cwd=workflow_copy)
     assert "Lints for" not in result.stdout + result.stderr
+
+
+@pytest.mark.slow
+def test_cluster_config_passes_dry_run_and_lint(workflow_copy: Path) -> None:
+    """config/cluster.yaml (issue 11 §5: larger budgets for a SLURM cluster) builds its whole DAG and lints clean."""
+    cluster = load_config(workflow_copy / "config/cluster.yaml")
+    result = run_snakemake("-n", "--forceall", "--configfile", "config/cluster.yaml", cwd=workflow_copy, timeout=900)
+    assert job_counts(result.stdout + result.stderr) == expected_jobs(cluster)
+    lint = run_snakemake("--lint", "--configfile", "config/cluster.yaml", cwd=workflow_copy, timeout=900)
+    assert "Lints for" not in lint.stdout + lint.stderr
+    # Larger than the default config on every axis that costs compute.
+    default = load_config(workflow_copy / "config/config.yaml")
+    assert cluster["output_dir"] != default["output_dir"]
+    for section, key in (("scenes", "n_train"), ("scenes", "n_test"), ("scenes", "frames"), ("render", "width"),
+                         ("render", "reference_spp"), ("training", "validation_scenes")):
+        assert cluster[section][key] > default[section][key], (section, key)
+    steps = {m["id"]: m["budget"]["max_steps"] for m in cluster["training"]["models"]}
+    assert all(steps[m["id"]] > m["budget"]["max_steps"] for m in default["training"]["models"])
 
 
 @pytest.mark.slow
