@@ -12,6 +12,11 @@ The interval covers the validation sequences only (one training run per arm, one
 difference is larger than the spread over validation data, not over training seeds.
 
 Training scenes come from ``--train-root`` (default ``--render-root``), validation scenes from ``--render-root``.
+An arm may also name its own training scenes and their root with the non-data keys ``train`` (scene ids joined
+by ``+``, or a range ``train_000..train_005``) and ``root`` -- e.g. the data-scale comparison of issue 11 §2,
+``root=A,train=train_000..train_005`` (6 scenes with 1024-spp references) against
+``root=B,train=train_000..train_023`` (24 scenes with 256-spp references). Every arm prints the render time of
+its training data: the sum of the ``timing_s`` of the noisy and reference sidecars of its training clips.
 Runs go to ``--out``/<arm>/ (trainer directories: a rerun with the same settings resumes, and finishes at once
 when done). Training is slow on a CPU: the check in the README uses tiny settings only.
 
@@ -26,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import re
 import statistics
@@ -46,11 +52,50 @@ from denoisers.training.tasks import task_builder
 from scenegen.config import load_config
 
 
+#: Arm keys that are not training-data keys: the arm's training scenes and the folder holding their renders.
+SCENE_KEYS: tuple[str, ...] = ("train", "root")
+
+
+def scene_list(text: str) -> list[str]:
+    """``a+b+c`` or a range ``train_000..train_005`` (same prefix, inclusive) -> scene ids."""
+    if ".." in text:
+        first, last = text.split("..", 1)
+        prefix, start = first.rsplit("_", 1)
+        last_prefix, stop = last.rsplit("_", 1)
+        if prefix != last_prefix:
+            raise ValueError(f"scene range {text!r}: both ends need the same prefix")
+        return [f"{prefix}_{i:0{len(start)}d}" for i in range(int(start), int(stop) + 1)]
+    return [scene for scene in text.split("+") if scene]
+
+
+def split_arm(text: str) -> tuple[dict[str, str], str]:
+    """An arm's scene keys (``train``, ``root``) and the rest of its text (the data keys)."""
+    scene_keys, rest = {}, []
+    for part in filter(None, text.split(",")):
+        key = part.partition("=")[0].strip()
+        if key in SCENE_KEYS:
+            scene_keys[key] = part.partition("=")[2].strip()
+        else:
+            rest.append(part)
+    return scene_keys, ",".join(rest)
+
+
+def render_seconds(render_dirs: list[Path]) -> float:
+    """Render time of clips: the sum of ``timing_s`` over every noisy and reference frame sidecar below them."""
+    total = 0.0
+    for render_dir in render_dirs:
+        sidecars = sorted(Path(render_dir).glob("*/chunk_*/frame_*.json"))
+        if not sidecars:
+            raise FileNotFoundError(f"{render_dir}: no frame sidecars (*/chunk_*/frame_*.json)")
+        total += sum(float(json.loads(path.read_text())["timing_s"]) for path in sidecars)
+    return total
+
+
 def parse_arm(text: str, base: dict[str, Any]) -> dict[str, Any]:
     """``key=value[,key=value]`` -> ``base`` data with the keys overridden and checked against the schema
-    (``$defs/training_data``); ValueError naming the bad key."""
+    (``$defs/training_data``); ValueError naming the bad key. Scene keys (:data:`SCENE_KEYS`) are ignored here."""
     overrides: dict[str, Any] = {}
-    for part in filter(None, text.split(",")):
+    for part in filter(None, split_arm(text)[1].split(",")):
         key, sep, value = part.partition("=")
         if not sep:
             raise ValueError(f"arm {text!r}: {part!r} is not key=value")
@@ -102,7 +147,12 @@ def main() -> None:
     args.channels_last = base.compute.get("channels_last", "auto")   # read by train()
     buffers = task_builder(base.method).sample_buffers
     train_root = args.train_root or args.render_root
-    train_clips = load_training_clips([train_root / s for s in args.train], buffers)
+    arm_scenes: dict[str, list[Path]] = {}
+    for arm in args.arms:
+        keys = split_arm(arm)[0]
+        root = Path(keys.get("root", train_root))
+        arm_scenes[arm] = [root / scene for scene in (scene_list(keys["train"]) if "train" in keys else args.train)]
+    train_clips = load_training_clips(arm_scenes[args.arms[0]], buffers)
     validation_clips = load_training_clips([args.render_root / s for s in args.validate], buffers)
     validation = fixed_batches(validation_clips, sequence_config(base, buffers), args.validation_sequences,
                                batch_size=1, seed=int(cfg["seed"]))
@@ -117,7 +167,11 @@ def main() -> None:
     runs: dict[str, dict[str, Any]] = {}
     for arm, data in arms.items():
         arm_spec: ModelSpec = dataclasses.replace(base, data=data)
-        dataset = SequenceDataset(train_clips, sequence_config(arm_spec, buffers), seed=arm_spec.seed)
+        clips = load_training_clips(arm_scenes[arm], buffers)
+        seconds = render_seconds(arm_scenes[arm])
+        print(f"{arm}: {len(clips)} training clips ({', '.join(p.name for p in arm_scenes[arm])}), "
+              f"{sum(len(c.frames) for c in clips)} frames, rendered in {seconds / 60:.1f} min (sidecars)", flush=True)
+        dataset = SequenceDataset(clips, sequence_config(arm_spec, buffers), seed=arm_spec.seed)
         name = re.sub(r"[^A-Za-z0-9_.=-]+", "_", arm)
         runs[arm] = train(name, arm_spec, cfg, dataset, validation, arm_spec.compute.get("precision", "auto"), args)
         trainer = runs[arm]["trainer"]
@@ -140,6 +194,8 @@ def main() -> None:
         mean, low, high = t_interval(differences)
         wins = sum(d > 0 for d in differences)
         print(f"  {arm:<{width}s}  {mean:+8.3f}  [{low:+8.3f}, {high:+8.3f}]  {wins:3d}/{len(differences):<3d}")
+    print("  training-data render time (sidecars): " + ", ".join(
+        f"{arm} {render_seconds(arm_scenes[arm]) / 60:.1f} min" for arm in names))
     print("  seconds/step (runs not interleaved; machine load differs): "
           + ", ".join(f"{arm} {run['seconds_per_step']:.3f}" for arm, run in runs.items()))
 

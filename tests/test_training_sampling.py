@@ -159,3 +159,29 @@ def test_the_switches_flow_from_the_config_to_the_sequences() -> None:
                                             "crops": "importance", "importance_floor": 0.5}
     switched = sequence_config(model_spec(cfg, "rae"), ("radiance",))
     assert (switched.layers, switched.crops, switched.importance_floor) == ("first", "importance", 0.5)
+
+
+def test_data_choice_arms_name_their_training_scenes(tmp_path) -> None:
+    """benchmarks/train_data_choice.py: an arm's scene keys (train, root) and its render time from the sidecars."""
+    import json
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        from train_data_choice import render_seconds, scene_list, split_arm
+    finally:
+        sys.path.pop(0)
+    assert scene_list("train_000..train_003") == ["train_000", "train_001", "train_002", "train_003"]
+    assert scene_list("train_004+train_009") == ["train_004", "train_009"]
+    with pytest.raises(ValueError, match="same prefix"):
+        scene_list("train_000..test_002")
+    assert split_arm("root=/r,train=train_000..train_001,layers=first") == (
+        {"root": "/r", "train": "train_000..train_001"}, "layers=first")
+    for kind, seconds in (("noisy", [1.5, 2.0]), ("reference", [10.0, 20.5])):
+        chunk = tmp_path / "train_000" / kind / "chunk_000"
+        chunk.mkdir(parents=True)
+        for frame, value in enumerate(seconds):
+            (chunk / f"frame_{frame:04d}.json").write_text(json.dumps({"timing_s": value}))
+    assert render_seconds([tmp_path / "train_000"]) == pytest.approx(34.0)
+    with pytest.raises(FileNotFoundError, match="no frame sidecars"):
+        render_seconds([tmp_path / "missing"])
