@@ -27,6 +27,10 @@ PSNR = {"rae": [30.0, 31.0, 29.0], "rae_capacity_width0125": [29.5, 30.6, 28.3],
         "rae_capacity_width05": [30.1, 31.2, 29.2], "rae_capacity_levels4": [30.0, 30.9, 29.1]}
 PARAMETERS = {"rae": 121_855, "rae_capacity_width0125": 30_930, "rae_capacity_width05": 490_489,
               "rae_capacity_levels4": 70_000}
+#: Per size: PSNR per validation sequence (validation.csv of best.pt), what the selection uses. Best: width05
+#: (25.15); within 0.2 dB: rae and levels4 (25.0); levels4 has the fewest parameters among them.
+VAL_PSNR = {"rae": [25.0, 26.0, 24.0, 25.0], "rae_capacity_width0125": [24.5, 25.5, 23.5, 24.5],
+            "rae_capacity_width05": [25.2, 26.1, 24.2, 25.1], "rae_capacity_levels4": [25.1, 25.9, 24.1, 24.9]}
 MS = {"rae": 4.0, "rae_capacity_width0125": 2.0, "rae_capacity_width05": 9.0, "rae_capacity_levels4": 3.5}
 VARIANTS = [{"id": "width0125", "net": {"width": 0.125}}, {"id": "width05", "net": {"width": 0.5}},
             {"id": "levels4", "net": {"levels": 4}}]
@@ -48,7 +52,9 @@ def trained(spec, converged: bool = True) -> TrainedModel:
     levels = spec.net.get("levels", 5)
     summary = {"steps": 4, "stopped_by": "max_steps", "parameters": PARAMETERS[spec.id],
                "net": {"name": "rae", "config": {"width": spec.net.get("width", 1.0), "levels": levels}}}
-    return TrainedModel(spec, summary, curves, pd.DataFrame({"loss": [1.0], "rmse": [0.1], "ssim": [0.9]}))
+    validation = pd.DataFrame({"sequence": range(4), "loss": [1.0] * 4, "rmse": [0.1] * 4, "ssim": [0.9] * 4,
+                               "psnr": VAL_PSNR[spec.id]})
+    return TrainedModel(spec, summary, curves, validation)
 
 
 def make_results(cfg: dict, *, missing: tuple[str, ...] = (), unconverged: tuple[str, ...] = (),
@@ -107,13 +113,17 @@ def test_the_table_has_every_size_with_hand_computed_values() -> None:
         mean, low, high = t_interval(values)
         assert by.loc[model, "psnr_mean"] == pytest.approx(mean)
         assert (by.loc[model, "psnr_ci_low"], by.loc[model, "psnr_ci_high"]) == pytest.approx((low, high))
-        diff = t_interval(list(np.subtract(values, PSNR["rae_capacity_width05"])))
-        assert (by.loc[model, "diff_to_best_mean"], by.loc[model, "diff_to_best_ci_low"],
-                by.loc[model, "diff_to_best_ci_high"]) == pytest.approx(diff, nan_ok=True)
+        diff = t_interval(list(np.subtract(values, PSNR["rae_capacity_levels4"])))   # paired to the selected size
+        assert (by.loc[model, "diff_to_selected_mean"], by.loc[model, "diff_to_selected_ci_low"],
+                by.loc[model, "diff_to_selected_ci_high"]) == pytest.approx(diff, nan_ok=True)
+        assert (by.loc[model, "val_psnr_mean"], by.loc[model, "val_psnr_ci_low"], by.loc[model, "val_psnr_ci_high"]) \
+            == pytest.approx(t_interval(VAL_PSNR[model]))
+        assert by.loc[model, "n_validation_sequences"] == 4
         assert by.loc[model, "parameters"] == PARAMETERS[model] and by.loc[model, "ms_per_frame"] == MS[model]
         assert by.loc[model, "n_scenes"] == 3 and by.loc[model, "spp"] == 1 and by.loc[model, "status"] == "ran"
-    assert by.loc["rae_capacity_width05", "diff_to_best_mean"] == 0.0
-    # Best 30.167 dB: base (30.0) and levels4 (30.0) are within 0.2 dB, width0125 (29.47) is not; levels4 is smaller.
+    assert by.loc["rae_capacity_levels4", "diff_to_selected_mean"] == 0.0
+    # Best validation PSNR 25.15 dB (width05): base and levels4 (25.0) are within 0.2 dB, width0125 (24.5) is not;
+    # levels4 is smaller.
     assert list(table["best"]) == [False, True, False, False]
     assert list(table["within_tolerance"]) == [False, True, True, True]
     assert list(table["selected"]) == [False, False, True, False]
@@ -128,7 +138,8 @@ def test_the_statement_names_the_selected_size_and_whether_the_default_matches()
     assert "`rae_capacity_levels4` (width 0.25, levels 4; 70,000 parameters)" in text
     assert "the best, `rae_capacity_width05`" in text
     assert "configured default `rae` (width 0.25, levels 5) does not match it" in text
-    assert "paired difference -0.17 ± 0.29 dB" in text and "Caveats" not in text
+    assert "validation PSNR" in text and "never chosen on test scenes" in text and "Caveats" not in text
+    assert "25.00 dB against the best" in text or "25.0 dB against the best" in text, text
     res.models.models["rae_capacity_width05"].summary["stopped_by"] = "max_seconds"   # the time cap cut it short
     table, note = capacity_table(res, ablation_of(cfg))
     assert "stopped before the step budget (max_seconds): rae_capacity_width05" in \
@@ -139,6 +150,20 @@ def test_the_statement_names_the_selected_size_and_whether_the_default_matches()
     text = selection_statement(res, ablation_of(cfg), table, note)
     assert "Smallest size within 0.2 dB" in text and "`rae` (width 0.25, levels 5; 121,855 parameters)" in text
     assert "(width 0.25, levels 5) matches it." in text and "not run: rae_capacity_levels4" in text
+
+
+def test_the_choice_ignores_test_psnr() -> None:
+    """A default is chosen on validation sequences only: making width0125 the best on the test scenes changes the
+    test columns, not the selection."""
+    cfg = capacity_config()
+    saved = PSNR["rae_capacity_width0125"]
+    PSNR["rae_capacity_width0125"] = [40.0, 41.0, 39.0]
+    try:
+        table, _ = capacity_table(make_results(cfg), ablation_of(cfg))
+    finally:
+        PSNR["rae_capacity_width0125"] = saved
+    assert list(table["selected"]) == [False, False, True, False]
+    assert table.set_index("model").loc["rae_capacity_width0125", "psnr_mean"] == pytest.approx(40.0)
 
 
 def test_section_writes_the_table_and_the_two_panel_chart(tmp_path: Path) -> None:
@@ -153,7 +178,7 @@ def test_section_writes_the_table_and_the_two_panel_chart(tmp_path: Path) -> Non
     written = pd.read_csv(tmp_path / "tables" / f"{name}.csv")
     assert written["selected"].tolist() == [False, False, True, False]
     markdown = (tmp_path / "tables" / f"{name}.md").read_text()
-    assert "PSNR − best (paired)" in markdown and "ms/frame (timing job)" in markdown and "490,489" in markdown
+    assert "test PSNR − selected (paired)" in markdown and "validation PSNR" in markdown and "ms/frame (timing job)" in markdown and "490,489" in markdown
     assert "## Model capacity" in lines and any("does not match" in line for line in lines)
     expected = report_outputs(cfg, root="r")
     assert expected["capacity_tables"] == [f"r/tables/{name}.csv", f"r/tables/{name}.md"]
@@ -174,12 +199,17 @@ def test_missing_sizes_and_timing_are_not_run_rows_not_errors(tmp_path: Path) ->
     cfg["evaluation"]["timing"] = {"enabled": False}
     table, _ = capacity_table(make_results(cfg, timing=False), ablation_of(cfg))
     assert (table["note"] == "not timed (evaluation.timing.enabled is false)").all()
-    # Variants not evaluated at all: every size not run, the statement undecided, a placeholder chart.
+    # Variants not evaluated on the test scenes: every size "not run" there, but the choice (validation) stands.
     cfg = capacity_config(ablation_spp=[])
     res = make_results(cfg)
     table, note = capacity_table(res, ablation_of(cfg))
-    assert (table["status"] == "not run").all() and not table["selected"].any()
-    assert "evaluation.ablation_spp is empty" in table["note"].iloc[0]
+    assert (table["status"] == "not run").all() and list(table["selected"]) == [False, False, True, False]
+    assert "evaluation.ablation_spp is empty" in table["note"].iloc[0] and table["psnr_mean"].isna().all()
+    assert selection_statement(res, ablation_of(cfg), table, note).startswith("Smallest size within 0.2 dB")
+    # No size trained: undecided, and a placeholder chart.
+    res = make_results(cfg, missing=tuple(PSNR))
+    table, note = capacity_table(res, ablation_of(cfg))
+    assert not table["selected"].any()
     assert selection_statement(res, ablation_of(cfg), table, note).startswith("Not decided")
     (tmp_path / "t").mkdir()
     (tmp_path / "f").mkdir()

@@ -10,8 +10,11 @@ per-scene difference to the best size with its interval, ms/frame from the timin
 capacity variants too) and whether the run converged; a chart plots PSNR against parameters and against
 ms/frame.
 
-Selection rule: among the sizes that were evaluated, the *smallest within 0.2 dB* of the best mean PSNR
-(fewest parameters; ties: lower ms/frame, then config order). The report says which size that is and
+Selection rule: among the sizes that were trained, the *smallest within 0.2 dB* of the best mean
+*validation* PSNR (fewest parameters; ties: lower ms/frame, then config order). Validation PSNR is each
+model's ``validation.csv`` (``best.pt`` on the fixed validation sequences of the held-out training
+scenes, the same sequences for every size): a default setting is never chosen on test scenes. The test
+PSNR is reported beside it, with the paired per-scene difference to the selected size. The report says which size that is and
 whether the base model's configured ``net`` matches it. It works for any learned family: nothing here is
 RAE-specific. Missing inputs (a size not trained or not evaluated, timing disabled) become ``not run`` rows
 with the reason, never an error.
@@ -37,7 +40,8 @@ if TYPE_CHECKING:
 
 #: A size is adequate when its mean test PSNR is within this many dB of the best size's.
 TOLERANCE_DB = 0.2
-#: The quality metric of the sweep (frame-mean PSNR of the tonemapped output).
+#: The quality metric of the sweep (frame-mean PSNR of the tonemapped output on the test scenes; per validation
+#: sequence in validation.csv).
 METRIC = "psnr"
 BASE_VARIANT = "base"
 #: The timing job's speed columns shown per size (median over rounds, fastest and slowest pass).
@@ -185,7 +189,15 @@ def capacity_table(res: Results, ablation: Mapping[str, Any]) -> tuple[pd.DataFr
             scene_psnr[member.variant] = res.scene_values(member.row, spp, METRIC).astype(float)
         mean, low, high, n = mean_ci(scene_psnr[member.variant].to_numpy()) if member.variant in scene_psnr \
             else (math.nan, math.nan, math.nan, 0)
-        row.update({"psnr_mean": mean, "psnr_ci_low": low, "psnr_ci_high": high, "n_scenes": n,
+        validation = model.validation if model is not None else None
+        val = (validation[METRIC].astype(float).to_numpy() if validation is not None and METRIC in validation
+               else np.array([]))
+        val_mean, val_low, val_high, val_n = mean_ci(val) if val.size else (math.nan, math.nan, math.nan, 0)
+        if model is not None and not val.size:
+            reasons.append(f"model {member.spec.id} has no validation {METRIC} (validation.csv)")
+        row.update({"val_psnr_mean": val_mean, "val_psnr_ci_low": val_low, "val_psnr_ci_high": val_high,
+                    "n_validation_sequences": val_n,
+                    "psnr_mean": mean, "psnr_ci_low": low, "psnr_ci_high": high, "n_scenes": n,
                     **{key: speed.get(key, math.nan) for key in SPEED_KEYS},
                     "converged": _converged(model.undertrained(res.cfg)) if model else "",
                     "status": "not run" if reasons else "ran",
@@ -193,25 +205,28 @@ def capacity_table(res: Results, ablation: Mapping[str, Any]) -> tuple[pd.DataFr
                     .strip("; ")})
         rows.append(row)
     table = pd.DataFrame(rows, columns=["variant", "model", "row", *keys, "parameters", "steps", "stopped_by", "spp",
-                                        "psnr_mean", "psnr_ci_low", "psnr_ci_high", "n_scenes", "ms_per_frame",
+                                        "val_psnr_mean", "val_psnr_ci_low", "val_psnr_ci_high",
+                                        "n_validation_sequences", "psnr_mean", "psnr_ci_low", "psnr_ci_high", "n_scenes", "ms_per_frame",
                                         "ms_per_frame_min", "ms_per_frame_max", "converged", "status", "note"])
-    psnr = dict(zip(table["variant"], table["psnr_mean"].astype(float)))
+    # Chosen on validation PSNR (held-out training scenes), never on the test scenes.
+    psnr = dict(zip(table["variant"], table["val_psnr_mean"].astype(float)))
     chosen = select_smallest(psnr, dict(zip(table["variant"], table["parameters"].astype(float))),
                              dict(zip(table["variant"], table["ms_per_frame"].astype(float))))
     best = max((v for v in psnr if not math.isnan(psnr[v])), key=lambda v: psnr[v], default=None)
     diffs = []
     for variant in table["variant"]:
-        if variant in scene_psnr and best is not None:
-            paired = (scene_psnr[variant] - scene_psnr[best]).dropna()
+        # Test PSNR, paired per scene, against the size chosen on validation.
+        if variant in scene_psnr and chosen in scene_psnr:
+            paired = (scene_psnr[variant] - scene_psnr[chosen]).dropna()
             diffs.append(mean_ci(paired.to_numpy())[:3])
         else:
             diffs.append((math.nan,) * 3)
     position = table.columns.get_loc("n_scenes") + 1
     for offset, part in enumerate(("mean", "ci_low", "ci_high")):
-        table.insert(position + offset, f"diff_to_best_{part}", [d[offset] for d in diffs])
+        table.insert(position + offset, f"diff_to_selected_{part}", [d[offset] for d in diffs])
     best_mean = psnr[best] if best is not None else math.nan
     table.insert(table.columns.get_loc("converged") + 1, "within_tolerance",
-                 [bool(not math.isnan(p) and p >= best_mean - TOLERANCE_DB - 1e-9) for p in table["psnr_mean"]])
+                 [bool(not math.isnan(p) and p >= best_mean - TOLERANCE_DB - 1e-9) for p in table["val_psnr_mean"]])
     table.insert(table.columns.get_loc("within_tolerance") + 1, "best", [v == best for v in table["variant"]])
     table.insert(table.columns.get_loc("best") + 1, "selected", [v == chosen for v in table["variant"]])
     return table, base_note
@@ -232,14 +247,18 @@ def selection_statement(res: Results, ablation: Mapping[str, Any], table: pd.Dat
     base = next(spec for spec in model_specs(res.cfg) if spec.id == ablation["model"])
     chosen = table[table["selected"]]
     if not len(chosen):
-        return (f"Not decided: no size of `{ablation['id']}` was evaluated (see the status and note columns); the "
-                f"configured default `{base.id}` is unchecked.")
+        return (f"Not decided: no size of `{ablation['id']}` has a validation PSNR (see the status and note "
+                f"columns); the configured default `{base.id}` is unchecked.")
     row, best = chosen.iloc[0], table[table["best"]].iloc[0]
-    spp = int(row["spp"])
-    text = (f"Smallest size within {TOLERANCE_DB:g} dB of the best mean test PSNR at {spp} spp "
-            f"({int(row['n_scenes'])} scene(s)): {_describe(row, keys)}, {fmt(row['psnr_mean'], 'psnr')} dB against "
-            f"the best, {_describe(best, keys)}, {fmt(best['psnr_mean'], 'psnr')} dB (paired difference "
-            f"{fmt_ci(row['diff_to_best_mean'], row['diff_to_best_ci_low'], row['diff_to_best_ci_high'], 'psnr')} dB).")
+    text = (f"Smallest size within {TOLERANCE_DB:g} dB of the best mean validation PSNR "
+            f"({int(row['n_validation_sequences'])} validation sequences of the held-out training scenes; a default is "
+            f"never chosen on test scenes): {_describe(row, keys)}, {fmt(row['val_psnr_mean'], 'psnr')} dB against "
+            f"the best, {_describe(best, keys)}, {fmt(best['val_psnr_mean'], 'psnr')} dB.")
+    if not math.isnan(row["psnr_mean"]) and not math.isnan(best["psnr_mean"]):
+        text += (f" On the test scenes at {int(row['spp'])} spp ({int(row['n_scenes'])} scene(s)) the selected size "
+                 f"scores {fmt(row['psnr_mean'], 'psnr')} dB and the best-validating one {fmt(best['psnr_mean'], 'psnr')} dB "
+                 f"(paired difference best - selected "
+                 f"{fmt_ci(best['diff_to_selected_mean'], best['diff_to_selected_ci_low'], best['diff_to_selected_ci_high'], 'psnr')} dB).")
     models = res.models.models if res.models else {}
     configured = net_values(base, models.get(base.id), keys)
     matches = all(row[key] == configured[key] for key in keys)
@@ -259,16 +278,17 @@ def selection_statement(res: Results, ablation: Mapping[str, Any], table: pd.Dat
         caveats.append(f"stopped before the step budget (max_seconds): {', '.join(short)}")
     if len(ran) < len(table):
         caveats.append(f"not run: {', '.join(table[table['status'] != 'ran']['model'])}")
-    if int(row["n_scenes"]) < 2:
-        caveats.append("one scene: no interval, the choice rests on a single scene")
+    if int(row["n_validation_sequences"]) < 2:
+        caveats.append("one validation sequence: the choice rests on a single sequence")
     return text + (" Caveats: " + "; ".join(caveats) + "." if caveats else "")
 
 
 def capacity_markdown(table: pd.DataFrame, keys: Sequence[str]) -> str:
     if not len(table):
         return "no size configured\n"
-    shown = with_ci_columns(table, {"PSNR (dB, mean ± 95 % CI)": ("psnr", "psnr"),
-                                    "PSNR − best (paired)": ("diff_to_best", "psnr")},
+    shown = with_ci_columns(table, {"validation PSNR (dB, mean ± 95 % CI)": ("val_psnr", "psnr"),
+                                    "test PSNR (dB, mean ± 95 % CI)": ("psnr", "psnr"),
+                                    "test PSNR − selected (paired)": ("diff_to_selected", "psnr")},
                             ["variant", "model", *keys, "parameters", "steps", "spp"],
                             ["n_scenes", "ms_per_frame", "converged", "within_tolerance", "selected", "status", "note"])
     shown["parameters"] = [f"{int(v):,}" if not math.isnan(v) else "–" for v in table["parameters"]]
@@ -279,8 +299,7 @@ def capacity_markdown(table: pd.DataFrame, keys: Sequence[str]) -> str:
 
 def plot_capacity(table: pd.DataFrame, path: Path, title: str) -> None:
     """Two panels: test PSNR (± 95 % CI) against parameters (log x) and against ms/frame ([min, max] over the
-    timing rounds); the selected size is ringed, the base model drawn as a square, the dashed line is the best
-    mean minus the tolerance."""
+    timing rounds); the selected size (chosen on validation PSNR) is red, the base model drawn as a square."""
     from denoisers.report.figures import placeholder, pyplot
 
     ran = table[table["psnr_mean"].notna()]
@@ -291,7 +310,6 @@ def plot_capacity(table: pd.DataFrame, path: Path, title: str) -> None:
     figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
     low = (ran["psnr_mean"] - ran["psnr_ci_low"]).fillna(0).to_numpy()
     high = (ran["psnr_ci_high"] - ran["psnr_mean"]).fillna(0).to_numpy()
-    floor = float(ran["psnr_mean"].max()) - TOLERANCE_DB
     timed = ran["ms_per_frame"].notna().to_numpy()
     for axes, column in ((left, "parameters"), (right, "ms_per_frame")):
         mask = ran[column].notna().to_numpy()
@@ -310,7 +328,6 @@ def plot_capacity(table: pd.DataFrame, path: Path, title: str) -> None:
                       color="tab:red" if row["selected"] else "tab:blue", markersize=7)
             axes.annotate(row["variant"], (row[column], row["psnr_mean"]), textcoords="offset points",
                           xytext=(5, 4 if index % 2 == 0 else -11), fontsize=8)   # alternate: close sizes overlap
-        axes.axhline(floor, linestyle="--", color="0.4", linewidth=0.8)
         axes.grid(True, which="both", alpha=0.3)
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
@@ -323,7 +340,8 @@ def plot_capacity(table: pd.DataFrame, path: Path, title: str) -> None:
     right.set_xlabel("ms/frame (timing job: median, bars = range over rounds)")
     if not timed.any():
         right.text(0.5, 0.5, "not timed", transform=right.transAxes, ha="center", va="center")
-    figure.suptitle(f"{title}: red = smallest within {TOLERANCE_DB:g} dB of the best (dashed), square = base model",
+    figure.suptitle(f"{title}: red = smallest within {TOLERANCE_DB:g} dB of the best validation PSNR, "
+                    "square = base model",
                     fontsize=9)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
@@ -340,10 +358,12 @@ def capacity_section(res: Results, tables: Path, figures: Path) -> list[str]:
         return []
     lines = ["## Model capacity", "",
              "Each capacity ablation trains the base model at several sizes (only `net` differs: same data, seed "
-             "and step budget; the base model is one of the sizes when its budget is the sweep's). Test PSNR: mean "
-             "over the evaluated scenes ± 95 % Student-t interval; `PSNR − best`: paired per-scene difference to "
-             "the size with the best mean; ms/frame from the timing job. The default size should be the smallest "
-             f"within {TOLERANCE_DB:g} dB of the best (fewest parameters).", ""]
+             "and step budget; the base model is one of the sizes when its budget is the sweep's). The default size "
+             f"should be the smallest within {TOLERANCE_DB:g} dB of the best mean validation PSNR (fewest "
+             "parameters): validation sequences of the held-out training scenes, the same for every size, so no "
+             "setting is chosen on a test scene. Test PSNR: mean over the evaluated scenes ± 95 % Student-t "
+             "interval; `test PSNR − selected`: paired per-scene difference to the selected size; ms/frame from "
+             "the timing job.", ""]
     for ablation in ablations:
         name = output_name(ablation["id"])
         table, base_note = capacity_table(res, ablation)
