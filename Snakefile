@@ -2,7 +2,8 @@
 # renders and high-spp references (OpenEXR) -> learned denoisers trained on the training scenes ->
 # denoised test clips, per-frame metrics and a generated report. Rules live in workflow/rules/, the
 # config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
-# `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake timing`, `snakemake report`.
+# `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake timing`, `snakemake report`,
+# `snakemake stability` (the temporal-stability scenario clips and their masks).
 # Every output goes below the config's output_dir (default results/; config/smoke.yaml: results/smoke/);
 # `python -m denoisers clean --config <file>` removes one experiment's outputs.
 
@@ -24,6 +25,7 @@ include: "workflow/rules/train.smk"
 include: "workflow/rules/tune.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/timing.smk"
+include: "workflow/rules/stability.smk"
 
 
 localrules:
@@ -35,6 +37,7 @@ localrules:
     evaluate,
     timing,
     report,
+    stability,
 
 
 rule scenes:
@@ -67,12 +70,18 @@ rule evaluate:
 
 rule timing:
     input:
-        timing_outputs,
+        timing_targets,
 
 
 rule report:
     input:
         rules.build_report.output,
+
+
+# The stability scenarios (stab_* scenes): scenes, renders and masks; nothing is denoised yet.
+rule stability:
+    input:
+        stability_outputs(),
 
 
 # Everything implemented so far; the default target.
@@ -83,3 +92,4 @@ rule all:
         rules.renders.input,
         rules.train.input,
         rules.build_report.output,
+        rules.stability.input,

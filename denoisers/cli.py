@@ -7,6 +7,7 @@
   evaluate    per-frame metrics of a denoised clip               -> <out>/metrics/{method}/{scene}/spp{spp}.csv
   robustness  one method on a clip with injected spikes/NaN/Inf  -> <out>/robustness/{method}/{scene}/spp{spp}/
   time        every row timed on the same frames, interleaved, and the renderer's rate -> <out>/timing/timing.json
+  time-training  every learned model's training step per precision / layout, beside sgemm -> <out>/timing/training.json
   report      tables, figures, claims and REPORT.md              -> <out>/tables/, <out>/figures/, <out>/REPORT.md
   clean       remove an experiment's outputs, or only its stale training work directories (--stale)
   methods     list the registered methods
@@ -50,6 +51,13 @@ def _parser() -> argparse.ArgumentParser:
     timing.add_argument("--out", type=Path, required=True, help="results/timing/timing.json (written atomically)")
     timing.add_argument("--threads", type=int, required=True, help="torch and Dr.Jit threads")
     timing.add_argument("--results", type=Path, default=None, help="experiment folder (models, tuning results)")
+
+    speed = sub.add_parser("time-training", help="time every learned model's training step (training.models) per "
+                                                 "precision / layout variant, interleaved with sgemm (training.speed)")
+    speed.add_argument("--config", type=Path, required=True, help="resolved config YAML")
+    speed.add_argument("--out", type=Path, required=True, help="results/timing/training.json (written atomically)")
+    speed.add_argument("--threads", type=int, default=None, help="torch threads (default: training.speed.threads, "
+                                                                 "else training.threads)")
 
     train = sub.add_parser("train", help="train one configured model (training.models / ablations)")
     train.add_argument("--config", type=Path, required=True, help="resolved config YAML")
@@ -205,6 +213,18 @@ def _run(args: argparse.Namespace) -> int:
         for scene, rate in record["renderers"].items():
             log.info("renderer on %s: %.3g M samples/s with %d thread(s)", scene, rate["samples_per_s"] / 1e6,
                      args.threads)
+    elif args.command == "time-training":
+        import json
+
+        from denoisers.experiment import DIGEST_KEY, Lineage
+        from denoisers.training.speed import describe_record, time_training
+        from scenegen.atomic import write_text_atomic
+
+        record = time_training(cfg, threads=args.threads)
+        record[DIGEST_KEY] = Lineage(cfg).training_speed()
+        write_text_atomic(args.out, json.dumps(record, indent=1) + "\n")
+        for line in describe_record(record):
+            log.info("%s", line)
     elif args.command == "evaluate":
         from denoisers.scoring import evaluate_clip
 

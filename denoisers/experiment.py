@@ -80,9 +80,20 @@ def tuning_digest(cfg: dict, method: str) -> str:
     return config_digest({**settings, **tuning_entry(cfg, method)})
 
 
+def training_speed_digest(cfg: dict) -> str:
+    """Rule time_training: training.speed (threads resolved) and the timed models' settings but their budgets
+    (what their step computes; the synthetic batch needs no data)."""
+    from denoisers.training.speed import speed_models, speed_settings
+
+    settings = {key: value for key, value in speed_settings(cfg).items() if key != "enabled"}
+    models = [{key: value for key, value in spec.settings().items() if key != "budget"} for spec in speed_models(cfg)]
+    return config_digest({"speed": settings, "models": models})
+
+
 def report_digest(cfg: dict) -> str:
-    """Rule build_report: the report states the whole configuration."""
-    return config_digest(cfg)
+    """Rule build_report: the report states the whole configuration (but the ``stability`` section, whose
+    scenario clips the report does not read)."""
+    return config_digest({key: value for key, value in cfg.items() if key != "stability"})
 
 
 # ------------------------------------------------------------------------------------ lineage digests
@@ -134,6 +145,10 @@ class Lineage:
         settings = {key: value for key, value in self.cfg["evaluation"].get("timing", {}).items() if key != "enabled"}
         rows = [self.denoised(spec, scene, spp) for spec, spp in runs]
         return short_digest(config_digest({"timing": settings, "scene": scene, "rows": rows}))
+
+    def training_speed(self) -> str:
+        """The training-speed job (timing/training.json)."""
+        return short_digest(training_speed_digest(self.cfg))
 
     def robustness(self, spec: RowSpec, scene: str, spp: int) -> str:
         """A robustness output (robustness/{row}/{scene}/spp{spp}/summary.json)."""

@@ -26,6 +26,14 @@ def _parser() -> argparse.ArgumentParser:
         cmd.add_argument("--out", type=Path, required=True)
         cmd.add_argument("--threads", type=int, default=None,
                          help="Dr.Jit worker threads (default: all cores); the workflow passes {threads}")
+    masks = sub.add_parser("derive-masks", help="derive a stability scenario's masks and events from its renders")
+    masks.add_argument("--config", type=Path, required=True)
+    masks.add_argument("--scene", required=True, help="stability scene id, e.g. stab_disocclusion")
+    masks.add_argument("--scene-dir", type=Path, required=True)
+    masks.add_argument("--render-dir", type=Path, required=True, help="<output_dir>/renders/{scene}")
+    masks.add_argument("--out", type=Path, required=True, help="<output_dir>/stability/{scene}")
+    masks.add_argument("--threads", type=int, default=None, help="Dr.Jit worker threads")
+    sub.add_parser("scenarios", help="list the registered stability scenarios (config key stability.scenarios)")
     return parser
 
 
@@ -33,6 +41,12 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
                         stream=sys.stderr)
+    if args.command == "scenarios":
+        from scenegen.scenarios import SCENARIOS
+
+        for scenario in SCENARIOS.values():
+            print(f"{scenario.name:18s} focus: {', '.join(scenario.focus) or '(events)':28s} {scenario.description}")
+        return 0
     from scenegen.config import load_config
     from scenegen import jobs
 
@@ -50,6 +64,10 @@ def main(argv: list[str] | None = None) -> int:
         jobs.run_render_noisy(cfg, args.scene, args.chunk, args.scene_dir, args.out)
     elif args.command == "render-reference":
         jobs.run_render_reference(cfg, args.scene, args.chunk, args.scene_dir, args.out)
+    elif args.command == "derive-masks":
+        from scenegen.scenarios.masks import derive_masks
+
+        derive_masks(cfg, args.scene, args.scene_dir, args.render_dir, args.out)
     return 0
 
 

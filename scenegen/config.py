@@ -28,13 +28,17 @@ MAX_SAMPLE_LAYERS = 32
 
 SCENE_SPLITS = ("train", "test")
 CUSTOM_PREFIX = "custom_"
+#: Scene ids of the stability scenarios (config section ``stability``, scenegen.scenarios): stab_{scenario}.
+#: They are rendered and masked (target ``stability``), never trained on or evaluated by the evaluation rows.
+STABILITY_PREFIX = "stab_"
 #: Scenes whose references render.train_reference_spp applies to (the training and validation scenes).
 TRAIN_PREFIX = "train_"
 
 #: What a workflow run writes below the config's ``output_dir`` (the experiment folder); `python -m
 #: denoisers clean` removes exactly these entries, so another experiment nested inside the folder survives.
 OUTPUT_ENTRIES: tuple[str, ...] = ("scenes", "renders", "models", "tuning", "denoised", "metrics", "robustness",
-                                   "timing", "tables", "figures", "REPORT.md", "logs", "benchmarks", ".config")
+                                   "timing", "stability", "tables", "figures", "REPORT.md", "logs", "benchmarks",
+                                   ".config")
 #: Hex characters of the settings digests that outputs record (64 bits: no accidental collisions).
 DIGEST_CHARS = 16
 
@@ -168,6 +172,10 @@ def _cross_key_problems(cfg: dict[str, Any]) -> Iterator[str]:
             f"config key 'scenes.luminance_range' = {scenes['luminance_range']!r} is invalid; "
             "allowed: [low, high] with 0 < low < high"
         )
+    stability = cfg.get("stability") or {}
+    if stability.get("spp") is not None and stability["spp"] + render["extra_radiance_spp"] > MAX_SAMPLE_LAYERS:
+        yield (f"config keys 'stability.spp' + 'render.extra_radiance_spp' = "
+               f"{stability['spp'] + render['extra_radiance_spp']} is out of range; allowed: <= {MAX_SAMPLE_LAYERS}")
     for index, entry in enumerate(cfg["extra_scenes"]):
         if entry.get("max_depth") == 0:
             yield (f"config key 'extra_scenes[{index}].max_depth' = 0 is not allowed; allowed: -1 (no limit) "
@@ -279,6 +287,34 @@ def scene_ids(cfg: dict[str, Any]) -> list[str]:
     return ids
 
 
+def stability_scene_ids(cfg: dict[str, Any]) -> list[str]:
+    """Scene ids of the stability scenarios, stab_{name} for every ``stability.scenarios`` entry in config
+    order; empty when ``stability.enabled`` is false. Not part of scene_ids (never trained on or evaluated)."""
+    stability = cfg.get("stability") or {}
+    if not stability.get("enabled", False):
+        return []
+    return [f"{STABILITY_PREFIX}{name}" for name in stability.get("scenarios", [])]
+
+
+def stability_scenario(cfg: dict[str, Any], scene_id: str) -> str:
+    """Scenario name of a stab_{name} scene id; KeyError if the config does not have it."""
+    if scene_id not in stability_scene_ids(cfg):
+        raise KeyError(f"{scene_id!r} is not a stability scene of this config (stability.enabled, "
+                       f"stability.scenarios: {', '.join(stability_scene_ids(cfg)) or 'none'})")
+    return scene_id[len(STABILITY_PREFIX):]
+
+
+def scene_render_config(cfg: dict[str, Any], scene_id: str) -> dict[str, Any]:
+    """The ``render`` settings a scene is rendered with: ``render`` itself, except for the stability scenes,
+    whose width, height, spp and reference_spp come from the ``stability`` section (spp null = render.spp)."""
+    if not scene_id.startswith(STABILITY_PREFIX):
+        return cfg["render"]
+    stability = cfg["stability"]
+    spp = stability["spp"] if stability.get("spp") is not None else cfg["render"]["spp"]
+    return {**cfg["render"], "width": stability["width"], "height": stability["height"], "spp": spp,
+            "reference_spp": stability["reference_spp"], "train_reference_spp": None}
+
+
 def training_scene_split(cfg: dict[str, Any]) -> tuple[list[str], list[str]]:
     """(scenes that train, validation scenes): the train_* ids with the last ``training.validation_scenes``
     (default 2) held out for validation."""
@@ -291,6 +327,8 @@ def scene_reference_spp(cfg: dict[str, Any], scene_id: str) -> int:
     """Reference spp of a scene: ``render.train_reference_spp`` for the train_* scenes that train, when it is
     set (not null), else ``render.reference_spp``: always for the evaluated test_* and custom_* scenes, and
     for the held-out validation scenes, whose references score every model and decide convergence."""
+    if scene_id.startswith(STABILITY_PREFIX):
+        return int(scene_render_config(cfg, scene_id)["reference_spp"])
     render = cfg["render"]
     train_spp = render.get("train_reference_spp")
     if train_spp is not None and scene_id in training_scene_split(cfg)[0]:
@@ -302,17 +340,26 @@ def scene_frame_count(cfg: dict[str, Any], scene_id: str) -> int:
     """Frames in the clip of a scene (the extra scene's own count for custom scenes)."""
     if scene_id.startswith(CUSTOM_PREFIX):
         return int(extra_scene(cfg, scene_id)["frames"])
+    if scene_id.startswith(STABILITY_PREFIX):
+        return int(cfg["stability"]["frames"])
     return int(cfg["scenes"]["frames"])
+
+
+def scene_frames_per_chunk(cfg: dict[str, Any], scene_id: str) -> int:
+    """Frames per render job of a scene: ``scenes.frames_per_chunk``; a stability clip is one chunk."""
+    if scene_id.startswith(STABILITY_PREFIX):
+        return scene_frame_count(cfg, scene_id)
+    return int(cfg["scenes"]["frames_per_chunk"])
 
 
 def chunk_count(cfg: dict[str, Any], scene_id: str) -> int:
     """Number of render chunks of a scene: ceil(frames / frames_per_chunk)."""
-    return math.ceil(scene_frame_count(cfg, scene_id) / cfg["scenes"]["frames_per_chunk"])
+    return math.ceil(scene_frame_count(cfg, scene_id) / scene_frames_per_chunk(cfg, scene_id))
 
 
 def chunk_frames(cfg: dict[str, Any], scene_id: str, chunk: int) -> range:
     """Frame indices rendered by one chunk (the last chunk may be shorter)."""
     if not 0 <= chunk < chunk_count(cfg, scene_id):
         raise ValueError(f"scene {scene_id!r} has no chunk {chunk} (it has {chunk_count(cfg, scene_id)})")
-    per_chunk = cfg["scenes"]["frames_per_chunk"]
+    per_chunk = scene_frames_per_chunk(cfg, scene_id)
     return range(chunk * per_chunk, min((chunk + 1) * per_chunk, scene_frame_count(cfg, scene_id)))

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from scenegen.config import config_digest, extra_scene, scene_frame_count, scene_reference_spp
+from scenegen.config import (STABILITY_PREFIX, config_digest, extra_scene, scene_frame_count,
+                             scene_frames_per_chunk, scene_reference_spp, scene_render_config, stability_scenario)
 
 #: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
 SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
@@ -23,6 +24,14 @@ def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
     """The config values a scene's content depends on (not the number of scenes). Render keys shared by
     the noisy and reference renders (resolution, variant, path depth) are included: the generator's
     preview render uses them."""
+    if scene.startswith(STABILITY_PREFIX):
+        # A scenario depends on its name, clip length and image size (speeds are set in pixels per frame).
+        stability = cfg["stability"]
+        shared = [f"render.{key}" for key in cfg["render"]
+                  if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS | {"width", "height"}]
+        return {"seed": cfg["seed"], "stability": {"scenario": stability_scenario(cfg, scene),
+                                                   **{key: stability[key] for key in ("frames", "width", "height")}},
+                "render_shared": config_digest(cfg, *shared)}
     if scene.startswith("custom_"):
         procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
     else:
@@ -38,10 +47,16 @@ def scene_digest(cfg: dict, scene: str) -> str:
 
 def render_digest(cfg: dict, scene: str, kind: str) -> str:
     """Rules render_noisy (``kind`` 'noisy') and render_reference ('reference')."""
-    if kind == "noisy":
-        own = {key: cfg["render"][key] for key in sorted(NOISY_ONLY_KEYS)}
+    if kind == "noisy":   # stability scenes: their own spp (scene_render_config)
+        own = {key: scene_render_config(cfg, scene)[key] for key in sorted(NOISY_ONLY_KEYS)}
     else:   # the spp this scene's references are rendered with, under the key reference_spp
         own = {"reference_batch_spp": cfg["render"]["reference_batch_spp"],
                "reference_spp": scene_reference_spp(cfg, scene)}
     return config_digest({"scene": scene_settings(cfg, scene), "frames": scene_frame_count(cfg, scene),
-                          "frames_per_chunk": cfg["scenes"]["frames_per_chunk"], "render": own})
+                          "frames_per_chunk": scene_frames_per_chunk(cfg, scene), "render": own})
+
+
+def masks_digest(cfg: dict, scene: str) -> str:
+    """Rule derive_masks (a stability scene's masks and events): its noisy and reference renders' settings."""
+    return config_digest({"noisy": render_digest(cfg, scene, "noisy"),
+                          "reference": render_digest(cfg, scene, "reference")})

@@ -16,7 +16,8 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen.atomic import atomic_directory, write_text_atomic
-from scenegen.config import CUSTOM_PREFIX, extra_scene, scene_reference_spp
+from scenegen.config import (CUSTOM_PREFIX, STABILITY_PREFIX, extra_scene, scene_frames_per_chunk,
+                             scene_reference_spp, scene_render_config)
 from scenegen.mitsuba_env import init_mitsuba
 from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_frame_seed,
                              psnr_between_halves, reference_batch_seeds,
@@ -54,6 +55,14 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
         with atomic_directory(out_dir) as tmp_dir:
             manifest = import_custom_scene(extra_scene(cfg, scene_id), scene_id, tmp_dir)
         log.info("custom scene %s from %s: %d shapes", scene_id, manifest["xml"], len(manifest["shapes"]))
+        return manifest
+    if scene_id.startswith(STABILITY_PREFIX):
+        from scenegen.scenarios import generate_scenario
+
+        with atomic_directory(out_dir) as tmp_dir:
+            manifest = generate_scenario(cfg, scene_id, tmp_dir)
+        log.info("stability scenario %s: %d shapes, %d frames", scene_id, len(manifest["shapes"]),
+                 manifest["n_frames"])
         return manifest
     seed = scene_seed(cfg["seed"], scene_id)
     with atomic_directory(out_dir) as tmp_dir:
@@ -102,10 +111,10 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
     from scenegen.exr import write_exr
     from scenegen.motion import motion_vectors
 
-    settings = RenderSettings.from_config(cfg["render"])
+    settings = RenderSettings.from_config(scene_render_config(cfg, scene_id))
     variant = init_mitsuba(settings.variant)
     manifest = _load_manifest(scene_dir)
-    frames = chunk_frames(manifest["n_frames"], cfg["scenes"]["frames_per_chunk"], chunk)
+    frames = chunk_frames(manifest["n_frames"], scene_frames_per_chunk(cfg, scene_id), chunk)
     n_layers = settings.spp + settings.extra_radiance_spp
     samples_per_frame = n_layers * settings.width * settings.height
 
@@ -154,11 +163,11 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
     from scenegen.dataset import reference_channels
     from scenegen.exr import write_exr
 
-    settings = dataclasses.replace(RenderSettings.from_config(cfg["render"]),
+    settings = dataclasses.replace(RenderSettings.from_config(scene_render_config(cfg, scene_id)),
                                    reference_spp=scene_reference_spp(cfg, scene_id))
     variant = init_mitsuba(settings.variant)
     manifest = _load_manifest(scene_dir)
-    frames = chunk_frames(manifest["n_frames"], cfg["scenes"]["frames_per_chunk"], chunk)
+    frames = chunk_frames(manifest["n_frames"], scene_frames_per_chunk(cfg, scene_id), chunk)
     half_spp = settings.reference_spp // 2
     rates: list[float] = []
     n_batches = math.ceil(half_spp / settings.reference_batch_spp)

@@ -94,6 +94,16 @@ def emitter_position(emitter: dict, frame: int) -> np.ndarray | None:
     return None
 
 
+def emitter_intensity(emitter: dict, frame: int) -> np.ndarray | None:
+    """(3,) linear RGB intensity of a point / spot emitter at `frame`: ``intensity_per_frame[frame]`` when
+    the emitter switches (stability scenario light_switch), else ``intensity``; None for other emitters."""
+    if "intensity_per_frame" in emitter:
+        return np.asarray(emitter["intensity_per_frame"][frame], dtype=np.float64)
+    if "intensity" in emitter:
+        return np.asarray(emitter["intensity"], dtype=np.float64)
+    return None
+
+
 # ---------------------------------------------------------------------------------------------
 # Mitsuba dict
 # ---------------------------------------------------------------------------------------------
@@ -172,14 +182,17 @@ def build_scene_dict(manifest: dict, scene_dir: pathlib.Path, frame: int, *, wid
 
     for emitter in manifest["emitters"]:
         key = f"emitter_{emitter['name']}"
+        intensity = emitter_intensity(emitter, frame)
+        if intensity is not None and not np.any(intensity > 0.0):
+            continue   # switched off in this frame (intensity_per_frame)
         if emitter["type"] == "point":
             scene[key] = {"type": "point", "position": emitter_position(emitter, frame).tolist(),
-                          "intensity": _rgb(emitter["intensity"])}
+                          "intensity": _rgb(intensity)}
         elif emitter["type"] == "spot":
             position = emitter_position(emitter, frame)
             target = np.asarray(emitter["target_per_frame"][frame] if "target_per_frame" in emitter
                                 else emitter["target"], dtype=np.float64)
-            scene[key] = {"type": "spot", "intensity": _rgb(emitter["intensity"]),
+            scene[key] = {"type": "spot", "intensity": _rgb(intensity),
                           "cutoff_angle": float(emitter["cutoff_angle"]),
                           "beam_width": float(emitter.get("beam_width", 0.75 * emitter["cutoff_angle"])),
                           "to_world": mi.ScalarTransform4f().look_at(

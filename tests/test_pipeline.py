@@ -219,7 +219,7 @@ def test_benchmarks_exist_for_every_job(pipeline: PipelineRun) -> None:
         for folder, kind in EVALUATION_BENCHMARKS.items():
             expected += [bench / folder / run.spec.id / scene / f"spp{run.spp}.tsv" for run in pipeline.runs(kind)]
     expected += [bench / "train" / f"{spec.id}.tsv" for spec in model_specs(pipeline.cfg)]
-    expected.append(bench / "build_report.tsv")
+    expected += [bench / "build_report.tsv", bench / "time_methods.tsv", bench / "time_training.tsv"]
     for path in expected:
         assert path.is_file(), f"missing benchmark {path}"
         header, *rows = path.read_text().strip().splitlines()
@@ -412,6 +412,11 @@ def test_every_output_records_the_settings_digest_of_this_config(pipeline: Pipel
     timing = json.loads((pipeline.results / TIMING_JOB_FILE).read_text())
     assert timing[DIGEST_KEY] == lineage.timing("test_000", [(method_spec(cfg, r), s) for r, s in timed_runs(cfg)])
     checked += 1
+    from denoisers.training.speed import TRAINING_SPEED_FILE
+
+    speed = json.loads((pipeline.results / TRAINING_SPEED_FILE).read_text())
+    assert speed[DIGEST_KEY] == lineage.training_speed()
+    checked += 1
     report = (pipeline.results / "REPORT.md").read_text()
     assert f"Settings digests: {checked} outputs record this config's settings digests;" in report
 
@@ -441,3 +446,23 @@ def test_the_timing_job_times_every_configured_row_and_the_report_uses_it(pipeli
         assert table.loc[(row["method_id"], row["spp"]), "ms_per_frame"] == pytest.approx(row["ms_per_frame"])
     claims = pd.read_csv(pipeline.results / "tables" / "claims.csv").set_index("claim")
     assert "timing job" in claims.loc["C4.4", "note"] and "over 3 rounds" in claims.loc["C4.4", "mean_diff_ci_95"]
+
+
+def test_the_training_speed_job_times_every_model_and_the_report_shows_it(pipeline: PipelineRun) -> None:
+    """Rule time_training: every model of training.models per variant (fp32 NCHW and the configured one in every
+    round), and the report's "Training step speed" table and sentence from it."""
+    from denoisers.training.speed import BASELINE, TRAINING_SPEED_FILE, read_training_speed, speed_settings
+
+    record = read_training_speed(pipeline.results / TRAINING_SPEED_FILE)
+    settings = speed_settings(pipeline.cfg)
+    assert record["threads"] == settings["threads"] and record["repeats"] == settings["repeats"]
+    assert [m["model"] for m in record["models"]] == [m["id"] for m in pipeline.cfg["training"]["models"]]
+    for model in record["models"]:
+        timed = {v["variant"]: v for v in model["variants"] if v["status"] == "timed"}
+        for key in (BASELINE, model["configured_variant"]):
+            assert len(timed[key]["ms_per_step"]) == settings["repeats"], key
+        assert timed[BASELINE]["speedup"] == [1.0] * settings["repeats"]
+    table = pd.read_csv(pipeline.results / "tables" / "training_speed.csv")
+    assert len(table) == sum(len(m["variants"]) for m in record["models"]) and table["configured"].sum() == 1
+    report = (pipeline.results / "REPORT.md").read_text()
+    assert "### Training step speed" in report and "1.6x target is" in report

@@ -23,13 +23,14 @@ from denoisers.evaluate import ABLATION_ROLE, method_specs, plan_runs, robustnes
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.training.models import method_model, model_specs, training_split
-from scenegen.config import chunk_count, load_config, scene_ids
+from scenegen.config import chunk_count, load_config, scene_ids, stability_scene_ids
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
-             "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods")
-STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report")
+             "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods", "time_training",
+             "derive_masks")
+STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report", "stability")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
 JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
@@ -125,8 +126,19 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     timed = 1 if test_scenes and timed_runs(cfg) else 0
     evaluation = {"denoise_clip": evaluated, "evaluate_clip": evaluated, "robustness_clip": robustness,
                   "time_methods": timed}
+    # The training-speed job (rule time_training): one, if training.speed times a model; no inputs; the report
+    # (and so the default target) reads it, the evaluation does not.
+    from denoisers.training.speed import speed_models
+
+    speed = {"time_training": 1 if speed_models(cfg) else 0}
+    # The stability scenarios (target `stability`, also part of `all`): per stab_* scene its scene, its chunks
+    # (one per clip) and one derive_masks job; never trained on or evaluated.
+    stab = stability_scene_ids(cfg)
+    stability = {"generate_scene": len(stab), "render_noisy": sum(chunk_count(cfg, s) for s in stab),
+                 "render_reference": sum(chunk_count(cfg, s) for s in stab), "derive_masks": len(stab)}
     jobs = {
         "scenes": {"generate_scene": len(scenes)},
+        "stability": stability,
         "renders": renders(scenes, scenes),
         "train": {**renders(train_scenes if all_models else [], train_scenes if all_models else []),
                   "train_denoiser": all_models},
@@ -134,11 +146,13 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
                     "train_denoiser": used_models, "tune_method": tuned},
         "evaluate": {**renders(test_scenes + used_inputs, test_scenes + used_inputs), **evaluation,
                      "train_denoiser": used_models, "tune_method": tuned},
-        "report": {**renders(test_scenes + training_inputs, test_scenes + training_inputs), **evaluation,
+        "report": {**renders(test_scenes + training_inputs, test_scenes + training_inputs), **evaluation, **speed,
                    "build_report": 1, "train_denoiser": all_models, "tune_method": tuned},
-        "all": {**renders(scenes, scenes), **evaluation, "build_report": 1, "train_denoiser": all_models,
+        "all": {**renders(scenes, scenes), **evaluation, **speed, "build_report": 1, "train_denoiser": all_models,
                 "tune_method": tuned},
     }[target]
+    if target == "all":
+        jobs = {rule: jobs.get(rule, 0) + stability.get(rule, 0) for rule in {**jobs, **stability}}
     return {rule: count for rule, count in {**jobs, target: 1}.items() if count}
 
 
@@ -296,6 +310,26 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
     assert counts["denoise_clip"] == 3 and "train_denoiser" not in counts
 
 
+@pytest.mark.slow
+def test_timing_target_runs_one_training_speed_job(workflow_copy: Path) -> None:
+    """Stage target `timing`: the timing job and one time_training job writing <out>/timing/training.json with
+    the training threads; with training.speed.enabled false the report neither runs nor needs it."""
+    result = run_snakemake("-n", "-p", "timing", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
+    output = result.stdout + result.stderr
+    counts = job_counts(output)
+    assert counts["time_training"] == 1 and counts["time_methods"] == 1 and "build_report" not in counts
+    assert f"output: {SMOKE_OUT}/timing/training.json" in output
+    commands = [line for line in result.stdout.splitlines() if "python -m denoisers time-training" in line]
+    threads = load_config(workflow_copy / "config/smoke.yaml")["training"]["threads"]
+    assert len(commands) == 1 and f"--threads {threads} " in commands[0]
+    cfg = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
+    cfg["training"]["speed"]["enabled"] = False
+    (workflow_copy / "no_speed.yaml").write_text(yaml.safe_dump(cfg))
+    counts = dry_run("report", "--forceall", "--configfile", "no_speed.yaml", cwd=workflow_copy)
+    assert "time_training" not in counts and counts == expected_jobs(load_config(workflow_copy / "no_speed.yaml"),
+                                                                     "report")
+
+
 def failing_dry_run(workflow_copy: Path, tmp_path: Path, cfg: dict) -> str:
     """Dry-run the workflow with ``cfg`` written to a file; assert it fails and return its output."""
     bad_config = tmp_path / "bad_config.yaml"
@@ -329,8 +363,9 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     lines = result.stdout.splitlines()
     scenegen = [line for line in lines if "python -m scenegen" in line]
     denoisers = [line for line in lines if "python -m denoisers" in line]
-    assert len(scenegen) == jobs["generate_scene"] + jobs["render_noisy"] + jobs["render_reference"]
-    assert len(denoisers) == sum(jobs[rule] for rule in JOB_RULES[3:])
+    assert len(scenegen) == (jobs["generate_scene"] + jobs["render_noisy"] + jobs["render_reference"]
+                             + jobs["derive_masks"])
+    assert len(denoisers) == sum(jobs[rule] for rule in JOB_RULES[3:] if rule != "derive_masks")
     config_files = {re.search(r"--config (\S+)", command).group(1) for command in scenegen + denoisers}
     assert len(config_files) == 1
     resolved = load_config(workflow_copy / config_files.pop())

@@ -1,7 +1,7 @@
 """Collecting what the report is computed from: per-frame metric CSVs, timing.json, the robustness
 scenario (rules evaluate_clip, denoise_clip, robustness_clip), the timing job (time_methods: every speed
-number of the report), the trained models (train_denoiser) and the manifests of the external scenes
-(generate_scene: what was rendered and what was substituted).
+number of the report), the training-speed job (time_training), the trained models (train_denoiser) and the
+manifests of the external scenes (generate_scene: what was rendered and what was substituted).
 
 Nothing here computes a verdict; :class:`Results` only answers lookups (which rows ran, per-scene
 values of a column, rows whose outputs were flagged as non-finite or absurd).
@@ -36,6 +36,7 @@ from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
 from denoisers.report.stats import pooled_psnr
 from denoisers.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timed_runs, timing_scene, timing_settings
 from denoisers.training.models import ModelSpec, model_dir, model_specs
+from denoisers.training.speed import TRAINING_SPEED_FILE, read_training_speed, speed_models
 from denoisers.tuning import TUNED_KEY, tuning_file
 from scenegen.config import CUSTOM_PREFIX, output_root
 
@@ -156,6 +157,7 @@ class Results:
     external: dict[str, dict | None] = field(default_factory=dict)   # custom_* scene -> manifest (None: missing)
     digests: DigestLedger | None = None       # settings digests of the outputs read
     timing: TimingJob | None = None           # the timing job's record (None: disabled or not run)
+    training_speed: dict | None = None        # the training-speed job's record (None: disabled or not run)
 
     def __post_init__(self) -> None:
         if self.results_dir is None:
@@ -321,9 +323,14 @@ def collect(cfg: dict, results_dir: Path | None = None) -> Results:
         timing = read_timing_job(timing_path)
         timed = [(method_spec(cfg, row), spp) for row, spp in timed_runs(cfg)]
         ledger.add(timing_path, timing.record.get(DIGEST_KEY), lineage.timing(timing_scene(cfg), timed))
+    training_speed = None
+    speed_path = results_dir / TRAINING_SPEED_FILE
+    if speed_models(cfg) and speed_path.is_file():
+        training_speed = read_training_speed(speed_path)
+        ledger.add(speed_path, training_speed.get(DIGEST_KEY), lineage.training_speed())
     ledger.raise_if_mixed(cfg, results_dir)
     return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir, models,
-                   external_manifests(results_dir, scenes), ledger, timing)
+                   external_manifests(results_dir, scenes), ledger, timing, training_speed)
 
 
 def external_manifests(results_dir: Path, scenes: list[str]) -> dict[str, dict | None]:

@@ -10,6 +10,8 @@ from scenegen.config import CUSTOM_PREFIX
 #: Cross-paper tables, written as tables/{name}.csv and tables/{name}.md.
 CORE_TABLES: tuple[str, ...] = ("summary", "per_scene", "timing", "equal_time", "noise_floor", "robustness",
                                 "claims", "runs", "split")
+#: Written when the config trains models: the training table and the training-speed job's table.
+TRAINING_TABLES: tuple[str, ...] = ("training", "training_speed")
 #: Written when external (custom_*) scenes are evaluated.
 EXTERNAL_TABLES: tuple[str, ...] = ("external", "external_substitutions")
 
@@ -32,7 +34,8 @@ def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
             "grids": [f"{root}/figures/grid_{scene}_spp{spp}.png" for scene in scenes for spp in cfg["evaluation"]["spp"]]
             + [f"{root}/figures/robustness_grid.png"],
             "markdown": [f"{root}/REPORT.md"],
-            "training_tables": [f"{root}/tables/training.{ext}" for ext in ("csv", "md")] if trained else [],
+            "training_tables": [f"{root}/tables/{t}.{ext}" for t in TRAINING_TABLES for ext in ("csv", "md")]
+            if trained else [],
             "training_figures": [f"{root}/figures/training_curves.png"] if trained else [],
             "paper_tables": [f"{root}/tables/{t}.{ext}" for t in paper_tables for ext in ("csv", "md")],
             "paper_figures": [f"{root}/figures/{f}.png" for f in paper_figures],

@@ -290,6 +290,86 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
     return pd.DataFrame(rows)
 
 
+#: Columns of tables/training_speed.csv (the rule time_training record, one row per model and variant).
+TRAINING_SPEED_COLUMNS: tuple[str, ...] = (
+    "model", "variant", "label", "configured", "status", "rounds", "ms_per_step", "ms_per_step_min",
+    "ms_per_step_max", "mpix_per_s", "gflops_per_s", "fraction_of_sgemm", "speedup", "speedup_min", "speedup_max",
+    "note")
+
+
+def training_speed_table(record: dict[str, Any]) -> pd.DataFrame:
+    """One row per model and variant of the training-speed record: ms/step (median, min, max over rounds),
+    training Mpix/s (pixels per step / median), GFLOP/s and its fraction of the same-run sgemm, speed-up over
+    fp32 NCHW (median, min, max of the per-round ratios); NaN where a variant was not timed (``note``)."""
+    import pandas as pd
+
+    rows = []
+    for model in record["models"]:
+        for v in model["variants"]:
+            timed = v["status"] == "timed"
+
+            def value(key: str, scale: float = 1.0, v: dict = v, timed: bool = timed) -> float:
+                return float(v[key]) * scale if timed and v.get(key) is not None else math.nan
+
+            rows.append({"model": model["model"], "variant": v["variant"], "label": v["label"],
+                         "configured": bool(v["configured"]), "status": v["status"], "rounds": v["rounds"],
+                         "ms_per_step": value("ms_per_step_median"), "ms_per_step_min": value("ms_per_step_min"),
+                         "ms_per_step_max": value("ms_per_step_max"), "mpix_per_s": value("pixels_per_s", 1e-6),
+                         "gflops_per_s": value("gflops_per_s"), "fraction_of_sgemm": value("fraction_of_sgemm"),
+                         "speedup": value("speedup_median"), "speedup_min": value("speedup_min"),
+                         "speedup_max": value("speedup_max"), "note": v.get("note", "")})
+    return pd.DataFrame(rows, columns=list(TRAINING_SPEED_COLUMNS))
+
+
+def training_speed_markdown(table: pd.DataFrame) -> str:
+    """The table as REPORT.md shows it: ms/step median [min, max], Mpix/s, GFLOP/s, of sgemm, speed-up median
+    [min, max] (x), the configured variant marked *."""
+    import pandas as pd
+
+    from denoisers.report.stats import frame_to_markdown
+
+    def cell(row: Any, key: str, digits: int, unit: str = "") -> str:
+        median, low, high = (getattr(row, name) for name in (key, f"{key}_min", f"{key}_max"))
+        return f"{median:.{digits}f}{unit} [{low:.{digits}f}, {high:.{digits}f}]" if row.status == "timed" else ""
+
+    shown = [{"model": row.model, "step": f"{row.label}{' *' if row.configured else ''}",
+              "ms/step": cell(row, "ms_per_step", 1) or f"not timed: {row.note}",
+              "Mpix/s": f"{row.mpix_per_s:.3f}" if row.status == "timed" else "",
+              "GFLOP/s": f"{row.gflops_per_s:.1f}" if row.status == "timed" else "",
+              "of sgemm": f"{row.fraction_of_sgemm:.1%}" if row.status == "timed" else "",
+              "speed-up vs fp32 NCHW": cell(row, "speedup", 2, "x"), "rounds": row.rounds}
+             for row in table.itertuples()]
+    return frame_to_markdown(pd.DataFrame(shown))
+
+
+def training_speed_verdict(record: dict[str, Any]) -> str:
+    """Per model one sentence: the configured step's speed-up over the fp32 eager step against issue 11's
+    target, and why not when precision auto resolved to fp32 (the resolved reason)."""
+    target, sentences = record["target_speedup"], []
+    for model in record["models"]:
+        by_key = {v["variant"]: v for v in model["variants"]}
+        v, compute = by_key[model["configured_variant"]], model["compute"]
+        met = v["speedup_median"] >= target
+        text = (f"Model {model['model']}: the configured step ({v['label']}, precision {compute['configured']}) ran "
+                f"at {v['speedup_median']:.2f}x the fp32 eager (NCHW) step (median over {v['rounds']} rounds, range "
+                f"{v['speedup_min']:.2f}-{v['speedup_max']:.2f}x), so issue 11's {target:g}x target is "
+                f"{'met' if met else 'not met'}")
+        reason = compute["reason"].removeprefix("auto: ")
+        if not met and compute["precision"] == "fp32":
+            why = (f"precision auto resolved to fp32 ({reason})" if compute["configured"] == "auto"
+                   else "the config sets precision fp32")
+            text += f": {why}, so the bf16 step that gives the speed-up on CPUs with native bf16 is not used"
+            bf16 = [b for b in model["variants"] if b["precision"] == "bf16" and b["status"] == "timed"]
+            if bf16:
+                best = max(bf16, key=lambda b: b["speedup_median"])
+                emulated = "" if record["cpu"]["native_bf16"] else ", where bf16 is emulated,"
+                text += f"; here{emulated} the faster bf16 variant ({best['label']}) ran at {best['speedup_median']:.2f}x"
+        elif not met:
+            text += f" ({reason})"
+        sentences.append(text + ".")
+    return " ".join(sentences)
+
+
 def tuning_table(res: Results) -> pd.DataFrame:
     """One row per tuned method (tuning.methods): the evaluation rows that use its result, the chosen
     parameters, their score (mean frame PSNR over the training clips and tuning spp), the margin to the

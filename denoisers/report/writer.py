@@ -165,7 +165,38 @@ def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
              "(`val_loss_fall_in_window`); claims that use such a model say so.", "", markdown, "![Training curves](figures/training_curves.png)", ""]
     if res.models.missing:
         lines += [f"Not trained (no complete model directory): {', '.join(res.models.missing)}", ""]
-    return lines
+    return lines + _training_speed_lines(res, tables)
+
+
+def _training_speed_lines(res: Results, tables: Path) -> list[str]:
+    """Subsection "Training step speed" from the training-speed job (rule time_training), or why it is absent;
+    writes tables/training_speed.csv and .md either way."""
+    import pandas as pd
+
+    from denoisers.training.speed import TRAINING_SPEED_FILE, speed_settings
+
+    record = res.training_speed
+    if record is None:
+        why = ("training.speed.enabled is false" if not speed_settings(res.cfg)["enabled"] else
+               f"{TRAINING_SPEED_FILE} is missing; rule time_training, stage target `timing`")
+        tab.write_table(pd.DataFrame({"status": [f"not run ({why})"]}), tables, "training_speed")
+        return ["### Training step speed", "", f"Not run ({why}).", ""]
+    table = tab.training_speed_table(record)
+    markdown = tab.training_speed_markdown(table)
+    tab.write_table(table, tables, "training_speed", markdown)
+    cpu, gemm = record["cpu"], record["gemm"]
+    return ["### Training step speed", "",
+            f"Rule time_training: one optimiser step of each model of `training.models` at its training size "
+            "(batch_size x length x crop², a fixed synthetic batch), per precision / layout, in "
+            f"{record['repeats']} rounds after {record['warmup']} warm-up round(s), each round also timing a "
+            f"{gemm['size']}³ float32 sgemm ({gemm['sgemm_gflops_per_s_median']:.1f} GFLOP/s, median); "
+            f"{record['threads']} torch thread(s), torch {record['torch']}, {record.get('cpu_model', '?')} "
+            f"({cpu['capability']}; native bf16: {'yes' if cpu['native_bf16'] else 'no'}, {cpu['bf16_support']}). "
+            "ms/step: median [min, max] over rounds; Mpix/s: training pixels per step / median; GFLOP/s: FLOPs of "
+            "the fp32 step (forward and backward) / median, and its fraction of the sgemm; speed-up: per-round ratio "
+            "to fp32 NCHW, median [min, max]; * = the configured step (`compute`, resolved on this machine).", "",
+            markdown, "", tab.training_speed_verdict(record), "",
+            "[training step speed (CSV)](tables/training_speed.csv)", ""]
 
 
 def _robustness_section(res: Results, tables: Path) -> list[str]:

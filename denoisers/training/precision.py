@@ -16,7 +16,8 @@ Per model, config ``training.models[].compute`` (schema ``$defs/training_compute
   (benchmarks/train_speed.py on an AVX2 machine), so an fp32 run stays the step it was before this
   setting existed.
 
-``benchmarks/train_speed.py`` measures both against the float32 NCHW step;
+``benchmarks/train_speed.py`` and rule time_training (``denoisers.training.speed``, the report's "Training step
+speed" table) measure both against the float32 NCHW step;
 ``benchmarks/train_precision_quality.py`` measures what bf16 costs in validation PSNR.
 """
 from __future__ import annotations

@@ -15,12 +15,15 @@ from scenegen.config import (
     extra_scene,
     output_root,
     scene_ids,
+    stability_scene_ids,
 )
+from scenegen.digests import masks_digest as scene_masks_digest
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
 from denoisers import experiment
 from denoisers.evaluate import evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids
 from denoisers.report import report_outputs
 from denoisers.timing import timed_runs, timing_scene, timing_settings
+from denoisers.training.speed import TRAINING_SPEED_FILE, speed_models, speed_settings
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
 from denoisers.training.models import (method_model, model_dir, model_specs, training_problems, training_runtime_minutes,
@@ -47,7 +50,7 @@ if config_errors:
 
 
 wildcard_constraints:
-    scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+",
+    scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+|stab_[a-z0-9_]+",
     chunk=r"\d{3}",
     method=r"[a-z0-9_]+",
     model=r"[a-z][a-z0-9_]*",
@@ -55,6 +58,9 @@ wildcard_constraints:
 
 
 SCENES = scene_ids(config)
+# The stability scenarios' scenes (stab_{name}; target `stability`): generated and rendered by the same rules,
+# never trained on or evaluated (not in SCENES, which the split and the evaluation read).
+STABILITY_SCENES = stability_scene_ids(config)
 # The experiment's folder (config key output_dir): every output, log and benchmark of every rule is below it,
 # so two configs with different output_dir never share a file.
 OUT = output_root(config).as_posix()
@@ -107,10 +113,30 @@ def _listing(values) -> str:
 
 
 def check_scene_target(wildcards, job_rule: str = "generate_scene", pattern: str = "scenes/{scene}") -> list:
-    if wildcards.scene not in SCENES:
-        raise impossible_target(job_rule, pattern, wildcards,
-                                f"scene {wildcards.scene} is not in this config; scenes: {_listing(SCENES)}")
+    if wildcards.scene not in SCENES + STABILITY_SCENES:
+        raise impossible_target(job_rule, pattern, wildcards, f"scene {wildcards.scene} is not in this config; "
+                                f"scenes: {_listing(SCENES + STABILITY_SCENES)}")
     return []
+
+
+def check_stability_target(wildcards) -> list:
+    """Input function of derive_masks: a stability scene of this config (stability.enabled, stability.scenarios)."""
+    if wildcards.scene not in STABILITY_SCENES:
+        raise impossible_target("derive_masks", "stability/{scene}", wildcards,
+                                f"scene {wildcards.scene} is not a stability scenario of this config "
+                                f"(stability.enabled, stability.scenarios); stability scenes: "
+                                f"{_listing(STABILITY_SCENES)}")
+    return []
+
+
+def stability_outputs(wildcards=None) -> list[str]:
+    """Stage target `stability`: every scenario's scene, renders and masks (the masks need the rest)."""
+    return [results_path(f"stability/{scene}") for scene in STABILITY_SCENES]
+
+
+def masks_digest(wildcards) -> str:
+    """Param: digest of the settings a scenario's masks depend on (its renders'; rerun trigger)."""
+    return scene_masks_digest(config, wildcards.scene)
 
 
 def check_chunk_target(kind: str):
@@ -345,8 +371,8 @@ def render_dir(wildcards) -> str:
 
 def report_input(wildcards) -> dict[str, list[str]]:
     """Named inputs of build_report: every metrics CSV, denoised directory (timing, grid images),
-    robustness output, the evaluated scenes' references (grids) and the external scenes' manifests
-    (their substitutions)."""
+    robustness output, the evaluated scenes' references (grids), the external scenes' manifests
+    (their substitutions) and the records of the timing and training-speed jobs."""
     reference = [results_path(f"renders/{scene}/reference/chunk_{c:03d}") for scene in EVALUATED_SCENES
                  for c in range(chunk_count(config, scene))]
     external = [results_path(f"scenes/{scene}") for scene in EVALUATED_SCENES if scene.startswith("custom_")]
@@ -354,7 +380,7 @@ def report_input(wildcards) -> dict[str, list[str]]:
                      if run.spec.params.get("tuned")})
     return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
             "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning,
-            "timing": timing_outputs()}
+            "timing": timing_outputs(), "training_speed": training_speed_outputs()}
 
 
 def denoise_digest(wildcards) -> str:
@@ -421,6 +447,26 @@ def timing_digest(wildcards) -> str:
 def timing_threads(wildcards, threads) -> int:
     """Param: torch and Dr.Jit threads of the timing job (evaluation.timing.threads, else the job's threads)."""
     return timing_settings(config)["threads"] or threads
+
+
+def training_speed_outputs(wildcards=None) -> list[str]:
+    """The training-speed job's file (rule time_training), when a model of training.models is timed."""
+    return [results_path(TRAINING_SPEED_FILE)] if speed_models(config) else []
+
+
+def timing_targets(wildcards=None) -> list[str]:
+    """Stage target `timing`: the timing job and the training-speed job."""
+    return timing_outputs() + training_speed_outputs()
+
+
+def training_speed_digest(wildcards) -> str:
+    return experiment.training_speed_digest(config)
+
+
+def training_speed_threads(wildcards, threads) -> int:
+    """Param: torch threads of the training-speed job: training.speed.threads, else training.threads, at most the
+    job's threads (the cores it gets), so the timed steps never oversubscribe them."""
+    return min(speed_settings(config)["threads"], threads)
 
 
 # ---------------------------------------------------------------------------------------------
