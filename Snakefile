@@ -3,7 +3,7 @@
 # denoised test clips, per-frame metrics and a generated report. Rules live in workflow/rules/, the
 # config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
 # `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake timing`, `snakemake report`,
-# `snakemake stability` (the temporal-stability scenario clips and their masks).
+# `snakemake stability` (the temporal-stability scenario clips, their masks and the failure atlas).
 # Every output goes below the config's output_dir (default results/; config/smoke.yaml: results/smoke/);
 # `python -m denoisers clean --config <file>` removes one experiment's outputs.
 
@@ -78,7 +78,8 @@ rule report:
         rules.build_report.output,
 
 
-# The stability scenarios (stab_* scenes): scenes, renders and masks; nothing is denoised yet.
+# The stability scenarios (stab_* scenes): scenes, renders, masks, every configured row denoised and scored on
+# them, and the failure atlas (<out>/stability/ATLAS.md; build_report links it).
 rule stability:
     input:
         stability_outputs(),

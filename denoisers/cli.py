@@ -9,6 +9,8 @@
   time        every row timed on the same frames, interleaved, and the renderer's rate -> <out>/timing/timing.json
   time-training  every learned model's training step per precision / layout, beside sgemm -> <out>/timing/training.json
   report      tables, figures, claims and REPORT.md              -> <out>/tables/, <out>/figures/, <out>/REPORT.md
+  score-scenario  failure metrics of a denoised stability clip     -> <out>/stability/scores/{method}/{scene}/spp{spp}.csv + .json
+  atlas       the failure atlas of the stability suite          -> <out>/stability/ATLAS.md, tables/, figures/
   clean       remove an experiment's outputs, or only its stale training work directories (--stale)
   methods     list the registered methods
 """
@@ -80,6 +82,19 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--render-dir", type=Path, required=True, help="results/renders/{scene}")
     evaluate.add_argument("--out", type=Path, required=True, help="CSV file")
 
+    score = sub.add_parser("score-scenario", help="failure metrics of a denoised stability clip (masks, events)")
+    score.add_argument("--config", type=Path, required=True)
+    score.add_argument("--denoised", type=Path, required=True,
+                       help="results/stability/denoised/{method}/{scene}/spp{spp}")
+    score.add_argument("--render-dir", type=Path, required=True, help="results/renders/{scene}")
+    score.add_argument("--masks", type=Path, required=True, help="results/stability/{scene} (rule derive_masks)")
+    score.add_argument("--out", type=Path, required=True, help="CSV file (its .json summary is written beside it)")
+
+    atlas = sub.add_parser("atlas", help="the failure atlas of the stability suite -> <out>/stability/ATLAS.md")
+    atlas.add_argument("--config", type=Path, required=True)
+    atlas.add_argument("--results", type=Path, default=None,
+                       help="experiment folder to read and write (default: the config's output_dir)")
+
     report = sub.add_parser("report", help="aggregate every metrics CSV into tables, figures and REPORT.md")
     report.add_argument("--config", type=Path, required=True)
     report.add_argument("--results", type=Path, default=None,
@@ -142,7 +157,8 @@ def _run(args: argparse.Namespace) -> int:
         for name in registry.available():
             info = registry.get(name).info
             print(f"{name:16s} inputs={','.join(info.inputs)} pixel={','.join(info.pixel_inputs) or '-'} "
-                  f"temporal={info.temporal} trainable={info.trainable}  {info.description}")
+                  f"temporal={info.temporal} trainable={info.trainable}"
+                  + (" adaptive=True" if info.adaptive else "") + f"  {info.description}")
             params = ", ".join(f"{key}" + ("" if default is inspect.Parameter.empty else f"={default!r}")
                                for key, default in registry.parameters(name).items())
             print(f"{'':16s} parameters: {params or 'none'}")
@@ -238,6 +254,20 @@ def _run(args: argparse.Namespace) -> int:
         log.info("robustness %s %s: injected %s, %d non-finite outputs, %d out-of-range outputs, mean PSNR "
                  "%.2f dB", args.method_id, args.scene, summary["injected"], summary["nonfinite_outputs"],
                  summary["out_of_range_outputs"], summary["mean_psnr"])
+    elif args.command == "score-scenario":
+        from denoisers.stability_job import score_scenario
+
+        record = score_scenario(cfg, args.denoised, args.render_dir, args.masks, args.out)
+        log.info("%s %s spp %d: masked PSNR %s dB, frames to recover %s, flicker TRMAE %s, relative bias %s",
+                 record["method_id"], record["scene"], record["spp"], record["masked_psnr"],
+                 record["frames_to_recover"], record["flicker_trmae"], record["relative_bias"])
+    elif args.command == "atlas":
+        from denoisers.report.atlas import build_atlas
+
+        from scenegen.config import output_root
+
+        written = build_atlas(cfg, args.results or output_root(cfg))
+        log.info("atlas: wrote %d files", len(written))
     elif args.command == "report":
         from denoisers.report import build_report
 

@@ -1,6 +1,8 @@
 """Running one evaluation row on one clip: the job behind rule denoise_clip.
 
 * ``denoise_clip`` (rule denoise_clip): one method on one evaluated scene at one spp -> EXR + PNG + timing.json
+  (+ sample_maps.npz for an adaptive method: its per-frame sample maps; the evaluated spp is its average
+  budget, checked per frame with denoisers.adaptive.budget_problems, realised spp in timing.json)
 
 ``run_method`` is the measured loop (per-frame time, peak RSS, non-finite and out-of-range counts)
 that the robustness job (denoisers.robustness) and the timing job (denoisers.timing) reuse, with the
@@ -97,6 +99,8 @@ class MethodOutput:
     out_of_range_outputs: list[int] = field(default_factory=list)
     out_of_range_checked: bool = True
     out_of_range_factor: float = OUT_OF_RANGE_FACTOR
+    # adaptive methods only: (T, H, W) int64 samples used per pixel (registry.AdaptiveOutput.sample_map)
+    sample_maps: np.ndarray | None = None
 
 
 def _load_method_clip(render_dir: Path, spec: MethodSpec, method, layers: int, reference: bool):
@@ -105,8 +109,9 @@ def _load_method_clip(render_dir: Path, spec: MethodSpec, method, layers: int, r
     from denoisers.registry import MissingInputError
     from scenegen.dataset import MissingBufferError, NotEnoughSamplesError, load_clip
 
-    try:
-        return load_clip(render_dir, buffers=method.info.inputs, spp=layers, reference=reference)
+    try:    # an adaptive method gets every stored layer (registry.clip_frames checks there are enough)
+        return load_clip(render_dir, buffers=method.info.inputs, spp=None if method.info.adaptive else layers,
+                         reference=reference)
     except MissingBufferError as error:
         raise MissingInputError(spec.label, error.buffer, str(error)) from error
     except NotEnoughSamplesError as error:
@@ -146,7 +151,7 @@ def run_method(method, frames: Sequence, threads: int,
 
     torch.set_num_threads(max(1, int(threads)))
     native.load()     # build or import the native kernels now, never inside the timed loop
-    outputs, seconds, inputs_bad, outputs_bad, out_of_range = [], [], [], [], []
+    outputs, seconds, inputs_bad, outputs_bad, out_of_range, sample_maps = [], [], [], [], [], []
     # Input bounds before the memory measurement (their temporaries are not the method's memory).
     bounds = [input_radiance_bound(frame) for frame in frames]
     checked = all(bound is not None for bound in bounds)
@@ -159,6 +164,9 @@ def run_method(method, frames: Sequence, threads: int,
             start = time.perf_counter()
             result = method.denoise(frame)
             seconds.append(time.perf_counter() - start)
+            if method.info.adaptive:
+                result, sample_map = _adaptive_result(method, frame, result)
+                sample_maps.append(sample_map)
             result = torch.as_tensor(result).detach().to(torch.float32).cpu()
             expected = (3, frame.height, frame.width)
             if tuple(result.shape) != expected:
@@ -170,7 +178,40 @@ def run_method(method, frames: Sequence, threads: int,
     maxrss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return MethodOutput(np.stack(outputs), seconds, inputs_bad, outputs_bad, memory.extra_mb, memory.peak_mb,
                         (maxrss_after - maxrss_before) / 1024.0,  # ru_maxrss is in KiB on Linux
-                        out_of_range, checked, float(out_of_range_factor))
+                        out_of_range, checked, float(out_of_range_factor),
+                        np.stack(sample_maps) if sample_maps else None)
+
+
+def _adaptive_result(method, frame, result):
+    """(radiance, (H, W) int64 sample map as numpy) of an adaptive method's AdaptiveOutput; EvaluationError
+    naming the method and frame when it is not one, or the map's shape, type or range is wrong."""
+    import torch
+
+    from denoisers.registry import AdaptiveOutput
+
+    where = f"adaptive method {method.info.name!r}, frame {frame.index}"
+    if not isinstance(result, AdaptiveOutput):
+        raise EvaluationError(f"{where}: denoise() returned {type(result).__name__}; expected "
+                              "registry.AdaptiveOutput(radiance, sample_map)")
+    sample_map = torch.as_tensor(result.sample_map).detach().cpu()
+    available = frame.samples["radiance"].shape[0] if "radiance" in frame.samples else frame.spp
+    if tuple(sample_map.shape) != (frame.height, frame.width) or sample_map.dtype.is_floating_point:
+        raise EvaluationError(f"{where}: sample map must be integer ({frame.height}, {frame.width}), got "
+                              f"{sample_map.dtype} {tuple(sample_map.shape)}")
+    if sample_map.numel() and (int(sample_map.min()) < 0 or int(sample_map.max()) > available):
+        raise EvaluationError(f"{where}: sample map values {int(sample_map.min())}..{int(sample_map.max())} "
+                              f"outside 0..{available} (the stored radiance layers)")
+    return result.radiance, sample_map.to(torch.int64).numpy()
+
+
+def adaptive_record(maps: np.ndarray, budget: float, frames: Sequence[int]) -> dict[str, Any]:
+    """timing.json keys of an adaptive row: budget, realised spp per frame and over the clip."""
+    from denoisers.adaptive import SAMPLE_MAPS_FILE
+
+    per_frame = [float(m.mean()) for m in maps.astype(np.float64)]
+    return {"adaptive": True, "budget_spp": float(budget), "realised_spp_per_frame": per_frame,
+            "realised_spp": float(np.mean(per_frame)), "sample_maps_file": SAMPLE_MAPS_FILE,
+            "sample_map_frames": [int(t) for t in frames]}
 
 
 def timing_summary(seconds: Sequence[float], width: int, height: int) -> dict[str, Any]:
@@ -233,6 +274,15 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
     frames = _frames(clip, method, layers)
     result = run_method(method, frames, threads, cfg["evaluation"]["out_of_range_factor"])
     height, width = result.radiance.shape[-2:]
+    adaptive = {}
+    if result.sample_maps is not None:
+        from denoisers.adaptive import SAMPLE_MAPS_FILE, budget_problems
+
+        problems = budget_problems(result.sample_maps, spp, clip.frames, f"row {spec.id!r}, scene {scene}")
+        if problems:
+            raise EvaluationError("adaptive sample budget exceeded: " + "; ".join(problems))
+        adaptive = adaptive_record(result.sample_maps, spp, clip.frames)
+        adaptive["available_layers"] = {buffer: int(v.shape[0]) for buffer, v in frames[0].samples.items()}
     # Steady-state cost of one path sample with every feature buffer: the reference renders' rate
     # (large batches); the noisy frames' rate also carries per-frame scene loading.
     render_rates = _reference_render_rates(Path(render_dir))
@@ -253,6 +303,7 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
         "out_of_range_outputs_per_frame": result.out_of_range_outputs,
         # Cost of rendering one sample with every buffer (for the equal-time view of the report).
         "render_samples_per_s": float(np.mean(render_rates)) if render_rates else None,
+        **adaptive,
         DIGEST_KEY: Lineage(cfg).denoised(spec, scene, spp),
     }
     with atomic_directory(out_dir) as staging:
@@ -260,5 +311,8 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
             write_radiance_exr(staging / FRAME_EXR.format(t), radiance,
                                {"method_id": spec.id, "scene": scene, "spp": spp, "frame": int(t)})
             write_preview_png(staging / FRAME_PNG.format(t), radiance)
+        if result.sample_maps is not None:     # uint8: at most 32 layers
+            np.savez_compressed(staging / SAMPLE_MAPS_FILE, frames=np.asarray(clip.frames, np.int64),
+                                sample_maps=result.sample_maps.astype(np.uint8))
         (staging / TIMING_FILE).write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
     return record

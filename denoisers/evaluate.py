@@ -222,7 +222,9 @@ def _plan(cfg: dict, specs: Sequence[MethodSpec], spps_of) -> list[Run]:
         method = registry.build(spec.method, resolve_method_params(cfg, spec.params), row=spec.id)
         for spp in spps:
             layers = spp * method.samples_factor
-            short = [buffer for buffer in method.info.inputs if available[buffer] < layers]
+            # An adaptive method reads every stored layer: radiance needs the budget, other buffers one layer.
+            short = [buffer for buffer in method.info.inputs if available[buffer] < (
+                layers if buffer == "radiance" or not method.info.adaptive else 1)]
             reason = ""
             if short:
                 reason = (f"not run (needs {layers} layers of {short[0]!r}, {available[short[0]]} rendered; "

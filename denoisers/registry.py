@@ -45,6 +45,9 @@ class MethodInfo:
     trainable: bool = False
     temporal: bool = False
     description: str = ""
+    # Adaptive sampling (denoisers.adaptive): the method receives every stored layer and an average
+    # budget (Frame.budget) and returns an AdaptiveOutput with its per-pixel sample map.
+    adaptive: bool = False
 
 
 @dataclass
@@ -54,6 +57,11 @@ class Frame:
     samples: buffer -> (S, C, H, W) per-sample values (S = the spp being evaluated);
     pixel: buffer -> (C, H, W) per-pixel values ("motion" in pixels with prev = centre + motion,
     "valid" in {0, 1}); index: frame index in the clip; camera_cut: no usable history.
+
+    Adaptive methods (MethodInfo.adaptive): ``samples`` holds every stored layer, so "radiance" has
+    render.spp + render.extra_radiance_spp layers and every other buffer only the first render.spp
+    (the radiance-only extra layers have no auxiliary buffers; ``spp`` is then the first buffer's
+    layer count); ``budget`` is the average spp the method may spend (the evaluated spp), None otherwise.
     """
 
     samples: dict[str, torch.Tensor]
@@ -61,6 +69,7 @@ class Frame:
     index: int = 0
     camera_cut: bool = False
     meta: dict = field(default_factory=dict)
+    budget: float | None = None
 
     @property
     def spp(self) -> int:
@@ -77,6 +86,16 @@ class Frame:
     def mean(self, buffer: str) -> torch.Tensor:
         """(C, H, W) box-filtered mean of a per-sample buffer over the frame's samples."""
         return self.samples[buffer].mean(dim=0)
+
+
+@dataclass
+class AdaptiveOutput:
+    """What an adaptive method's ``denoise`` returns: radiance (3, H, W) linear HDR and the integer
+    (H, W) sample map it used (pixel p read the first sample_map[p] radiance layers; its mean must not
+    exceed Frame.budget, see denoisers.adaptive.budget_total)."""
+
+    radiance: torch.Tensor
+    sample_map: torch.Tensor
 
 
 class Denoiser:
@@ -105,7 +124,8 @@ _REGISTRY: dict[str, type[Denoiser]] = {}
 
 
 def register(name: str, *, inputs: Sequence[str], pixel_inputs: Sequence[str] = (), trainable: bool = False,
-             temporal: bool = False, description: str = "") -> Callable[[type[Denoiser]], type[Denoiser]]:
+             temporal: bool = False, description: str = "", adaptive: bool = False
+             ) -> Callable[[type[Denoiser]], type[Denoiser]]:
     """Class decorator adding a method to the registry under ``name``."""
     unknown = [b for b in inputs if b not in SAMPLE_BUFFERS] + [b for b in pixel_inputs if b not in PIXEL_INPUTS]
     if unknown:
@@ -117,7 +137,8 @@ def register(name: str, *, inputs: Sequence[str], pixel_inputs: Sequence[str] = 
             raise ValueError(f"method name {name!r} is registered twice")
         cls.info = MethodInfo(name=name, inputs=tuple(inputs), pixel_inputs=tuple(pixel_inputs),
                               trainable=trainable, temporal=temporal,
-                              description=description or (cls.__doc__ or "").strip().split("\n")[0])
+                              description=description or (cls.__doc__ or "").strip().split("\n")[0],
+                              adaptive=adaptive)
         _REGISTRY[name] = cls
         return cls
 
@@ -179,21 +200,26 @@ def check_inputs(info: MethodInfo, sample_buffers: Sequence[str], pixel_buffers:
             raise MissingInputError(info.name, buffer, where)
 
 
-def clip_frames(clip, info: MethodInfo, spp: int) -> Iterator[Frame]:
+def clip_frames(clip, info: MethodInfo, spp: int, budget: float | None = None) -> Iterator[Frame]:
     """Frames of a loaded ``scenegen.dataset.Clip`` with exactly the buffers ``info`` declares.
 
     ``spp`` takes the first ``spp`` sample layers. Raises MissingInputError naming the buffer and
-    the method when the clip lacks a declared input.
+    the method when the clip lacks a declared input. For an adaptive method (``info.adaptive``) every
+    loaded layer is kept (``spp`` is the least radiance layers needed) and ``budget`` (default ``spp``)
+    becomes Frame.budget.
     """
+    if info.adaptive and budget is None:
+        budget = float(spp)
     check_inputs(info, list(clip.samples), ["motion", "valid", *(f"gbuffer.{k}" for k in clip.gbuffer)],
                  where=f"scene {clip.scene}")
     for t, frame_index in enumerate(clip.frames):
         samples = {}
         for buffer in info.inputs:
             stack = clip.samples[buffer]
-            if stack.shape[1] < spp:
-                raise MissingInputError(info.name, buffer, f"{spp} spp asked, {stack.shape[1]} layers rendered")
-            samples[buffer] = torch.from_numpy(np.ascontiguousarray(stack[t, :spp]))
+            needed = (spp if buffer == "radiance" else 1) if info.adaptive else spp
+            if stack.shape[1] < needed:
+                raise MissingInputError(info.name, buffer, f"{needed} spp asked, {stack.shape[1]} layers rendered")
+            samples[buffer] = torch.from_numpy(np.ascontiguousarray(stack[t] if info.adaptive else stack[t, :spp]))
         pixel = {}
         for buffer in info.pixel_inputs:
             if buffer == "motion":
@@ -204,4 +230,5 @@ def clip_frames(clip, info: MethodInfo, spp: int) -> Iterator[Frame]:
                 pixel[buffer] = torch.from_numpy(np.ascontiguousarray(clip.gbuffer[buffer.split(".", 1)[1]][t]))
         meta = clip.meta[t] if t < len(clip.meta) else {}
         yield Frame(samples=samples, pixel=pixel, index=frame_index,
-                    camera_cut=bool(meta.get("camera_cut", False)), meta=meta)
+                    camera_cut=bool(meta.get("camera_cut", False)), meta=meta,
+                    budget=budget if info.adaptive else None)

@@ -95,12 +95,40 @@ def _metrics_record(cfg: dict, denoised_path: Path) -> dict[str, Any] | None:
     return {"method_id": spec.id, "scene": scene, "spp": spp, DIGEST_KEY: lineage.metrics(spec, scene, spp)}
 
 
+def adaptive_accounting(denoised_path: Path, frames: Sequence[int]) -> dict[str, list[float]] | None:
+    """Realised spp per frame of an adaptive row's clip (None for other rows), recomputed from its
+    sample_maps.npz. EvaluationError naming the row, scene and frame when a frame's sample map is
+    missing or its mean exceeds the row's budget (denoisers.adaptive.budget_problems, rounding included)."""
+    from denoisers.adaptive import SAMPLE_MAPS_FILE, budget_problems
+
+    path = Path(denoised_path) / TIMING_FILE
+    timing = json.loads(path.read_text()) if path.is_file() else {}
+    if not timing.get("adaptive"):
+        return None
+    where = f"row {timing.get('method_id')!r}, scene {timing.get('scene')}"
+    maps_path = Path(denoised_path) / SAMPLE_MAPS_FILE
+    if not maps_path.is_file():
+        raise EvaluationError(f"{where}: adaptive clip {denoised_path} has no {SAMPLE_MAPS_FILE}")
+    with np.load(maps_path) as data:
+        by_frame = dict(zip(data["frames"].tolist(), data["sample_maps"]))
+    absent = [t for t in frames if t not in by_frame]
+    if absent:
+        raise EvaluationError(f"{where}: {maps_path} has no sample map for frame(s) {absent}")
+    budget = float(timing["budget_spp"])
+    problems = budget_problems([by_frame[t] for t in frames], budget, frames, where)
+    if problems:
+        raise EvaluationError("adaptive sample budget exceeded: " + "; ".join(problems))
+    return {"realised_spp": [float(np.mean(by_frame[t], dtype=np.float64)) for t in frames],
+            "budget_spp": [budget] * len(frames)}
+
+
 def evaluate_clip(cfg: dict, denoised_path: Path, render_dir: Path, out_csv: Path):
     """Per-frame metrics of one denoised clip against clip.reference radiance -> CSV with columns
     frame, psnr, ssim, rmse, relmse, smape, flip, tpsnr, trmae, camera_cut, nonfinite_output,
-    reference_psnr_halves, and its sidecar (metrics_sidecar: the settings digest the metrics came from;
-    not written when the denoised clip has no timing.json). Raises EvaluationError when frame counts or
-    resolutions differ."""
+    reference_psnr_halves (adaptive rows also realised_spp, budget_spp: adaptive_accounting), and its
+    sidecar (metrics_sidecar: the settings digest the metrics came from; not written when the denoised
+    clip has no timing.json). Raises EvaluationError when frame counts or resolutions differ, or an
+    adaptive row's frame exceeds its sample budget."""
     import pandas as pd
 
     denoised_path, render_dir = Path(denoised_path), Path(render_dir)
@@ -110,6 +138,7 @@ def evaluate_clip(cfg: dict, denoised_path: Path, render_dir: Path, out_csv: Pat
         raise EvaluationError(f"{denoised_path}: no denoised frames (frame_TTTT.exr)")
     ref_frames, ref_paths, reference, ref_meta = load_references(render_dir)
     _check_match(denoised, denoised_path, ref_frames, render_dir)
+    accounting = adaptive_accounting(denoised_path, ref_frames) or {}
     pred = []
     for t, ref_path, ref_image in zip(ref_frames, ref_paths, reference):
         image = read_radiance_exr(denoised[t])
@@ -122,7 +151,8 @@ def evaluate_clip(cfg: dict, denoised_path: Path, render_dir: Path, out_csv: Pat
     scores = score_sequence(pred, reference, cuts, cfg["evaluation"]["warmup_frames"])
     table = pd.DataFrame({"frame": ref_frames, **scores, "camera_cut": cuts,
                           "nonfinite_output": (~np.isfinite(pred)).sum(axis=(1, 2, 3)),
-                          "reference_psnr_halves": [m.get("psnr_halves", np.nan) for m in ref_meta]})
+                          "reference_psnr_halves": [m.get("psnr_halves", np.nan) for m in ref_meta],
+                          **accounting})
     if record is not None:   # first: a CSV on disk always has its sidecar
         write_text_atomic(metrics_sidecar(out_csv), json.dumps(record, indent=1) + "\n")
     write_text_atomic(out_csv, table.to_csv(index=False))

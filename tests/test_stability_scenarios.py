@@ -68,9 +68,11 @@ def test_schema_lists_exactly_the_registered_scenarios() -> None:
     schema = yaml.safe_load((REPO_ROOT / "workflow/schemas/config.schema.yaml").read_text())
     scenarios = schema["properties"]["stability"]["properties"]["scenarios"]
     assert scenarios["items"]["enum"] == scenarios["default"] == list(SCENARIOS)
-    for path in ("config/config.yaml", "config/smoke.yaml"):
-        cfg = load_config(REPO_ROOT / path)
-        assert cfg["stability"]["enabled"] and cfg["stability"]["scenarios"] == list(SCENARIOS), path
+    default = load_config(REPO_ROOT / "config/config.yaml")
+    assert default["stability"]["enabled"] and default["stability"]["scenarios"] == list(SCENARIOS)
+    assert default["stability"]["rows"] is None            # the default atlas covers every evaluation row
+    smoke = load_config(REPO_ROOT / "config/smoke.yaml")    # a subset, to keep the smoke run short
+    assert smoke["stability"]["enabled"] and set(smoke["stability"]["scenarios"]) < set(SCENARIOS)
 
 
 @pytest.mark.parametrize("name", list(SCENARIOS))
@@ -100,7 +102,8 @@ def test_config_section_is_validated_with_readable_errors() -> None:
     assert stability_scene_ids(cfg) == [f"stab_{name}" for name in SCENARIOS]
     defaults = validate_config({key: value for key, value in copy.deepcopy(cfg).items() if key != "stability"})
     assert defaults["stability"] == {"enabled": True, "scenarios": list(SCENARIOS), "frames": 8, "width": 64,
-                                     "height": 64, "spp": None, "reference_spp": 256}
+                                     "height": 64, "spp": None, "reference_spp": 256, "denoise_spp": [2],
+                                     "rows": None, "margin": 0.1}
     for change, expected in (({"scenarios": ["disocclusion", "moving_shadows"]}, "stability.scenarios[1]"),
                              ({"frames": 2}, "stability.frames"), ({"reference_spp": 9}, "stability.reference_spp"),
                              ({"spp": 40}, "stability.spp"), ({"widht": 8}, "unknown config key 'stability.widht'")):
@@ -233,9 +236,28 @@ def test_smoke_stability_target_plans_the_expected_jobs(tmp_path: Path) -> None:
     work = copy_workflow(tmp_path / "workflow")
     cfg = load_config(work / "config/smoke.yaml")
     counts = dry_run("stability", "--forceall", "--configfile", "config/smoke.yaml", cwd=work)
-    n = len(SCENARIOS)
-    assert counts == expected_jobs(cfg, "stability") == {"generate_scene": n, "render_noisy": n,
-                                                          "render_reference": n, "derive_masks": n, "stability": 1}
+    n, rows = len(cfg["stability"]["scenarios"]), len(cfg["stability"]["rows"])
+    assert cfg["stability"]["denoise_spp"] == [1] and (n, rows) == (2, 3)
+    # The smoke config's rows (noisy, svgf, oidn) on its two clips at 1 spp: nothing learned or tuned, so no
+    # training, tuning or training-scene renders.
+    assert counts == expected_jobs(cfg, "stability") == {
+        "generate_scene": n, "render_noisy": n, "render_reference": n, "derive_masks": n,
+        "denoise_scenario": n * rows, "score_scenario": n * rows, "build_atlas": 1, "stability": 1}
     bad = run_snakemake("-n", f"{cfg['output_dir']}/stability/stab_nope", "--configfile", "config/smoke.yaml",
                         cwd=work, check=False)
     assert bad.returncode != 0 and "stab_nope is not a stability scenario" in bad.stdout + bad.stderr
+    bad = run_snakemake("-n", f"{cfg['output_dir']}/stability/scores/svgf/stab_camera_cut/spp2.csv", "--configfile",
+                        "config/smoke.yaml", cwd=work, check=False)
+    assert bad.returncode != 0 and "row svgf runs on the stability clips at spp: 1" in bad.stdout + bad.stderr
+
+
+def test_stability_rows_must_be_evaluation_rows() -> None:
+    from denoisers.stability_job import stability_rows
+
+    cfg = load_config(REPO_ROOT / "config/smoke.yaml")
+    assert [spec.id for spec in stability_rows(cfg)] == ["noisy", "svgf", "oidn"]
+    cfg["stability"]["rows"] = None
+    assert [spec.id for spec in stability_rows(cfg)] == [m["id"] for m in cfg["evaluation"]["methods"]]
+    cfg["stability"]["rows"] = ["svgf", "kpcn"]
+    with pytest.raises(ValueError, match=r"'stability.rows' names \['kpcn'\]"):
+        stability_rows(cfg)

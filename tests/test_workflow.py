@@ -29,7 +29,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
              "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods", "time_training",
-             "derive_masks")
+             "derive_masks", "denoise_scenario", "score_scenario", "build_atlas")
 STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report", "stability")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
@@ -131,11 +131,20 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     from denoisers.training.speed import speed_models
 
     speed = {"time_training": 1 if speed_models(cfg) else 0}
-    # The stability scenarios (target `stability`, also part of `all`): per stab_* scene its scene, its chunks
-    # (one per clip) and one derive_masks job; never trained on or evaluated.
+    # The stability scenarios (target `stability`, also part of `report` and `all`): per stab_* scene its scene,
+    # its chunks (one per clip) and one derive_masks job; every runnable (configured row, stability.denoise_spp)
+    # denoises and scores every clip (denoise_scenario, score_scenario), with the models and tuning results those
+    # rows need (and so the training scenes' renders), and one build_atlas job.
+    from denoisers.stability_job import stability_runs
+
     stab = stability_scene_ids(cfg)
-    stability = {"generate_scene": len(stab), "render_noisy": sum(chunk_count(cfg, s) for s in stab),
-                 "render_reference": sum(chunk_count(cfg, s) for s in stab), "derive_masks": len(stab)}
+    stab_runs = [run for run in stability_runs(cfg) if run.runnable]
+    stab_models = len({method_model(run.spec.params) for run in stab_runs} - {None})
+    stab_tuned = {run.spec.method for run in stab_runs if run.spec.params.get("tuned")}
+    stab_train = train_scenes if stab_models or stab_tuned else []
+    stability = {**renders(stab + stab_train, stab + stab_train), "derive_masks": len(stab),
+                 "denoise_scenario": len(stab) * len(stab_runs), "score_scenario": len(stab) * len(stab_runs),
+                 "build_atlas": 1 if stab else 0, "train_denoiser": stab_models, "tune_method": len(stab_tuned)}
     jobs = {
         "scenes": {"generate_scene": len(scenes)},
         "stability": stability,
@@ -151,8 +160,14 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
         "all": {**renders(scenes, scenes), **evaluation, **speed, "build_report": 1, "train_denoiser": all_models,
                 "tune_method": tuned},
     }[target]
-    if target == "all":
-        jobs = {rule: jobs.get(rule, 0) + stability.get(rule, 0) for rule in {**jobs, **stability}}
+    if target in ("all", "report"):
+        # The stability jobs share the scenes, renders, models and tuning jobs with the rest of the DAG.
+        base = scenes if target == "all" else test_scenes + training_inputs
+        evaluated_tuned = {run.spec.method for run in plan_runs(cfg) if run.runnable and run.spec.params.get("tuned")}
+        jobs = {**{rule: jobs.get(rule, 0) + stability.get(rule, 0) for rule in {**jobs, **stability}},
+                **renders(list({*base, *stab, *stab_train}), list({*base, *stab, *stab_train})),
+                "train_denoiser": max(jobs.get("train_denoiser", 0), stab_models),
+                "tune_method": len(evaluated_tuned | stab_tuned)}
     return {rule: count for rule, count in {**jobs, target: 1}.items() if count}
 
 
@@ -366,6 +381,8 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     assert len(scenegen) == (jobs["generate_scene"] + jobs["render_noisy"] + jobs["render_reference"]
                              + jobs["derive_masks"])
     assert len(denoisers) == sum(jobs[rule] for rule in JOB_RULES[3:] if rule != "derive_masks")
+    scenario = [line for line in denoisers if "python -m denoisers denoise " in line and "/stability/denoised/" in line]
+    assert len(scenario) == jobs["denoise_scenario"]
     config_files = {re.search(r"--config (\S+)", command).group(1) for command in scenegen + denoisers}
     assert len(config_files) == 1
     resolved = load_config(workflow_copy / config_files.pop())
@@ -373,7 +390,7 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     assert resolved["evaluation"] == cfg["evaluation"]
     assert any("render-noisy" in command and "--chunk 1 " in command for command in scenegen)
 
-    denoise = [line for line in denoisers if "python -m denoisers denoise " in line]
+    denoise = [line for line in denoisers if "python -m denoisers denoise " in line and "/stability/" not in line]
     planned = {(run.spec.id, run.spp) for run in plan_runs(cfg) if run.runnable}
     ran = {(re.search(r"--method-id (\S+)", c).group(1), int(re.search(r"--spp (\d+)", c).group(1))) for c in denoise}
     assert ran == planned
@@ -566,7 +583,7 @@ def test_slurm_profile_sets_resources_for_every_rule() -> None:
     assert {"slurm_partition", "slurm_account"} <= set(profile["default-resources"])
     assert set(profile["set-resources"]) == rule_names() == set(JOB_RULES)
     config_threads = config_threaded_rules()
-    assert config_threads == {"denoise_clip", "robustness_clip", "train_denoiser", "tune_method"}
+    assert config_threads == {"denoise_clip", "denoise_scenario", "robustness_clip", "train_denoiser", "tune_method"}
     for rule, resources in profile["set-resources"].items():
         assert "mem_mb" in resources, rule
         # train_denoiser's runtime comes from the model's budget (the rule), every other rule's from here.

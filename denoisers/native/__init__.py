@@ -17,6 +17,10 @@ Where and how (the build must neither be shared between checkouts nor hang after
   900), so a hung build is killed; a successful build leaves a stamp in a directory keyed by the
   sources, flags and torch version, after which loading is a plain import of the built module.
 
+``load_kernels()`` does the same for the second extension, ``kernels.cpp`` (per-pixel kernel application
+of kernel-predicting denoisers, denoisers/kernels.py), built separately so that neither build depends
+on the other.
+
 If the build fails or times out, one warning names the error and every later call returns None.
 ``MCDN_NATIVE=0`` in the environment disables the kernels (checked at every call, so a test can switch
 paths).
@@ -48,6 +52,9 @@ DEFAULT_TIMEOUT_S = 900.0
 #: Extension name (the module name torch builds).
 EXTENSION_NAME = "mcdn_atrous"
 SOURCES = (Path(__file__).with_name("atrous.cpp"),)
+#: The per-pixel kernel extension (load_kernels).
+KERNELS_EXTENSION_NAME = "mcdn_kernels"
+KERNELS_SOURCES = (Path(__file__).with_name("kernels.cpp"),)
 #: -O3 without -ffast-math: NaN/Inf semantics and results stay as written. -ffp-contract=off keeps
 #: FMA contraction out, so the baseline and AVX2 clones of each loop give identical results;
 #: -fno-trapping-math and -fno-math-errno only drop FP-exception and errno side effects, which lets
@@ -56,6 +63,7 @@ CFLAGS = ("-O3", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno")
 
 _lock = threading.Lock()
 _built: list[ModuleType | None] = []     # empty until the first build attempt, then [module or None]
+_built_kernels: list[ModuleType | None] = []   # the same for load_kernels()
 
 
 class BuildError(RuntimeError):
@@ -78,6 +86,17 @@ def load() -> ModuleType | None:
     return _built[0]
 
 
+def load_kernels() -> ModuleType | None:
+    """The per-pixel kernel extension (kernels.cpp), built on the first call; None when disabled or unavailable."""
+    if not enabled():
+        return None
+    if not _built_kernels:
+        with _lock:
+            if not _built_kernels:
+                _built_kernels.append(_build(KERNELS_EXTENSION_NAME, KERNELS_SOURCES))
+    return _built_kernels[0]
+
+
 def backend() -> str:
     """"native" if :func:`load` gives the extension, else "torch" (builds it if needed)."""
     return "native" if load() is not None else "torch"
@@ -95,14 +114,15 @@ def build_directory() -> Path:
     return Path.home() / ".cache" / "mcdenoise" / f"native-{key}"
 
 
-def build_key() -> str:
-    """Digest of what the build depends on: sources, flags, torch and Python versions."""
+def build_key(name: str | None = None, sources: tuple[Path, ...] | None = None) -> str:
+    """Digest of what the build depends on: sources, flags, torch and Python versions (default: the
+    a-trous extension)."""
     import torch
 
     digest = hashlib.sha256()
-    for path in SOURCES:
+    for path in sources or SOURCES:
         digest.update(Path(path).read_bytes())
-    digest.update(repr((CFLAGS, EXTENSION_NAME, torch.__version__, sys.version_info[:2])).encode())
+    digest.update(repr((CFLAGS, name or EXTENSION_NAME, torch.__version__, sys.version_info[:2])).encode())
     return digest.hexdigest()[:16]
 
 
@@ -123,14 +143,15 @@ def _torch_load(directory: Path, name: str | None = None, sources: list[str] | N
                               extra_cflags=list(cflags or CFLAGS), build_directory=str(directory), verbose=False)
 
 
-def _import_built(directory: Path) -> ModuleType:
+def _import_built(directory: Path, name: str | None = None) -> ModuleType:
     """Import the extension the child process built (a plain import: nothing is compiled here)."""
     import importlib.util
 
     import torch  # noqa: F401 -- the extension links against torch's libraries, loaded by this import
 
-    path = directory / f"{EXTENSION_NAME}.so"
-    spec = importlib.util.spec_from_file_location(EXTENSION_NAME, path)
+    name = name or EXTENSION_NAME
+    path = directory / f"{name}.so"
+    spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None or not path.is_file():
         raise BuildError(f"{path}: built extension not found")
     module = importlib.util.module_from_spec(spec)
@@ -138,9 +159,11 @@ def _import_built(directory: Path) -> ModuleType:
     return module
 
 
-def _build() -> ModuleType | None:
+def _build(name: str | None = None, sources: tuple[Path, ...] | None = None) -> ModuleType | None:
+    """Build (once) and import extension ``name`` from ``sources`` (default: the a-trous extension)."""
+    name, sources = name or EXTENSION_NAME, sources or SOURCES
     try:
-        directory = build_directory() / build_key()
+        directory = build_directory() / build_key(name, sources)
         directory.mkdir(parents=True, exist_ok=True)
         stamp = directory / "built"
         with _exclusive(directory / "build.lock", _timeout()):
@@ -149,12 +172,13 @@ def _build() -> ModuleType | None:
                 log.info("removing stale build lock %s", stale)
                 stale.unlink()
             if not stamp.exists():
-                _compile_in_child(directory, _timeout())
+                _compile_in_child(directory, _timeout(), name, sources)
                 stamp.write_text("ok\n")
-            return _import_built(directory)
+            return _import_built(directory, name)
     except Exception as error:    # compiler or ninja missing, compile or import error, timeout: fall back
-        log.warning("native a-trous kernels unavailable, using the torch implementation "
-                    "(set %s=0 to skip the build): %s: %s", ENVIRONMENT_SWITCH, type(error).__name__,
+        what = "a-trous kernels" if name == EXTENSION_NAME else f"extension {name}"
+        log.warning("native %s unavailable, using the torch implementation "
+                    "(set %s=0 to skip the build): %s: %s", what, ENVIRONMENT_SWITCH, type(error).__name__,
                     _summary(error))
         return None
 
@@ -183,9 +207,11 @@ class _exclusive:
         self.handle.close()
 
 
-def _compile_in_child(directory: Path, timeout: float) -> None:
+def _compile_in_child(directory: Path, timeout: float, name: str | None = None,
+                      sources: tuple[Path, ...] | None = None) -> None:
     """Compile in a child process (killed after ``timeout`` s); BuildError with its last lines on failure."""
-    settings = json.dumps({"name": EXTENSION_NAME, "sources": [str(path) for path in SOURCES],
+    name = name or EXTENSION_NAME
+    settings = json.dumps({"name": name, "sources": [str(path) for path in sources or SOURCES],
                            "cflags": list(CFLAGS)})
     command = [sys.executable, "-c", "import json, sys; from pathlib import Path; from denoisers.native import "
                "_torch_load; _torch_load(Path(sys.argv[1]), **json.loads(sys.argv[2]))", str(directory), settings]
@@ -194,10 +220,10 @@ def _compile_in_child(directory: Path, timeout: float) -> None:
         result = subprocess.run(command, capture_output=True, text=True, timeout=timeout, env=env,
                                 cwd=Path(__file__).resolve().parents[2])
     except subprocess.TimeoutExpired as error:
-        raise BuildError(f"build of {EXTENSION_NAME} in {directory} timed out after {timeout:g} s "
+        raise BuildError(f"build of {name} in {directory} timed out after {timeout:g} s "
                          f"({TIMEOUT_VARIABLE})") from error
     if result.returncode != 0:
-        raise BuildError(f"build of {EXTENSION_NAME} in {directory} failed: {result.stderr[-2000:]}")
+        raise BuildError(f"build of {name} in {directory} failed: {result.stderr[-2000:]}")
 
 
 def _put_ninja_on_path() -> None:

@@ -11,4 +11,6 @@ if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO, format="%(name)s %(levelname)s %(message)s")
     backend = native.backend()
     print(f"native kernels: {backend} (build directory {native.build_directory()})")
+    kernels = "native" if native.load_kernels() is not None else "torch"
+    print(f"per-pixel kernel application (denoisers.kernels): {kernels}")
     sys.exit(0)

@@ -10,6 +10,7 @@ from denoisers.evaluate import ALL_METRICS, EvaluationError
 from denoisers.provenance import describe, provenance
 from denoisers.report import figures as fig
 from denoisers.report import tables as tab
+from denoisers.report.atlas import report_section as atlas_section
 from denoisers.report.capacity import capacity_section
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, MIN_UNITS, NOT_RUN, REPRODUCED, claims_table
 from denoisers.report.collect import MIN_TRAINING_STEPS, Results, collect
@@ -294,6 +295,7 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
     lines += _robustness_section(res, tables)
     lines += _training_section(res, tables, figures)
     lines += capacity_section(res, tables, figures)
+    lines += atlas_section(cfg, res.results_dir)
     lines += ["## Reference noise floor", "", inline["noise"], "", "## Per-scene figures", ""]
     for scene in res.scenes:
         fig.plot_frame_curves(res, scene, figures / f"frame_curves_{scene}.png")

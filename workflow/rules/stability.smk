@@ -1,7 +1,12 @@
 # Temporal-stability scenarios (scenegen/scenarios/, config section `stability`): scenes stab_{name} are
 # generated and rendered by generate_scene, render_noisy and render_reference (one chunk per clip); this rule
 # derives where and when each scenario's difficulty happens from those renders.
-#   derive_masks: <output_dir>/stability/{scene}/masks/frame_{t:04d}.exr + events.json
+#   derive_masks:     <output_dir>/stability/{scene}/masks/frame_{t:04d}.exr + events.json
+# Every configured row of evaluation.methods (not the ablation variants) then runs on every clip at
+# stability.denoise_spp (denoisers.stability_job), and the failure atlas is built from the scores:
+#   denoise_scenario: <output_dir>/stability/denoised/{method}/{scene}/spp{spp}/ (as denoise_clip's outputs)
+#   score_scenario:   <output_dir>/stability/scores/{method}/{scene}/spp{spp}.csv + .json (failure metrics)
+#   build_atlas:      <output_dir>/stability/ATLAS.md, stability/tables/, stability/figures/ (build_report links it)
 
 
 rule derive_masks:
@@ -30,3 +35,89 @@ rule derive_masks:
         "python -m scenegen derive-masks --config {params.config_file} --scene {wildcards.scene}"
         " --scene-dir {input.scene_dir} --render-dir {params.render_dir} --out {output.masks_dir}"
         " --threads {threads} > {log} 2>&1"
+
+
+rule denoise_scenario:
+    input:
+        valid=check_scenario_target("denoise_scenario", "stability/denoised/{method}/{scene}/spp{spp}"),
+        noisy=scene_chunk_dirs("noisy"),
+        model=method_model_dir,
+        tuning=method_tuning_file,
+    output:
+        out_dir=directory(results_path("stability/denoised/{method}/{scene}/spp{spp}")),
+    params:
+        config_file=resolved_config_file,
+        config_digest=denoise_digest,
+        render_dir=render_dir,
+        results=results_root,
+    log:
+        results_path("logs/denoise_scenario/{method}/{scene}/spp{spp}.log"),
+    benchmark:
+        results_path("benchmarks/denoise_scenario/{method}/{scene}/spp{spp}.tsv")
+    conda:
+        "../envs/harness.yaml"
+    threads: config["evaluation"]["threads"]
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    shell:
+        "python -m denoisers denoise --config {params.config_file} --method-id {wildcards.method}"
+        " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
+        " --results {params.results} --out {output.out_dir} --threads {threads} > {log} 2>&1"
+
+
+rule score_scenario:
+    input:
+        valid=check_scenario_target("score_scenario", "stability/scores/{method}/{scene}/spp{spp}.csv"),
+        denoised=results_path("stability/denoised/{method}/{scene}/spp{spp}"),
+        reference=scene_chunk_dirs("reference"),
+        masks=results_path("stability/{scene}"),
+    output:
+        csv=results_path("stability/scores/{method}/{scene}/spp{spp}.csv"),
+        summary=results_path("stability/scores/{method}/{scene}/spp{spp}.json"),
+    params:
+        config_file=resolved_config_file,
+        config_digest=scenario_score_digest,
+        render_dir=render_dir,
+    log:
+        results_path("logs/score_scenario/{method}/{scene}/spp{spp}.log"),
+    benchmark:
+        results_path("benchmarks/score_scenario/{method}/{scene}/spp{spp}.tsv")
+    conda:
+        "../envs/harness.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=20,
+    shell:
+        "OMP_NUM_THREADS={threads} python -m denoisers score-scenario --config {params.config_file}"
+        " --denoised {input.denoised} --render-dir {params.render_dir} --masks {input.masks}"
+        " --out {output.csv} > {log} 2>&1"
+
+
+rule build_atlas:
+    input:
+        scores=scenario_outputs("scores"),
+        denoised=scenario_outputs("denoised"),
+        masks=stability_mask_dirs,
+    output:
+        markdown=ATLAS_OUTPUTS["markdown"],
+        tables=ATLAS_OUTPUTS["tables"],
+        figures=ATLAS_OUTPUTS["figures"],
+    params:
+        config_file=resolved_config_file,
+        config_digest=atlas_digest,
+        results=results_root,
+    log:
+        results_path("logs/build_atlas.log"),
+    benchmark:
+        results_path("benchmarks/build_atlas.tsv")
+    conda:
+        "../envs/harness.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=20,
+    shell:
+        "OMP_NUM_THREADS={threads} python -m denoisers atlas --config {params.config_file}"
+        " --results {params.results} > {log} 2>&1"

@@ -1,0 +1,206 @@
+"""Adaptive sampling from stored sample layers (issue 12; Hasselgren et al. 2020, Kuznetsov et al. 2018).
+
+The renderer stores independent 1-spp layers per frame (``render.spp`` layers with every buffer, then
+``render.extra_radiance_spp`` radiance-only layers). A pixel given ``k`` samples gets the mean of its
+first ``k`` layers, which is exactly what rendering ``k`` samples there would give. This module holds:
+
+* :func:`density` -- Eq. 2 of Hasselgren et al. before rounding, ``M n softmax(s)``: differentiable, for
+  training a sample-map network later (real-valued samples per pixel, mean exactly ``n``).
+* :func:`normalize_sample_map` -- Eq. 2 to an integer (H, W) sample map whose mean never exceeds the
+  budget ``n`` (rounding included), at least ``minimum`` and at most the available layers per pixel.
+* :func:`gather_mean` / :func:`masked_samples` -- the per-pixel mean of the first ``k`` layers (and the
+  per-sample tensor with the layers beyond ``k`` zeroed), vectorised over pixels.
+* :func:`budget_total`, :func:`budget_problems`, :func:`realised_spp` -- the sample accounting the
+  evaluation applies to every adaptive row (denoisers.denoise_job, denoisers.scoring).
+
+Rounding (``normalize_sample_map``): the budget is ``T = floor(n M + 1e-9)`` integer samples for M pixels
+(:func:`budget_total`). Eq. 2 gives real counts ``x_p = minimum + (T - minimum M) w_p / sum w``; counts
+above the available layers are clipped and their excess is given to the other pixels in proportion to
+their importance (water filling). Each pixel then gets ``floor(x_p)`` and the ``R = T - sum floor(x_p)``
+remaining samples go to
+  - ``"largest_remainder"`` (default, deterministic): the R pixels with the largest fractional parts
+    (ties to the lower raster index);
+  - ``"stochastic"`` (seeded): systematic sampling of the fractional parts along a seeded random
+    permutation of the pixels, so pixel p gets an extra sample with probability frac(x_p) (unbiased)
+    and exactly R extra samples are given.
+Both never exceed T; the same inputs and seed give the same map. The paper's ``round()`` can exceed the
+budget by up to M/2 samples, hence these schemes. The paper's minimum is 0 (Eq. 2 rounds, Hasselgren
+et al. have no initial pass); DASR (Kuznetsov et al.) first renders 1 spp everywhere, i.e. ``minimum=1``,
+and those samples count toward the budget.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+
+#: Tolerance of the float budget product n M before flooring (n given as a decimal, e.g. 1.1 x 10 px).
+BUDGET_EPSILON = 1e-9
+ROUNDING_SCHEMES = ("largest_remainder", "stochastic")
+#: Per-frame sample maps of an adaptive row beside its denoised frames (denoisers.denoise_job):
+#: arrays ``frames`` (T,) int64 and ``sample_maps`` (T, H, W) uint8.
+SAMPLE_MAPS_FILE = "sample_maps.npz"
+
+
+class BudgetError(ValueError):
+    """A sample map is invalid or spends more samples than its budget; the message names where."""
+
+
+def budget_total(budget: float, pixels: int) -> int:
+    """Integer samples a frame of ``pixels`` pixels may spend at an average of ``budget`` spp:
+    floor(budget x pixels) (+1e-9 against float error). A map's mean is within budget iff its sum is <= this."""
+    if not math.isfinite(budget) or budget < 0:
+        raise BudgetError(f"average sample budget must be finite and >= 0, got {budget}")
+    return int(math.floor(budget * pixels + BUDGET_EPSILON))
+
+
+def density(logits: torch.Tensor, budget: float) -> torch.Tensor:
+    """Eq. 2 of Hasselgren et al. without the rounding: ``M n exp(s_p) / sum_i exp(s_i)``.
+
+    logits: (..., H, W) unnormalised network output s (any real); budget n: average spp. Returns the
+    same shape, real samples per pixel with per-image mean n. Implemented as a softmax over the unrolled
+    image (the paper found this more stable for the gradient); differentiable.
+    """
+    height, width = logits.shape[-2:]
+    flat = logits.reshape(*logits.shape[:-2], height * width)
+    return (torch.softmax(flat, dim=-1) * (height * width * float(budget))).reshape(logits.shape)
+
+
+def _water_fill(weights: torch.Tensor, extra: float, capacity: torch.Tensor) -> torch.Tensor:
+    """Real allocation a_p in [0, capacity_p] with sum a = min(extra, sum capacity), proportional to
+    ``weights`` where not capped; the excess of capped pixels goes to the others; uniform over the
+    pixels left when no positive weight remains. All (M,) float64."""
+    allocation = torch.zeros_like(weights)
+    remaining = min(float(extra), float(capacity.sum()))
+    free = capacity > 0
+    while remaining > 1e-9 and bool(free.any()):
+        w = torch.where(free, weights, torch.zeros_like(weights))
+        if float(w.sum()) <= 0:                      # only zero-importance pixels left: spread uniformly
+            w = free.to(weights.dtype)
+        share = remaining * w / w.sum()
+        room = capacity - allocation
+        capped = free & (share >= room)
+        if not bool(capped.any()):
+            allocation += share
+            break
+        remaining -= float(room[capped].sum())
+        allocation[capped] = capacity[capped]
+        free &= ~capped
+    return allocation
+
+
+def normalize_sample_map(importance: torch.Tensor, budget: float, max_count: int, *, minimum: int = 0,
+                         rounding: str = "largest_remainder", seed: int = 0) -> torch.Tensor:
+    """Eq. 2: a non-negative (H, W) importance map -> an integer (H, W) int64 sample map.
+
+    importance: w_p >= 0 (e.g. ``exp(s)`` of a network, or a variance estimate); all zeros means uniform.
+    budget: average spp n (float). max_count: available layers per pixel (S_avail). minimum: samples every
+    pixel gets first (0 as in the paper; 1 for DASR's initial pass), counted in the budget. Guarantees
+    ``minimum <= k <= max_count`` and ``k.sum() <= budget_total(budget, H W)``; it equals that total unless
+    every pixel is at ``max_count``. Rounding: see the module docstring. BudgetError on invalid input.
+    """
+    if importance.dim() != 2:
+        raise BudgetError(f"importance must be (H, W), got shape {tuple(importance.shape)}")
+    if rounding not in ROUNDING_SCHEMES:
+        raise BudgetError(f"rounding must be one of {ROUNDING_SCHEMES}, got {rounding!r}")
+    weights = importance.detach().to(torch.float64).flatten()
+    if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
+        raise BudgetError("importance must be finite and >= 0 everywhere")
+    pixels = weights.numel()
+    total = budget_total(budget, pixels)
+    if not 0 <= minimum <= max_count:
+        raise BudgetError(f"minimum {minimum} must be in 0..max_count = {max_count}")
+    if minimum * pixels > total:
+        raise BudgetError(f"budget {budget} spp ({total} samples for {pixels} pixels) is below the minimum "
+                          f"of {minimum} sample(s) per pixel")
+    capacity = torch.full_like(weights, float(max_count - minimum))
+    real = minimum + _water_fill(weights, total - minimum * pixels, capacity)
+    counts = torch.floor(real + 1e-9).clamp_(minimum, max_count)
+    excess = int(counts.sum().item()) - min(total, pixels * max_count)
+    if excess > 0:                     # the 1e-9 snap rounded up too often: take back the smallest overshoots
+        overshoot = torch.where(counts > minimum, real - counts, torch.full_like(real, math.inf))
+        counts[torch.sort(overshoot, stable=True).indices[:excess]] -= 1
+    fraction = (real - counts).clamp_(0.0, 1.0)
+    fraction[counts >= max_count] = -1.0                       # never above the available layers
+    target = min(total, pixels * max_count)
+    remainder = int(target - counts.sum().item())
+    if remainder > 0:
+        if rounding == "largest_remainder":
+            order = torch.sort(fraction, descending=True, stable=True).indices
+            chosen = order[:remainder]
+        else:
+            chosen = _systematic(fraction.clamp(min=0.0), remainder, seed)
+        chosen = chosen[fraction[chosen] >= 0]
+        counts[chosen] += 1
+    return counts.to(torch.int64).reshape(importance.shape)
+
+
+def _systematic(fraction: torch.Tensor, count: int, seed: int) -> torch.Tensor:
+    """Indices of ``count`` pixels chosen by systematic sampling of ``fraction`` (M,) along a seeded random
+    permutation: pixel p is chosen with probability fraction_p when the fractions sum to ``count``."""
+    generator = torch.Generator().manual_seed(int(seed))
+    permutation = torch.randperm(fraction.numel(), generator=generator)
+    offset = float(torch.rand((), generator=generator, dtype=torch.float64))
+    permuted = fraction[permutation]
+    cumulative = torch.cumsum(permuted, 0)
+    hits = torch.floor(cumulative + offset) - torch.floor(cumulative - permuted + offset)
+    chosen = permutation[hits > 0]
+    if chosen.numel() > count:                                 # float error: drop the smallest fractions
+        chosen = chosen[torch.sort(fraction[chosen], descending=True, stable=True).indices[:count]]
+    elif chosen.numel() < count:                               # float error: add the largest unchosen ones
+        rest = torch.ones_like(fraction, dtype=torch.bool)
+        rest[chosen] = False
+        candidates = torch.nonzero(rest & (fraction > 0)).flatten()
+        extra = candidates[torch.sort(fraction[candidates], descending=True, stable=True).indices]
+        chosen = torch.cat([chosen, extra[:count - chosen.numel()]])
+    return chosen
+
+
+def _check_counts(layers: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    if layers.dim() != 4:
+        raise BudgetError(f"layers must be (S, C, H, W), got shape {tuple(layers.shape)}")
+    if counts.shape != layers.shape[-2:] or counts.dtype.is_floating_point or counts.dtype == torch.bool:
+        raise BudgetError(f"counts must be an integer (H, W) = {tuple(layers.shape[-2:])} map, got "
+                          f"{counts.dtype} {tuple(counts.shape)}")
+    if counts.numel() and (int(counts.min()) < 0 or int(counts.max()) > layers.shape[0]):
+        raise BudgetError(f"counts must be in 0..{layers.shape[0]} (available layers), got "
+                          f"{int(counts.min())}..{int(counts.max())}")
+    return torch.arange(layers.shape[0], device=layers.device).view(-1, 1, 1) < counts.to(layers.device)
+
+
+def masked_samples(layers: torch.Tensor, counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(S, C, H, W) layers, integer (H, W) counts k -> (layers with every layer s >= k_p zeroed at pixel p,
+    (S, 1, H, W) bool mask of the kept layers). Values beyond k (even NaN) never leak into the result."""
+    mask = _check_counts(layers, counts).unsqueeze(1)
+    return torch.where(mask, layers, torch.zeros((), dtype=layers.dtype)), mask
+
+
+def gather_mean(layers: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """(C, H, W) per-pixel mean of the first k_p of the (S, C, H, W) layers; 0 where k_p = 0.
+
+    counts: integer (H, W), 0 <= k <= S. Values are summed in layer order, as a direct mean would.
+    """
+    kept, _ = masked_samples(layers, counts)
+    divisor = counts.to(device=layers.device, dtype=layers.dtype).clamp(min=1)
+    return kept.sum(dim=0) / divisor
+
+
+def realised_spp(sample_map: torch.Tensor) -> float:
+    """Mean samples per pixel actually used by an (H, W) sample map."""
+    return float(sample_map.to(torch.float64).mean())
+
+
+def budget_problems(sample_maps: Sequence, budget: float, frames: Sequence[int], where: str = "") -> list[str]:
+    """One message per frame whose (H, W) sample map spends more than ``budget`` spp on average (its sum
+    above :func:`budget_total`), naming ``where`` (e.g. the row and scene) and the frame index."""
+    problems = []
+    prefix = f"{where}: " if where else ""
+    for frame, sample_map in zip(frames, sample_maps):
+        counts = torch.as_tensor(sample_map)
+        used, allowed = int(counts.to(torch.int64).sum()), budget_total(budget, counts.numel())
+        if used > allowed:
+            problems.append(f"{prefix}frame {int(frame)} uses {used} samples for {counts.numel()} pixels "
+                            f"(mean {used / counts.numel():.6g} spp), above the budget of {budget:g} spp "
+                            f"({allowed} samples)")
+    return problems
