@@ -19,6 +19,8 @@ report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/common_timing.smk"
+include: "workflow/rules/common_stability.smk"
 include: "workflow/rules/scenes.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/train.smk"

@@ -221,6 +221,7 @@ def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_cop
         {"id": "path_x2", "method": "path_tracing", "params": {"factor": 2}},
         {"id": "path_x4", "method": "path_tracing", "params": {"factor": 4}},
     ])
+    cfg["stability"]["rows"] = None    # the smoke config's stability rows are not among these
     cfg["evaluation"]["robustness"].update(enabled=True, spp=2)
     (workflow_copy / "layers.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("--forceall", "--configfile", "layers.yaml", cwd=workflow_copy)
@@ -308,6 +309,7 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
         {"id": "eaw", "method": "eaw", "spp": [2], "robustness": False},
         {"id": "path_x2", "method": "path_tracing", "params": {"factor": 2}, "spp": []},
     ])
+    cfg["stability"]["rows"] = None    # the smoke config's stability rows are not among these
     (workflow_copy / "rows.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
     # Hand count on the one evaluated (test) scene: noisy at 1 and 2 spp, eaw at 2, path_x2 at none, the 7
@@ -534,19 +536,20 @@ def test_training_reruns_only_when_its_settings_or_data_change(stub_workflow: Pa
         (work / name).write_text(yaml.safe_dump(cfg))
         return name
 
-    # An ablation's budget: only its variants. The base model's network: the base and every variant.
+    # An ablation's budget: only its variants. The base model's network: the base and every variant that does
+    # not set the changed key itself (the capacity size width0125 keeps its own width: 8 models - 1).
     ablation = dry_run("train", "--configfile", variant("a.yaml", lambda c: c["training"]["ablations"][0].update(
         budget={"max_steps": 3})), cwd=work)
     assert ablation == {"train_denoiser": 3, "train": 1}
     base = dry_run("train", "--configfile", variant("b.yaml", lambda c: c["training"]["models"][0]["net"].update(
         width=0.5)), cwd=work)
-    assert base == {"train_denoiser": 6, "train": 1}
+    assert base == {"train_denoiser": 7, "train": 1}
     # Evaluation settings do not touch the models; the training data's render settings retrain all.
     evaluation = dry_run("train", "--configfile", variant("c.yaml", lambda c: c["evaluation"].update(threads=2)),
                          cwd=work)
     assert evaluation == {}
     data = dry_run("train", "--configfile", variant("d.yaml", lambda c: c["render"].update(max_depth=6)), cwd=work)
-    assert data["train_denoiser"] == 6
+    assert data["train_denoiser"] == 8          # every model of the smoke config (rae + 7 ablation variants)
 
 
 def rule_names() -> set[str]:

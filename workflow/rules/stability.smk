@@ -8,7 +8,6 @@
 #   score_scenario:   <output_dir>/stability/scores/{method}/{scene}/spp{spp}.csv + .json (failure metrics)
 #   build_atlas:      <output_dir>/stability/ATLAS.md, stability/tables/, stability/figures/ (build_report links it)
 
-
 rule derive_masks:
     input:
         valid=check_stability_target,

@@ -9,7 +9,6 @@
 # report's "Training step speed" table reads it. Also every core, for the same reason.
 #   time_training: <out>/timing/training.json
 
-
 rule time_methods:
     input:
         scenes=timing_scene_dirs,
