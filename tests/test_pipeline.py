@@ -146,7 +146,12 @@ def test_scenes_stage_target_produces_only_scenes(pipeline: PipelineRun) -> None
 def test_full_run_reuses_the_scenes(pipeline: PipelineRun) -> None:
     scene_files = {path: mtime for path, mtime in _tree(pipeline.results).items() if path.startswith("scenes/")}
     before = {path: mtime for path, mtime in pipeline.after_scenes.items() if path.startswith("scenes/")}
-    assert scene_files == before, "the full run regenerated scenes that were already up to date"
+    # The stage target `scenes` builds the procedural and external scenes; the full run adds the stability
+    # scenarios (stab_*, target `stability`) and must leave every scene that existed untouched.
+    assert {path: scene_files.get(path) for path in before} == before, \
+        "the full run regenerated scenes that were already up to date"
+    added = {path.split("/")[1] for path in set(scene_files) - set(before)}
+    assert added == {f"stab_{name}" for name in pipeline.cfg["stability"]["scenarios"]}, added
 
 
 def test_every_scene_has_manifest_and_all_chunks(pipeline: PipelineRun) -> None:
