@@ -12,6 +12,22 @@ first ``k`` layers, which is exactly what rendering ``k`` samples there would gi
   per-sample tensor with the layers beyond ``k`` zeroed), vectorised over pixels.
 * :func:`budget_total`, :func:`budget_problems`, :func:`realised_spp` -- the sample accounting the
   evaluation applies to every adaptive row (denoisers.denoise_job, denoisers.scoring).
+* :func:`render_adaptive` -- the "renderer" of training: real densities -> integer maps -> gathered means,
+  with the renderer gradient below for the backward pass.
+
+Renderer gradient (Kuznetsov et al. 2018, used by Hasselgren et al. 2020 Sec. 2.1). Rendering is not
+differentiable in the sample count, so the backward pass uses the forward difference of the stored
+layers: the mean of the first k layers, I_k = (1/k) sum_{i<=k} x_i, changes by one more sample by
+``dI/dk ~ I_{k+1} - I_k = (x_{k+1} - I_k) / (k + 1)`` (with the realised next layer x_{k+1}, so it is the
+renderer's own finite difference; at k = S_avail the backward difference I_S - I_{S-1}; at k = 0,
+I_0 = 0, it is x_1). The density gradient is then sum_c dL/dI_c * dI_c/dk per pixel; the rounding to
+integers is skipped (straight through). In expectation over x_{k+1} this is ``dL/dI . (mu - I_k)/(k + 1)``,
+the derivative of the expected loss of the linearly interpolated renderer
+I(k + h) = I_k + h (x_{k+1} - I_k)/(k + 1), i.e. the first-order term of adding one sample. For a squared
+error the integer step's finite difference E[L(k + 1)] - E[L(k)] adds a positive second-order term, and the
+estimate is exactly twice that finite difference (-2 sigma^2 / (k (k + 1)) against -sigma^2 / (k (k + 1))
+per pixel): same sign and the same ordering of pixels by the error one more sample removes.
+tests/test_ntasd.py checks this against directly computed finite differences of the expected error.
 
 Rounding (``normalize_sample_map``): the budget is ``T = floor(n M + 1e-9)`` integer samples for M pixels
 (:func:`budget_total`). Eq. 2 gives real counts ``x_p = minimum + (T - minimum M) w_p / sum w``; counts
@@ -204,3 +220,52 @@ def budget_problems(sample_maps: Sequence, budget: float, frames: Sequence[int],
                             f"(mean {used / counts.numel():.6g} spp), above the budget of {budget:g} spp "
                             f"({allowed} samples)")
     return problems
+
+
+class _RenderAdaptive(torch.autograd.Function):
+    """Forward: (N, H, W) integer counts -> (N, C, H, W) means of the first k layers. Backward: the
+    renderer gradient of the module docstring to the (N, H, W) real density (counts are not differentiated)."""
+
+    @staticmethod
+    def forward(ctx, density: torch.Tensor, layers: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+        means = torch.stack([gather_mean(layer, count) for layer, count in zip(layers, counts)])
+        ctx.save_for_backward(layers, counts, means)
+        return means
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        layers, counts, means = ctx.saved_tensors
+        return renderer_derivative(layers, counts, means).mul(grad).sum(dim=1), None, None
+
+
+def renderer_derivative(layers: torch.Tensor, counts: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
+    """(N, C, H, W) dI/dk of the module docstring: layers (N, S, C, H, W), integer counts k (N, H, W),
+    means I_k (N, C, H, W)."""
+    available = layers.shape[1]
+    k = counts.to(torch.int64)
+    at_end = k >= available
+    index = torch.where(at_end, torch.full_like(k, available - 1), k)           # layer x_{k+1} (0-based k)
+    gather_index = index[:, None, None].expand(-1, 1, layers.shape[2], -1, -1)
+    next_layer = torch.gather(layers, 1, gather_index)[:, 0]                     # (N, C, H, W)
+    kf = k.to(layers.dtype)[:, None]
+    forward = (next_layer - means) / (kf + 1.0)
+    # k = S: I_S - I_{S-1} = (x_S - I_{S-1}) / S with I_{S-1} = (S I_S - x_S) / (S - 1)
+    if available > 1:
+        previous = (available * means - next_layer) / (available - 1)
+        backward = (next_layer - previous) / available
+    else:
+        backward = next_layer.clone()
+    return torch.where(at_end[:, None], backward, forward)
+
+
+def render_adaptive(density: torch.Tensor, layers: torch.Tensor, budget: float, *, minimum: int = 0,
+                    rounding: str = "largest_remainder", seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Training's renderer: density (N, H, W) real samples per pixel (e.g. :func:`density`), layers
+    (N, S, C, H, W) stored 1-spp samples -> (means (N, C, H, W), counts (N, H, W) int64). Counts per image
+    by :func:`normalize_sample_map` (never above the budget); gradient to ``density`` as documented above."""
+    # Eq. 2's weights are the samples above the minimum (DASR's initial pass), so a density built as
+    # minimum + (n - minimum) M softmax(s) is reproduced up to rounding.
+    counts = torch.stack([normalize_sample_map((d.detach() - minimum).clamp_min(0), budget, layers.shape[1],
+                                               minimum=minimum,
+                                               rounding=rounding, seed=seed + i) for i, d in enumerate(density)])
+    return _RenderAdaptive.apply(density, layers, counts), counts

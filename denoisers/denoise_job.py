@@ -278,10 +278,11 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
     if result.sample_maps is not None:
         from denoisers.adaptive import SAMPLE_MAPS_FILE, budget_problems
 
-        problems = budget_problems(result.sample_maps, spp, clip.frames, f"row {spec.id!r}, scene {scene}")
+        # The row's budget: the evaluated spp times its samples_factor (e.g. a uniform 8-spp row at 4 spp).
+        problems = budget_problems(result.sample_maps, layers, clip.frames, f"row {spec.id!r}, scene {scene}")
         if problems:
             raise EvaluationError("adaptive sample budget exceeded: " + "; ".join(problems))
-        adaptive = adaptive_record(result.sample_maps, spp, clip.frames)
+        adaptive = adaptive_record(result.sample_maps, layers, clip.frames)
         adaptive["available_layers"] = {buffer: int(v.shape[0]) for buffer, v in frames[0].samples.items()}
     # Steady-state cost of one path sample with every feature buffer: the reference renders' rate
     # (large batches); the noisy frames' rate also carries per-frame scene loading.

@@ -319,20 +319,24 @@ def warp_previous(prev: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     """Bring previous-frame data to the current frame: sample ``prev`` at (x + motion_x, y + motion_y).
 
     prev: (C, H, W) or (N, C, H, W); motion: (2, H, W) backward motion in pixels (scenegen
-    convention: the previous position of pixel centre (x + 0.5, y + 0.5) is centre + motion).
+    convention: the previous position of pixel centre (x + 0.5, y + 0.5) is centre + motion), shared by
+    the batch, or (N, 2, H, W) per image for a batched ``prev``.
     Bilinear interpolation in pixel-index coordinates, lookups outside the image clamp to the border.
     Returns the same shape as ``prev``.
     """
     batched = prev.dim() == 4
     images = prev if batched else prev[None]
     height, width = images.shape[-2:]
-    if motion.shape != (2, height, width):
-        raise ValueError(f"warp_previous: motion must be (2, {height}, {width}), got {tuple(motion.shape)}")
+    per_image = batched and motion.dim() == 4
+    if motion.shape[-3:] != (2, height, width) or (per_image and motion.shape[0] != images.shape[0]) or (
+            motion.dim() == 4 and not per_image):
+        raise ValueError(f"warp_previous: motion must be (2, {height}, {width}) or, for a batch of {images.shape[0]}, "
+                         f"({images.shape[0]}, 2, {height}, {width}); got {tuple(motion.shape)}")
     ys = torch.arange(height, dtype=torch.float32).view(height, 1)
     xs = torch.arange(width, dtype=torch.float32).view(1, width)
     motion = sanitize(motion)
-    x = (xs + motion[0]).clamp_(0, width - 1)
-    y = (ys + motion[1]).clamp_(0, height - 1)
+    x = (xs + motion[..., 0, :, :]).clamp(0, width - 1)
+    y = (ys + motion[..., 1, :, :]).clamp(0, height - 1)
     # grid_sample with align_corners=True maps -1 / +1 to the centres of the first / last pixel.
     grid = torch.stack([x * (2.0 / max(width - 1, 1)) - 1.0, y * (2.0 / max(height - 1, 1)) - 1.0], dim=-1)
     grid = grid.expand(images.shape[0], height, width, 2)

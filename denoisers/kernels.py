@@ -17,7 +17,7 @@ Kernel layout and borders: ``weights[t]`` with ``t = i * k + j`` is the weight o
 normalises or softmaxes them (a network learns to give border taps no weight). Images are linear
 radiance (or any float channels), (C, H, W) or batched (N, C, H, W) with weights (N, k*k, H, W).
 
-Networks and training are not here (not built yet).
+Networks: denoisers.nets.ntasd; training and the frame step: denoisers.nets.ntasd_task.
 """
 from __future__ import annotations
 
@@ -168,7 +168,8 @@ def temporal_blend(current: torch.Tensor, warped_history: torch.Tensor, history_
 def warp_previous(previous: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     """Eq. 1 of Hasselgren et al.: ``c_warped(x, y) = c_history(x + m_x, y + m_y)``, bilinear, border-clamped.
 
-    previous (C, H, W) or (N, C, H, W); motion (2, H, W) backward motion in pixels (scenegen convention).
+    previous (C, H, W) or (N, C, H, W); motion (2, H, W) backward motion in pixels (scenegen convention),
+    or (N, 2, H, W) per image.
     This is denoisers.filters.warp_previous (grid_sample, as the paper), shared with SVGF and RLS;
     combine with ``motion.valid`` where reprojection fails (the paper's networks see the raw warp).
     """

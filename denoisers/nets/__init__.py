@@ -13,9 +13,9 @@ from torch import nn
 
 
 def _builders() -> dict[str, Any]:
-    from denoisers.nets import rae
+    from denoisers.nets import ntasd, rae
 
-    return {rae.RecurrentAutoencoder.NET_NAME: rae.RecurrentAutoencoder}
+    return {rae.RecurrentAutoencoder.NET_NAME: rae.RecurrentAutoencoder, ntasd.NTASDNet.NET_NAME: ntasd.NTASDNet}
 
 
 def available_nets() -> list[str]:

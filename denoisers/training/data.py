@@ -35,7 +35,9 @@ remembering how many batches it used.
 Batch layout (torch float32, N sequences of T frames, crop h x w):
 ``{buffer}`` (N, T, S, C, h, w) per-sample buffers (S = spp); ``reference.{buffer}`` (N, T, C, h, w);
 ``motion`` (N, T, 2, h, w) pixels, ``valid`` (N, T, 1, h, w) in {0, 1}, ``gbuffer.{key}`` (N, T, C, h, w);
-``world_to_view`` (N, T, 3, 3) (view space: x right, y up, z towards the viewer, after augmentation).
+``world_to_view`` (N, T, 3, 3) (view space: x right, y up, z towards the viewer, after augmentation);
+``mean.{buffer}`` (N, T, C, h, w) the mean over every stored layer of a per-sample buffer (``mean_buffers``,
+e.g. albedo for a method that reads more radiance layers than the other buffers have).
 """
 from __future__ import annotations
 
@@ -113,13 +115,14 @@ class SequenceConfig:
     sample_buffers: tuple[str, ...] = ("radiance", "albedo", "normal", "depth", "roughness")
     reference_buffers: tuple[str, ...] = ("radiance",)
     pixel_buffers: tuple[str, ...] = ()
+    mean_buffers: tuple[str, ...] = ()
     camera: bool = True
     layers: str = "random"
     crops: str = "uniform"
     importance_floor: float = 0.2
 
     def __post_init__(self) -> None:
-        for name in ("sample_buffers", "reference_buffers", "pixel_buffers"):
+        for name in ("sample_buffers", "reference_buffers", "pixel_buffers", "mean_buffers"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if self.color_range is not None:
             object.__setattr__(self, "color_range", tuple(float(c) for c in self.color_range))
@@ -221,7 +224,7 @@ class SequenceDataset:
     def _check_clips(self) -> None:
         config = self.config
         for clip in self.clips:
-            for buffer in config.sample_buffers:
+            for buffer in (*config.sample_buffers, *config.mean_buffers):
                 if buffer not in clip.samples:
                     raise KeyError(f"clip {clip.scene!r} has no per-sample buffer {buffer!r} "
                                    f"(loaded: {', '.join(clip.samples)})")
@@ -341,6 +344,9 @@ class SequenceDataset:
         for buffer in config.sample_buffers:
             data = clip.samples[buffer][:, :, :, rows, columns][frames[:, None], layers]   # (T, S, C, h, w)
             out[buffer] = data * color if buffer in RADIANCE_LIKE else data
+        for buffer in config.mean_buffers:
+            data = clip.samples[buffer][:, :, :, rows, columns][frames].mean(axis=1)           # (T, C, h, w)
+            out[f"mean.{buffer}"] = data * color if buffer in RADIANCE_LIKE else data
         for buffer in config.reference_buffers:
             data = clip.reference[buffer][:, :, rows, columns][frames]
             out[f"reference.{buffer}"] = data * color if buffer in RADIANCE_LIKE else data

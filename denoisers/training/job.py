@@ -58,14 +58,16 @@ def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
     return Path(models_root) / WORK_DIR_NAME / f"{spec.id}-{digest[:12]}"
 
 
-def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...]) -> Any:
+def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...], pixel_buffers: tuple[str, ...] = (),
+                    mean_buffers: tuple[str, ...] = ()) -> Any:
     from denoisers.training.data import SequenceConfig
 
     data = spec.data
     return SequenceConfig(length=data["length"], crop=data["crop"], spp=data["spp"], rotate=data["rotate"],
                           flip=data["flip"], color_range=data["color_range"], backward_prob=data["backward_prob"],
                           stop_prob=data["stop_prob"], sample_buffers=sample_buffers, layers=data["layers"],
-                          crops=data["crops"], importance_floor=data["importance_floor"])
+                          crops=data["crops"], importance_floor=data["importance_floor"],
+                          pixel_buffers=pixel_buffers, mean_buffers=mean_buffers)
 
 
 def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = True) -> Any:
@@ -103,7 +105,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
         raise ValueError(f"model {model_id!r}: need training and validation scenes, got {train_scenes} / "
                          f"{validation_scenes}")
     render_root = Path(render_root)
-    buffers = builder.sample_buffers
+    buffers = tuple(dict.fromkeys(builder.sample_buffers + builder.mean_buffers))
     log.info("model %s (%s): training on %s, validating on %s", model_id, spec.method, ", ".join(train_scenes),
              ", ".join(validation_scenes))
     train_clips = load_training_clips([render_root / s for s in train_scenes], buffers)
@@ -111,7 +113,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
 
     from denoisers.training.data import SequenceDataset
 
-    sequences = sequence_config(spec, buffers)
+    sequences = sequence_config(spec, builder.sample_buffers, builder.pixel_buffers, builder.mean_buffers)
     dataset = SequenceDataset(train_clips, sequences, seed=spec.seed)
     # The same validation sequences for every model of the config (seeded by the global seed), so
     # models are compared pairwise on identical data.

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from denoisers.training.spec import ModelSpec
-from denoisers.training.tasks import task_problems
+from denoisers.training.tasks import task_builder, task_problems
 from scenegen.config import SCENE_SPLITS, load_schema, output_root, training_scene_split
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
@@ -182,6 +182,13 @@ def method_model(params: Mapping[str, Any]) -> str | None:
     return params.get("model")
 
 
+def _sample_buffers(spec: ModelSpec) -> tuple[str, ...]:
+    try:
+        return task_builder(spec.method).sample_buffers
+    except KeyError:
+        return ()           # reported by task_problems
+
+
 def training_problems(cfg: dict) -> list[str]:
     """Constraints of the ``training`` section the JSON schema cannot express (schema-valid cfg)."""
     training = cfg.get("training") or {}
@@ -226,7 +233,11 @@ def training_problems(cfg: dict) -> list[str]:
         if spec.data["length"] > cfg["scenes"]["frames"]:
             problems.append(f"{where}: data.length = {spec.data['length']} exceeds scenes.frames = "
                             f"{cfg['scenes']['frames']}")
-        if spec.data["spp"] > cfg["render"]["spp"]:
-            problems.append(f"{where}: data.spp = {spec.data['spp']} exceeds render.spp = {cfg['render']['spp']}")
+        # Radiance has render.spp + extra_radiance_spp layers, every other per-sample buffer render.spp.
+        radiance_only = _sample_buffers(spec) == ("radiance",)
+        stored = cfg["render"]["spp"] + (cfg["render"].get("extra_radiance_spp") or 0 if radiance_only else 0)
+        if spec.data["spp"] > stored:
+            what = "render.spp + render.extra_radiance_spp" if radiance_only else "render.spp"
+            problems.append(f"{where}: data.spp = {spec.data['spp']} exceeds {what} = {stored}")
         problems += [f"{where}: {problem}" for problem in task_problems(spec)]
     return problems

@@ -15,21 +15,26 @@ from denoisers.training.spec import ModelSpec
 
 @dataclass(frozen=True)
 class TaskBuilder:
-    """build(spec) -> task; sample_buffers: per-sample buffers the batches carry."""
+    """build(spec) -> task; sample_buffers: per-sample buffers the batches carry (``data.spp`` layers each);
+    pixel_buffers: per-pixel buffers (denoisers.training.data.PIXEL_KEYS); mean_buffers: per-sample buffers
+    carried as their mean over every stored layer (``mean.{buffer}``)."""
 
     build: Callable[[ModelSpec], Any]
     sample_buffers: tuple[str, ...]
+    pixel_buffers: tuple[str, ...] = ()
+    mean_buffers: tuple[str, ...] = ()
 
 
 _TASKS: dict[str, TaskBuilder] = {}
 
 
-def register_task(method: str, sample_buffers: tuple[str, ...]) -> Callable[[Callable[[ModelSpec], Any]],
-                                                                          Callable[[ModelSpec], Any]]:
+def register_task(method: str, sample_buffers: tuple[str, ...], pixel_buffers: tuple[str, ...] = (),
+                  mean_buffers: tuple[str, ...] = ()) -> Callable[[Callable[[ModelSpec], Any]],
+                                                              Callable[[ModelSpec], Any]]:
     """Decorator: ``build(spec)`` makes the training task of registry method ``method``."""
 
     def decorate(build: Callable[[ModelSpec], Any]) -> Callable[[ModelSpec], Any]:
-        _TASKS[method] = TaskBuilder(build, tuple(sample_buffers))
+        _TASKS[method] = TaskBuilder(build, tuple(sample_buffers), tuple(pixel_buffers), tuple(mean_buffers))
         return build
 
     return decorate
@@ -72,3 +77,42 @@ def _rae_task(spec: ModelSpec) -> Any:
     if any(w < 0 for w in weights.values()) or not any(w > 0 for w in weights.values()):
         raise ValueError(f"rae: loss weights must be >= 0 with at least one > 0, got {weights}")
     return RAETask(config=RAEConfig.from_dict(spec.net), loss_weights=weights)
+
+
+# ------------------------------------------------------------------------------------------- NTASD
+#: Registry method -> (net.variant, net.sampling) of the Hasselgren et al. 2020 rows (Fig. 7, Table 1).
+NTASD_VARIANTS: dict[str, tuple[str, str]] = {
+    "ntasd": ("temporal", "adaptive"), "ntasd_uniform": ("temporal", "uniform"), "ntasd_kpn": ("kpn", "uniform"),
+    "ntasd_direct": ("direct", "uniform"), "dasr": ("kpn", "dasr")}
+NTASD_LOSS_KEYS = ("budget",)
+
+
+def _ntasd_task(spec: ModelSpec) -> Any:
+    """NTASD variants: net keys of NTASDConfig except variant/sampling (fixed by the method), ``max_samples``
+    from ``data.spp`` (the radiance layers a batch carries); loss key ``budget`` (average training spp, 4)."""
+    from denoisers.nets.ntasd import NTASDConfig
+    from denoisers.nets.ntasd_task import DEFAULT_TRAIN_BUDGET, NTASDTask
+
+    variant, sampling = NTASD_VARIANTS[spec.method]
+    fixed = {"variant", "sampling", "max_samples"} & set(spec.net)
+    if fixed:
+        raise KeyError(f"{spec.method}: net keys {sorted(fixed)} are fixed by the method (variant, sampling) or "
+                       "by data.spp (max_samples)")
+    unknown = set(spec.loss) - set(NTASD_LOSS_KEYS)
+    if unknown:
+        raise KeyError(f"{spec.method}: unknown loss keys {sorted(unknown)}; known: {list(NTASD_LOSS_KEYS)}")
+    budget = float(spec.loss.get("budget", DEFAULT_TRAIN_BUDGET))
+    available = int(spec.data["spp"])
+    if not 0 < budget <= available or (sampling == "dasr" and budget < 1):
+        raise ValueError(f"{spec.method}: loss.budget = {budget} must lie in (0, data.spp = {available}] "
+                         "(and >= 1 for dasr's initial pass)")
+    if spec.data.get("backward_prob", 0) and variant == "temporal":
+        raise ValueError(f"{spec.method}: data.backward_prob must be 0 (backward playback has no motion vectors)")
+    config = NTASDConfig(**{**spec.net, "variant": variant, "sampling": sampling, "max_samples": available})
+    return NTASDTask(config=config, budget=budget, name=spec.method)
+
+
+for _method in NTASD_VARIANTS:
+    register_task(_method, sample_buffers=("radiance",), pixel_buffers=("motion", "valid", "gbuffer.normal",
+                                                                        "gbuffer.depth"),
+                  mean_buffers=("albedo",))(_ntasd_task)
