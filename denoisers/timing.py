@@ -116,14 +116,12 @@ def time_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: i
 
 def render_rate(cfg: dict, manifest: dict, scene_dir: Path, *, repeats: int, threads: int) -> dict[str, Any]:
     """samples/s of the noisy render (render.spp full-feature layers of frame 0) with ``threads`` Dr.Jit threads."""
-    import drjit as dr
-
-    from scenegen.mitsuba_env import init_mitsuba
+    from scenegen.mitsuba_env import init_mitsuba, set_render_threads
     from scenegen.render import NonFiniteCounter, RenderSettings, load_frame_scene, render_sample_layers
 
     settings = RenderSettings.from_config(cfg["render"])
     init_mitsuba(settings.variant)
-    dr.set_thread_count(max(1, int(threads)))
+    render_threads = set_render_threads(threads)   # >= 2: see scenegen.mitsuba_env.MIN_DRJIT_THREADS
     scene = load_frame_scene(manifest, Path(scene_dir), 0, settings)
     width, height = (int(v) for v in scene.sensors()[0].film().size())
 
@@ -136,7 +134,7 @@ def render_rate(cfg: dict, manifest: dict, scene_dir: Path, *, repeats: int, thr
     seconds = [render(1 + k) for k in range(repeats)]
     samples = settings.spp * width * height
     median = float(statistics.median(seconds))
-    return {"threads": int(threads), "layers": settings.spp, "pixels": width * height,
+    return {"threads": int(threads), "drjit_threads": render_threads, "layers": settings.spp, "pixels": width * height,
             "repeats": repeats, "seconds": seconds, "samples_per_s": samples / median,
             "samples_per_s_min": samples / max(seconds), "samples_per_s_max": samples / min(seconds)}
 

@@ -52,12 +52,10 @@ def main(argv: list[str] | None = None) -> int:
 
     cfg = load_config(args.config)
     if getattr(args, "threads", None):
-        from scenegen.mitsuba_env import init_mitsuba
+        from scenegen.mitsuba_env import init_mitsuba, set_render_threads
 
         init_mitsuba(cfg["render"]["variant"])
-        import drjit as dr
-
-        dr.set_thread_count(args.threads)
+        set_render_threads(args.threads)
     if args.command == "generate":
         jobs.run_generate(cfg, args.scene, args.out)
     elif args.command == "render-noisy":

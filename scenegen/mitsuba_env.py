@@ -71,3 +71,19 @@ def init_mitsuba(variant: str = "llvm_ad_rgb") -> str:
 def is_jit_variant() -> bool:
     """True when the active variant evaluates wavefronts (LLVM/CUDA), False in scalar mode."""
     return _active_variant is not None and not _active_variant.startswith("scalar")
+
+
+#: Dr.Jit's thread pool is never set below this: with a pool of one thread, Mitsuba 3.9.1 / drjit 1.5.0 never
+#: return from OpenEXR I/O (mi.Bitmap reading or writing an .exr blocks on a semaphore; checked on this
+#: machine: an environment-map scene rendered with --threads 1 hung for 15 min at 0 % CPU).
+MIN_DRJIT_THREADS = 2
+
+
+def set_render_threads(threads: int) -> int:
+    """Set Dr.Jit's thread count to max(threads, MIN_DRJIT_THREADS) (see there why); returns the count set.
+    Call after :func:`init_mitsuba`."""
+    import drjit as dr
+
+    count = max(int(threads), MIN_DRJIT_THREADS)
+    dr.set_thread_count(count)
+    return count

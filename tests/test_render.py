@@ -1,6 +1,8 @@
 """The feature integrator against Mitsuba's own ``path`` integrator, and per-sample buffer sanity."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -162,3 +164,20 @@ def test_mis_weight_is_zero_where_the_power_heuristic_is_not_finite() -> None:
     assert np.all(np.isfinite(weight))
     assert weight[0] == 0.0 and weight[1] == pytest.approx(0.5) and weight[2] == 0.0
     assert not dr.any(dr.isnan(_mis_weight(pdf_a, pdf_b)))
+
+
+def test_one_render_thread_does_not_hang_exr_io(tmp_path: Path) -> None:
+    """Mitsuba 3.9.1 / drjit 1.5.0 never return from EXR I/O with a one-thread Dr.Jit pool; the render jobs'
+    thread setting (scenegen.mitsuba_env.set_render_threads) keeps the pool at >= 2, so asking for 1 thread
+    writes and reads an EXR (in a subprocess with a timeout, since the failure is a hang)."""
+    import subprocess
+    import sys
+
+    code = ("from scenegen.mitsuba_env import init_mitsuba, set_render_threads\n"
+            "init_mitsuba('llvm_ad_rgb')\nimport mitsuba as mi, numpy as np\n"
+            "print(set_render_threads(1))\n"
+            f"mi.Bitmap(np.ones((4, 4, 3), dtype=np.float32)).write({str(tmp_path / 'x.exr')!r})\n"
+            f"print(float(np.asarray(mi.Bitmap({str(tmp_path / 'x.exr')!r})).mean()))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["2", "1.0"]
