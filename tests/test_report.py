@@ -121,6 +121,7 @@ def report_config() -> dict:
     cfg["scenes"]["n_test"], cfg["scenes"]["n_train"] = len(SCENES), 2
     cfg["extra_scenes"] = []   # test scenes only; external scenes: tests/test_external_scenes.py
     cfg["render"]["spp"] = 2   # path_x2 at 2 spp needs 4 layers: not run
+    cfg["render"]["extra_radiance_spp"] = 0
     cfg["render"]["width"], cfg["render"]["height"] = SIZE[1], SIZE[0]
     return cfg
 
