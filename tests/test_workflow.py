@@ -215,6 +215,8 @@ def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_cop
     cfg = yaml.safe_load((workflow_copy / "config/smoke.yaml").read_text())
     cfg["scenes"]["n_test"] = 2
     cfg["render"].update(spp=4, extra_radiance_spp=0)
+    # Without extra layers the NTASD models (8 radiance layers) cannot train; only the RAE's models stay.
+    cfg["training"]["models"] = [m for m in cfg["training"]["models"] if m["method"] == "rae"]
     # ablation_spp []: only the rows below (the ablation rows: test_ablation_variants_are_evaluated_...).
     cfg["evaluation"].update(spp=[1, 2, 4], ablation_spp=[], methods=[
         {"id": "noisy", "method": "noisy"},
@@ -252,7 +254,7 @@ def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Pat
     cfg = load_config(workflow_copy / "config/smoke.yaml")
     variants = [spec.id for spec in model_specs(cfg) if spec.ablation]
     ablation_spp = cfg["evaluation"]["ablation_spp"]
-    assert len(variants) == 7 and ablation_spp == [1] and cfg["evaluation"]["spp"] == [1, 2]   # rae_capacity: 2
+    assert len(variants) == 7 and ablation_spp == [1] and cfg["evaluation"]["spp"] == [1, 2, 4]   # rae_capacity: 2
     # The rows come after the configured ones, at ablation_spp only, and not in the robustness scenario.
     specs = method_specs(cfg)
     assert [spec.id for spec in specs] == [entry["id"] for entry in cfg["evaluation"]["methods"]] + variants
@@ -358,10 +360,10 @@ def failing_dry_run(workflow_copy: Path, tmp_path: Path, cfg: dict) -> str:
 
 def test_ablation_spp_outside_the_evaluated_spp_fails_the_dry_run(workflow_copy: Path, tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
-    cfg["evaluation"]["ablation_spp"] = [4]  # smoke evaluates [1, 2]
+    cfg["evaluation"]["ablation_spp"] = [8]  # smoke evaluates [1, 2, 4]
     cfg["evaluation"]["methods"][2]["spp"] = [2, 3]
     output = failing_dry_run(workflow_copy, tmp_path, cfg)
-    assert "evaluation.ablation_spp" in output and "[4]" in output
+    assert "evaluation.ablation_spp" in output and "[8]" in output
     assert "evaluation.methods[2].spp" in output and "[3]" in output
 
 
@@ -412,9 +414,9 @@ def test_invalid_config_fails_the_dry_run_naming_the_key(workflow_copy: Path, tm
 
 def test_evaluated_spp_above_the_rendered_layers_fails_the_dry_run(workflow_copy: Path, tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
-    cfg["evaluation"]["spp"] = [1, 2, 8]  # smoke renders 4 layers
+    cfg["evaluation"]["spp"] = [1, 2, 16]  # smoke renders 4 layers (8 of radiance)
     output = failing_dry_run(workflow_copy, tmp_path, cfg)
-    assert "evaluation.spp" in output and "[8]" in output
+    assert "evaluation.spp" in output and "[16]" in output
 
 
 STUB_CLI = """\
@@ -472,7 +474,8 @@ def test_config_changes_rerun_only_the_affected_jobs(stub_workflow: Path) -> Non
     assert dry_run("renders", "--configfile", "config/smoke.yaml", cwd=work) == {}
 
     # The smoke config: 3 procedural scenes, 2 chunks each.
-    noisy_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "spp", 2), cwd=work)
+    # (8, not fewer: the NTASD models train on render.spp + extra_radiance_spp = 8 radiance layers)
+    noisy_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "spp", 8), cwd=work)
     assert noisy_only == {"render_noisy": 6, "renders": 1}
 
     reference_only = dry_run("renders", "--configfile", smoke_variant(work, "render", "reference_spp", 32), cwd=work)
@@ -549,7 +552,7 @@ def test_training_reruns_only_when_its_settings_or_data_change(stub_workflow: Pa
                          cwd=work)
     assert evaluation == {}
     data = dry_run("train", "--configfile", variant("d.yaml", lambda c: c["render"].update(max_depth=6)), cwd=work)
-    assert data["train_denoiser"] == 8          # every model of the smoke config (rae + 7 ablation variants)
+    assert data["train_denoiser"] == 13         # every model of the smoke config (rae, 7 ablation variants, 5 NTASD)
 
 
 def rule_names() -> set[str]:
