@@ -228,3 +228,18 @@ def test_trained_model_is_deterministic(tmp_path) -> None:
         weights.append({k: v.clone() for k, v in trainer.model.state_dict().items()})
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
     assert not math.isnan(float(next(iter(weights[0].values())).sum()))
+
+
+def test_bf16_wrapper_of_the_trainer_runs_the_frame_steps_under_autocast() -> None:
+    """The trainer's bf16 step hands the task an AutocastForward wrapper; the NTASD task unwraps it, runs the
+    frame steps under its autocast and returns a float32 loss close to the fp32 one (bf16 rounding only)."""
+    from denoisers.training.precision import AutocastForward
+
+    torch.manual_seed(0)
+    task = NTASDTask(NTASDConfig(variant="temporal", sampling="adaptive", width=0.25, levels=3, max_samples=8), 2.0)
+    model = task.build_model()
+    batch = _batch()
+    fp32, _ = task.loss(model, batch)
+    bf16, _ = task.loss(AutocastForward(model, torch.bfloat16), batch)
+    assert bf16.dtype == torch.float32 and torch.isfinite(bf16)
+    assert float(bf16) == pytest.approx(float(fp32), rel=0.1)

@@ -158,10 +158,17 @@ class NTASDTask:
                 "loss": "L1 + temporal L1 on the last frame (Hasselgren et al. Eq. 4), encoded space"}
 
     def run(self, model: nn.Module, batch: Mapping[str, torch.Tensor], first: int = 0) -> list[StepResult]:
-        """Frame steps t = first .. T-1, the history carried (temporal variants) from ``first``."""
+        """Frame steps t = first .. T-1, the history carried (temporal variants) from ``first``. ``model`` may be
+        the trainer's bf16 wrapper (denoisers.training.precision.AutocastForward): the steps then run under its
+        autocast and their outputs are cast back to float32 (the loss stays float32)."""
+        from denoisers.training.precision import AutocastForward
+
+        net, dtype = (model.model, model.dtype) if isinstance(model, AutocastForward) else (model, None)
         steps, history = [], None
         for t in range(first, batch["radiance"].shape[1]):
-            step = frame_step(model, batch_frame(batch, t), history, self.budget)
+            with torch.autocast("cpu", dtype=dtype, enabled=dtype is not None):
+                step = frame_step(net, batch_frame(batch, t), history, self.budget)
+            step.output = step.output.float()
             history = step.output
             steps.append(step)
         return steps

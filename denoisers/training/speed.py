@@ -234,7 +234,9 @@ def time_training(cfg: dict, *, threads: int | None = None, settings: dict[str, 
         with tempfile.TemporaryDirectory(prefix="time_training-") as work:
             for spec in specs:
                 configured, plan = _plan(spec, settings, native, why)
-                batch = synthetic_batch(spec, task_builder(spec.method).sample_buffers)
+                builder = task_builder(spec.method)
+                batch = synthetic_batch(spec, builder.sample_buffers, pixel_buffers=builder.pixel_buffers,
+                                        mean_buffers=builder.mean_buffers)
                 pixels = spec.optimizer["batch_size"] * spec.data["length"] * spec.data["crop"] ** 2
                 timers, flops = [], 0
                 for key, rounds, _ in plan:

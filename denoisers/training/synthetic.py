@@ -25,10 +25,13 @@ class FixedBatch:
         return {"fixed synthetic batch": {k: list(v.shape) for k, v in self._batch.items()}}
 
 
-def synthetic_batch(spec: ModelSpec, buffers: tuple[str, ...], seed: int = 0) -> dict[str, torch.Tensor]:
+def synthetic_batch(spec: ModelSpec, buffers: tuple[str, ...], seed: int = 0, *, pixel_buffers: tuple[str, ...] = (),
+                    mean_buffers: tuple[str, ...] = ()) -> dict[str, torch.Tensor]:
     """(N, T, S, C, crop, crop) per-sample ``buffers`` of a procedural clip (boxes and a bump, panning half a
     pixel per frame, heavy-tailed noise on radiance), (N, T, 3, crop, crop) clean reference radiance and
-    identity world-to-view rotations (N, T, 3, 3); N = batch_size, T = length, S = spp."""
+    identity world-to-view rotations (N, T, 3, 3); N = batch_size, T = length, S = spp. ``pixel_buffers``
+    (motion: the pan, +0.5 px in x; valid; gbuffer.normal / gbuffer.depth) and ``mean_buffers``
+    (``mean.{buffer}``, (N, T, C, crop, crop)) as denoisers.training.data batches carry them."""
     n, t, crop, spp = spec.optimizer["batch_size"], spec.data["length"], spec.data["crop"], spec.data["spp"]
     generator = torch.Generator().manual_seed(seed)
     y, x = torch.meshgrid(torch.arange(crop, dtype=torch.float32), torch.arange(crop, dtype=torch.float32),
@@ -55,6 +58,16 @@ def synthetic_batch(spec: ModelSpec, buffers: tuple[str, ...], seed: int = 0) ->
             samples[name] = per_pixel[name].unsqueeze(2).expand(n, t, spp, channels, crop, crop).contiguous()
         else:                                     # specular 0, roughness 1, flags 0
             samples[name] = torch.full((n, t, spp, channels, crop, crop), float(name == "roughness"))
+    for name in mean_buffers:
+        samples[f"mean.{name}"] = per_pixel[name].contiguous() if name in per_pixel else \
+            torch.full((n, t, len(SAMPLE_BUFFERS[name]), crop, crop), float(name == "roughness"))
+    for name in pixel_buffers:
+        if name == "motion":
+            samples[name] = torch.stack([torch.full((n, t, crop, crop), 0.5), torch.zeros(n, t, crop, crop)], dim=2)
+        elif name == "valid":
+            samples[name] = torch.ones(n, t, 1, crop, crop)
+        else:
+            samples[name] = per_pixel[name.split(".", 1)[1]].contiguous()
     samples["reference.radiance"] = clean.contiguous()
     samples["world_to_view"] = torch.eye(3).expand(n, t, 3, 3).clone()
     return samples
