@@ -27,6 +27,7 @@ import pytest
 import yaml
 from PIL import Image
 
+from denoisers.adaptive import SAMPLE_MAPS_FILE
 from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_SUMMARY, TIMING_FILE, denoised_dir, method_spec, metrics_csv,
                                 metrics_sidecar, plan_runs, robustness_dir, robustness_runs)
 from denoisers.experiment import DIGEST_KEY, Lineage
@@ -251,7 +252,8 @@ def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun
     # The smoke config renders enough layers for every configured (method, spp), and every trained
     # ablation variant is evaluated at evaluation.ablation_spp.
     variants = [spec.id for spec in model_specs(pipeline.cfg) if spec.ablation]
-    assert len(runs) == (len(pipeline.cfg["evaluation"]["methods"]) * len(pipeline.cfg["evaluation"]["spp"])
+    evaluated_spp = pipeline.cfg["evaluation"]["spp"]
+    assert len(runs) == (sum(len(row.get("spp") or evaluated_spp) for row in pipeline.cfg["evaluation"]["methods"])
                          + len(variants) * len(pipeline.cfg["evaluation"]["ablation_spp"]))
     assert {(v, s) for v in variants for s in pipeline.cfg["evaluation"]["ablation_spp"]} <= \
         {(run.spec.id, run.spp) for run in runs}
@@ -259,9 +261,11 @@ def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun
         frames = list(range(scene_frame_count(pipeline.cfg, scene)))
         for run in runs:
             folder = denoised_dir(pipeline.results, run.spec.id, scene, run.spp)
-            expected = {f"frame_{t:04d}.{ext}" for t in frames for ext in ("exr", "png")} | {TIMING_FILE}
-            assert {p.name for p in folder.iterdir()} - {SNAKEMAKE_MARKER} == expected, folder
             timing = json.loads((folder / TIMING_FILE).read_text())
+            # Adaptive rows (the Hasselgren variants) also store their per-frame sample maps.
+            expected = {f"frame_{t:04d}.{ext}" for t in frames for ext in ("exr", "png")} | {TIMING_FILE} | (
+                {SAMPLE_MAPS_FILE} if timing.get("adaptive") else set())
+            assert {p.name for p in folder.iterdir()} - {SNAKEMAKE_MARKER} == expected, folder
             assert timing["spp"] == run.spp and timing["threads"] == pipeline.cfg["evaluation"]["threads"]
             assert timing["mean_seconds"] > 0 and timing["nonfinite_outputs"] == 0, (folder, timing)
             assert timing["out_of_range_outputs"] == sum(timing["out_of_range_outputs_per_frame"]), folder
