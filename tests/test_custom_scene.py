@@ -60,7 +60,10 @@ def test_custom_scene_renders_and_loads(custom_cfg):
     run_render_noisy(cfg, "custom_mine", 0, scene_dir, render_dir / "noisy" / "chunk_000")
     run_render_reference(cfg, "custom_mine", 0, scene_dir, render_dir / "reference" / "chunk_000")
     clip = load_clip(render_dir)
-    assert clip.samples["radiance"].shape == (2, 4, 3, 32, 32)
+    # An evaluated scene: 4 full layers plus the config's radiance-only layers for adaptive sampling.
+    extra = cfg["render"]["extra_radiance_spp"]
+    assert extra > 0 and clip.samples["radiance"].shape == (2, 4 + extra, 3, 32, 32)
+    assert clip.samples["albedo"].shape == (2, 4, 3, 32, 32)
     assert np.isfinite(clip.samples["radiance"]).all()
     # Every shape carries material features: the meshes as mesh attributes (the rough plastic cube), the
     # analytic rough-conductor sphere as texture attributes. The orbit keeps most pixels reprojectable.

@@ -116,19 +116,21 @@ def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_plan_marks_runs_that_need_more_layers_than_rendered() -> None:
-    cfg = smoke_config(methods=BASIC_METHODS, spp=[1, 2, 4])
+    cfg = smoke_config(methods=BASIC_METHODS, spp=[1, 2, 4, 8])
+    radiance_layers = LAYERS + cfg["render"]["extra_radiance_spp"]
+    assert radiance_layers == 8  # 4 full layers + the smoke config's 4 radiance-only layers
     runs = {(run.spec.id, run.spp): run for run in evaluate.plan_runs(cfg)}
-    assert all(runs[("noisy", s)].runnable for s in (1, 2, 4))
-    assert runs[("path_x2", 2)].runnable and runs[("path_x2", 2)].layers == 4
-    assert runs[("path_x2", 4)].not_run == ("not run (needs 8 layers of 'radiance', 4 rendered; raise render.spp "
-                                            "or render.extra_radiance_spp)")
+    assert all(runs[("noisy", s)].runnable for s in (1, 2, 4, 8))
+    assert runs[("path_x2", 4)].runnable and runs[("path_x2", 4)].layers == 8
+    assert runs[("path_x2", 8)].not_run == ("not run (needs 16 layers of 'radiance', 8 rendered; raise "
+                                            "render.spp or render.extra_radiance_spp)")
 
 
 def test_evaluation_problems_name_the_keys() -> None:
-    cfg = smoke_config(methods=BASIC_METHODS + [{"id": "noisy", "method": "noisy"}], spp=[1, 8])
+    cfg = smoke_config(methods=BASIC_METHODS + [{"id": "noisy", "method": "noisy"}], spp=[1, 16])
     cfg["evaluation"]["robustness"]["spp"] = 3
     problems = "\n".join(evaluate.evaluation_problems(cfg))
-    assert "'evaluation.spp'" in problems and "[8]" in problems
+    assert "'evaluation.spp'" in problems and "[16]" in problems
     assert "id 'noisy' more than once" in problems
     assert "'evaluation.robustness.spp' = 3" in problems
 
@@ -466,7 +468,7 @@ def test_evaluation_problems_name_row_spp_ablation_spp_and_ablation_ids() -> Non
     cfg["evaluation"]["ablation_spp"] = []
     cfg["evaluation"]["methods"][2]["spp"] = [1]
     assert evaluate.evaluation_problems(cfg) == []
-    cfg = smoke_config(spp=[2], ablation_spp=[1])
+    cfg = smoke_config(methods=BASIC_METHODS, spp=[2], ablation_spp=[1])
     assert "'evaluation.ablation_spp' = [1]" in "\n".join(evaluate.evaluation_problems(cfg))
     cfg["training"]["ablations"] = []
     assert evaluate.evaluation_problems(cfg) == []

@@ -13,13 +13,12 @@ import numpy as np
 
 from denoisers.evaluate import EvaluationError, denoised_dir, preview_rgb8
 from denoisers.report.figures import _grid_frame, _reference_frame, placeholder, pyplot
-from denoisers.reproductions.hasselgren2020 import DASR, FIG7, SPP, TEMPORAL_ADAPTIVE, row_at
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from denoisers.report.collect import Results
 
-#: Fig. 6 columns: (label, row need) beside the reference.
-SAMPLE_MAP_ROWS = (("NTASD", TEMPORAL_ADAPTIVE), ("DASR", DASR))
 #: Fig. 7 panels: (per-frame column, axis label).
 FIG7_PANELS = (("psnr", "PSNR (dB)"), ("tpsnr", "tPSNR (dB)"))
 
@@ -29,19 +28,18 @@ def fig7_scene(res: Results) -> str | None:
     return next((s for s in res.scenes if s.startswith("test_")), res.scenes[0] if res.scenes else None)
 
 
-def plot_fig7(res: Results, path: Path) -> str | None:
-    """Per-frame PSNR and tPSNR of the five Fig. 7 rows at 4 spp on one scene (camera cuts dotted); returns
-    the scene (None, and a placeholder figure, when there is no scene or none of the rows ran)."""
+def plot_fig7(res: Results, path: Path, rows: Sequence[tuple[str, str | None]], spp: int) -> str | None:
+    """Per-frame PSNR and tPSNR of the Fig. 7 ``rows`` (label, row id) at ``spp`` on one scene (camera cuts
+    dotted); returns the scene (None, and a placeholder figure, when there is no scene or none of the rows ran)."""
     scene, frames = fig7_scene(res), res.frames
     curves = []
     if scene is not None and len(frames) and "method_id" in frames:
-        for label, need in FIG7:
-            row = row_at(res, need)
-            part = frames[(frames.method_id == row) & (frames.spp == SPP) & (frames.scene == scene)]
+        for label, row in rows:
+            part = frames[(frames.method_id == row) & (frames.spp == spp) & (frames.scene == scene)]
             if row is not None and len(part):
                 curves.append((label, row, part.sort_values("frame")))
     if not curves:
-        placeholder(path, f"no Fig. 7 row ran at {SPP} spp")
+        placeholder(path, f"no Fig. 7 row ran at {spp} spp")
         return None
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator
@@ -57,7 +55,7 @@ def plot_fig7(res: Results, path: Path) -> str | None:
                 ax.axvline(t, color="grey", linestyle=":", linewidth=0.8)
         ax.set_xlabel("frame")
         ax.set_ylabel(ylabel)
-        ax.set_title(f"{ylabel}, {SPP} spp", fontsize=9)
+        ax.set_title(f"{ylabel}, {spp} spp", fontsize=9)
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(True, alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
@@ -70,13 +68,13 @@ def plot_fig7(res: Results, path: Path) -> str | None:
     return scene
 
 
-def _sample_map(res: Results, row: str | None, scene: str) -> tuple[int, np.ndarray] | None:
+def _sample_map(res: Results, row: str | None, scene: str, spp: int) -> tuple[int, np.ndarray] | None:
     """(frame, (H, W) sample map) of the grid frame of one row's clip, None without sample maps."""
     from denoisers.adaptive import SAMPLE_MAPS_FILE
 
-    if row is None or not res.ran(row, SPP):
+    if row is None or not res.ran(row, spp):
         return None
-    path = denoised_dir(res.results_dir, row, scene, SPP) / SAMPLE_MAPS_FILE
+    path = denoised_dir(res.results_dir, row, scene, spp) / SAMPLE_MAPS_FILE
     if not path.is_file():
         return None
     with np.load(path) as data:
@@ -87,19 +85,19 @@ def _sample_map(res: Results, row: str | None, scene: str) -> tuple[int, np.ndar
     return frame, np.asarray(by_frame[frame], dtype=np.float64)
 
 
-def plot_sample_maps(res: Results, path: Path) -> None:
+def plot_sample_maps(res: Results, path: Path, rows: Sequence[tuple[str, str | None]], spp: int) -> None:
     """Fig. 6 layout: per evaluated scene the reference (tonemapped) of the grid frame (evaluation.grid_frame)
-    beside the sample maps of NTASD and DASR at 4 spp, one colour scale in samples per pixel."""
-    maps = {(scene, label): _sample_map(res, row_at(res, need), scene)
-            for scene in res.scenes for label, need in SAMPLE_MAP_ROWS}
+    beside the sample maps of the adaptive ``rows`` (label, row id) at ``spp``, one colour scale in samples
+    per pixel."""
+    maps = {(scene, label): _sample_map(res, row, scene, spp) for scene in res.scenes for label, row in rows}
     shown = [m for m in maps.values() if m is not None]
     if not shown:
-        placeholder(path, f"no sample maps of NTASD or DASR at {SPP} spp")
+        placeholder(path, f"no sample maps of {' or '.join(label for label, _ in rows)} at {spp} spp")
         return
     plt = pyplot()
     vmax = max(1.0, max(float(m.max()) for _, m in shown))
-    fig, axes = plt.subplots(len(res.scenes), 1 + len(SAMPLE_MAP_ROWS), squeeze=False,
-                             figsize=(2.6 * (1 + len(SAMPLE_MAP_ROWS)) + 0.8, 2.6 * len(res.scenes)))
+    fig, axes = plt.subplots(len(res.scenes), 1 + len(rows), squeeze=False,
+                             figsize=(2.6 * (1 + len(rows)) + 0.8, 2.6 * len(res.scenes)))
     image = None
     for r, scene in enumerate(res.scenes):
         frame = next((m[0] for (s, _), m in maps.items() if s == scene and m is not None), None)
@@ -112,18 +110,18 @@ def plot_sample_maps(res: Results, path: Path) -> None:
             ax.set_title(f"{scene}, frame {frame}\nreference", fontsize=8)
         except (EvaluationError, OSError) as error:
             ax.text(0.5, 0.5, f"{scene}\nno reference:\n{str(error)[:60]}", ha="center", va="center", fontsize=7)
-        for c, (label, need) in enumerate(SAMPLE_MAP_ROWS, start=1):
+        for c, (label, row) in enumerate(rows, start=1):
             ax, found = axes[r][c], maps[(scene, label)]
             if found is None:
                 ax.text(0.5, 0.5, f"{label}: not run", ha="center", va="center", fontsize=8)
             else:
                 image = ax.imshow(found[1], cmap="viridis", vmin=0.0, vmax=vmax, interpolation="nearest")
-                ax.set_title(f"{label} ({row_at(res, need)}), frame {found[0]}\nmean {found[1].mean():.2f} spp",
+                ax.set_title(f"{label} ({row}), frame {found[0]}\nmean {found[1].mean():.2f} spp",
                              fontsize=8)
         for ax in axes[r]:
             ax.set_xticks([])
             ax.set_yticks([])
-    fig.suptitle(f"Sample maps at an average of {SPP} spp (Hasselgren et al. 2020, Fig. 6 layout)", fontsize=9)
+    fig.suptitle(f"Sample maps at an average of {spp} spp (Hasselgren et al. 2020, Fig. 6 layout)", fontsize=9)
     fig.tight_layout(rect=(0, 0, 0.9, 0.96))
     bar = fig.colorbar(image, ax=axes.ravel().tolist(), fraction=0.03, pad=0.02)
     bar.set_label("samples per pixel", fontsize=8)

@@ -53,6 +53,8 @@ OURS, THEIRS = "ours (evaluated scenes, 4 spp)", "paper (Hasselgren et al. 2020,
 #: Fig. 7 curves in the paper's legend order: (label, row).
 FIG7 = (("direct prediction", DIRECT), ("KPN", KPN), ("temporal uniform", TEMPORAL_UNIFORM),
         ("temporal adaptive", TEMPORAL_ADAPTIVE), ("uniform 8 spp", UNIFORM_8SPP))
+#: Fig. 6 columns beside the reference: (label, row).
+SAMPLE_MAP_ROWS = (("NTASD", TEMPORAL_ADAPTIVE), ("DASR", DASR))
 TABLE1_NAME, FIG7_NAME, SAMPLE_MAPS_NAME = "hasselgren2020_table1", "hasselgren2020_fig7", "hasselgren2020_sample_maps"
 
 
@@ -282,8 +284,9 @@ def write(res: Results, tables: Path, figures: Path) -> str:
     md1, md7 = _table1_markdown(res, t1), _fig7_markdown(f7)
     write_table(t1, tables, TABLE1_NAME, md1)
     write_table(f7, tables, FIG7_NAME, md7)
-    scene = plot_fig7(res, figures / f"{FIG7_NAME}.png")
-    plot_sample_maps(res, figures / f"{SAMPLE_MAPS_NAME}.png")
+    scene = plot_fig7(res, figures / f"{FIG7_NAME}.png", [(label, row_at(res, need)) for label, need in FIG7], SPP)
+    plot_sample_maps(res, figures / f"{SAMPLE_MAPS_NAME}.png",
+                     [(label, row_at(res, need)) for label, need in SAMPLE_MAP_ROWS], SPP)
     return "\n".join([
         f"NTASD and its ablations (direct prediction, per-frame KPN, temporal uniform, temporal adaptive, uniform "
         f"8 spp) and DASR at an average of {SPP} spp, RAE and SVGF at {SPP} spp; every claim paired over the "
