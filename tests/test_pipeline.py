@@ -368,7 +368,11 @@ def test_every_configured_model_is_trained_and_reported(pipeline: PipelineRun) -
     fig8 = pd.read_csv(tables / "chaitanya_fig8.csv")
     assert {"eaw", "svgf", "oidn", "rae"} <= set(fig8["method"]) and np.isfinite(fig8["rmse_mean"]).all()
     assert "rae" in set(pd.read_csv(tables / "timing.csv")["method_id"])
-    assert "<!-- rae -->" in (pipeline.results / "figures" / "quality_vs_speed.svg").read_text()
+    chart = (pipeline.results / "figures" / "quality_vs_speed.svg").read_text()
+    assert "<!-- rae -->" in chart
+    # Its training-time panel places every learned row at its model's training time.
+    assert "quality vs training time" in chart and "rae, rae_per_frame [model rae], 4 steps" in chart
+    assert "ntasd_uniform, ntasd_uniform_8spp [model ntasd_uniform], 4 steps" in chart
     report = (pipeline.results / "REPORT.md").read_text()
     assert "## Learned denoisers" in report and "figures/rae_inputs_curves.png" in report
     # The capacity sweep: both sizes and the base model (same 4-step budget) scored, timed and one selected.

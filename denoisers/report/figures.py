@@ -36,8 +36,10 @@ def pyplot():
 
 
 def _colours(specs: Sequence[MethodSpec]) -> dict[str, Any]:
-    cmap = pyplot().get_cmap("tab10")
-    return {spec.id: cmap(i % 10) for i, spec in enumerate(specs)}
+    """A distinct colour per row (tab10, or tab20 beyond ten rows)."""
+    size = 10 if len(specs) <= 10 else 20
+    cmap = pyplot().get_cmap(f"tab{size}")
+    return {spec.id: cmap(i % size) for i, spec in enumerate(specs)}
 
 
 def smoothed(values: Any, window: int) -> np.ndarray:
@@ -68,11 +70,12 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     """PSNR against denoiser throughput (Mpix/s from the timing job, log x), a point per method and spp with
     95 % CI bars over scenes (PSNR) and the range over timing rounds (throughput); the non-denoising rows
     (noisy input, plain path tracing) are horizontal reference lines. Rows the timing job did not time are
-    left out."""
+    left out. A second panel puts the learned rows' PSNR against the wall time their model trained
+    (summary.json ``elapsed_seconds``), so a method's training cost is charted beside its inference speed."""
     plt = pyplot()
     lookup = summary_lookup(summary)
     colours = _colours(res.main_specs)
-    fig, ax = plt.subplots(figsize=(8.5, 5.0))
+    fig, (ax, train_ax) = plt.subplots(1, 2, figsize=(13.0, 5.0), gridspec_kw={"width_ratios": [3, 2]})
     xs = []
     for spec in res.main_specs:
         spps = [s for s in res.cfg["evaluation"]["spp"] if res.ran(spec.id, s) and res.speed(spec.id, s)]
@@ -117,16 +120,61 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     threads = f", {res.timing.threads} thread(s)" if res.timing is not None else ", no timing job"
     ax.set_xlabel(f"throughput (Mpix/s, denoising only, timing job{threads}, log scale)")
     ax.set_ylabel("PSNR (dB, tonemapped)")
-    ax.set_title(f"Quality vs speed (PSNR: mean ± 95 % CI over {len(res.scenes)} scene(s); throughput: median, "
-                 "bars = range over timing rounds;\nnumbers = spp; dashed: noisy input / path tracing at that spp)",
+    ax.set_title(f"Quality vs speed (PSNR: mean ± 95 % CI over {len(res.scenes)} scene(s);\nthroughput: median, "
+                 "bars = range over timing rounds; numbers = spp;\ndashed: noisy input / path tracing at that spp)",
                  fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
+    _plot_quality_vs_training_time(res, lookup, colours, train_ax)
     if xs:   # outside the axes, so it covers no data
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     for path in paths:
         fig.savefig(path, dpi=150)
     plt.close(fig)
+
+
+def _plot_quality_vs_training_time(res: Results, lookup: dict, colours: dict[str, Any], ax: Any) -> None:
+    """PSNR (mean ± 95 % CI over scenes) of every row backed by a trained model against its training wall
+    time in minutes (log x); one point per evaluated spp, numbers = spp."""
+    shown, labels = 0, {}
+    for spec in res.main_specs:
+        model = res.model_of(spec.id)
+        seconds = float(model.summary.get("elapsed_seconds") or 0.0) if model is not None else 0.0
+        spps = [s for s in res.cfg["evaluation"]["spp"] if res.ran(spec.id, s) and (spec.id, s, "psnr") in lookup]
+        if model is None or seconds <= 0 or not spps:
+            continue
+        minutes = seconds / 60.0
+        y = [lookup[(spec.id, s, "psnr")] for s in spps]
+        err = [[0 if math.isnan(v[1]) else v[0] - v[1] for v in y], [0 if math.isnan(v[2]) else v[2] - v[0] for v in y]]
+        ax.errorbar([minutes] * len(spps), [v[0] for v in y], yerr=err, marker="s", linestyle="none",
+                    color=colours[spec.id], capsize=3)
+        for yi, s in zip(y, spps):
+            ax.annotate(str(s), (minutes, yi[0]), textcoords="offset points", xytext=(4, -9), fontsize=7,
+                        color=colours[spec.id])
+        # Rows sharing a model (e.g. rae and rae_per_frame) share one label at the model's training time.
+        key = (model.spec.id, minutes)
+        labels.setdefault(key, [minutes, -math.inf, [], model.summary.get("steps")])
+        labels[key][1] = max(labels[key][1], max(v[0] for v in y))
+        labels[key][2].append(spec.id)
+        shown += 1
+    for (model_id, _), (minutes, top, rows, steps) in labels.items():
+        model_text = "" if rows == [model_id] else f" [model {model_id}]"
+        ax.annotate(f"{', '.join(rows)}{model_text}, {steps} steps", (minutes, top), textcoords="offset points",
+                    xytext=(4, 4), fontsize=7, color=colours[rows[0]])
+    if not shown:
+        ax.text(0.5, 0.5, "no row with a trained model", ha="center", va="center", transform=ax.transAxes)
+    else:
+        from matplotlib.ticker import FuncFormatter
+
+        ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        ax.xaxis.set_minor_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        ax.margins(x=0.25)
+    ax.set_xlabel("training wall time (min, log scale; summary.json elapsed_seconds)")
+    ax.set_ylabel("PSNR (dB, tonemapped)")
+    ax.set_title("Learned rows: quality vs training time\n(numbers = spp; same colours as the left panel)",
+                 fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
 
 
 def plot_frame_curves(res: Results, scene: str, path: Path) -> None:
