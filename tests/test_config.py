@@ -85,7 +85,7 @@ def test_defaults_are_filled_from_the_schema(tmp_path: Path) -> None:
     assert cfg["scenes"]["camera_paths"] == ["dolly", "orbit", "pan", "spline"]
     assert cfg["scenes"]["luminance_range"] == [0.05, 5.0]
     assert cfg["render"]["extra_radiance_spp"] == 24      # adaptive methods: up to 32 samples at the default 8 spp
-    assert cfg["render"]["reference_batch_spp"] == 32
+    assert cfg["render"]["reference_batch_spp"] == 128
     assert (cfg["render"]["max_depth"], cfg["render"]["rr_depth"]) == (8, 5)
     assert cfg["render"]["variant"] == "llvm_ad_rgb"
     assert cfg["extra_scenes"] == []
