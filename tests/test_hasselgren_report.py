@@ -137,6 +137,21 @@ def test_the_8spp_row_is_never_temporal_uniform() -> None:
     assert math.isnan(h.table1(without).set_index(["source", "scene"]).loc[(h.OURS, "mean"), "uniform rMSE x1000"])
 
 
+def test_a_row_that_states_the_default_budget_factor_is_at_budget() -> None:
+    """``budget_factor: 1`` written out is the methods' default: the row is the temporal-uniform (and
+    temporal-adaptive) row, and the 8-spp row still is not."""
+    rows = [dict(row, params={**row.get("params", {}), "budget_factor": 1})
+            if row["id"] in ("ntasd", "ntasd_uniform") else row for row in ROWS]
+    cfg = config(rows)
+    table = Table(cfg, 4)
+    shift(table, "ntasd", "ntasd_uniform", "psnr", "higher", CLEAR)
+    results = build(cfg, table)
+    assert h.row_at(results, h.TEMPORAL_UNIFORM) == "ntasd_uniform"
+    assert h.row_at(results, h.TEMPORAL_ADAPTIVE) == "ntasd"
+    assert h.row_at(results, h.UNIFORM_8SPP) == "ntasd_uniform_8spp"
+    assert evaluate_claim(results, CLAIMS["C2.3"]).verdict == REPRODUCED
+
+
 def test_rae_and_svgf_are_taken_at_4_spp_from_the_row_that_ran_there() -> None:
     """Smoke-config layout: rae / svgf at 1, 2 spp and rae_4spp / svgf_4spp at 4 spp."""
     rows = [{**r, "spp": [1, 2]} if r["id"] in ("svgf", "rae", "rae_per_frame", "noisy") else r for r in ROWS]

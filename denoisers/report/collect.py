@@ -179,10 +179,16 @@ class Results:
 
     def rows_of(self, method: str, role: str = "method", **params: Any) -> list[str]:
         """Row ids of ``role`` whose registry method is ``method`` (and whose params include ``params``) that
-        produced results at some spp; the params value None matches a missing or false key."""
+        produced results at some spp; the params value None matches a missing or false key, any other value
+        the row's value or, where the row leaves the key out, the method's constructor default (so
+        ``budget_factor=1`` matches a row with ``budget_factor: 1`` and one without the key)."""
+        from denoisers import registry
+
+        defaults = registry.parameters(method) if method in registry.available() else {}
+
         def matches(spec: MethodSpec) -> bool:
             return spec.role == role and spec.method == method and all(
-                (not spec.params.get(key)) if value is None else spec.params.get(key) == value
+                (not spec.params.get(key)) if value is None else spec.params.get(key, defaults.get(key)) == value
                 for key, value in params.items())
 
         return [spec.id for spec in self.specs if matches(spec)
