@@ -25,7 +25,8 @@ Usage: python benchmarks/train_data_choice.py [--config config/config.yaml] [--m
            [--arms layers=random layers=first] [--steps 1000] [--crop 32] [--length 3] [--validate-every 100]
            [--validation-sequences 8] [--threads 2] [--out /tmp/train_data_choice]
 Arm syntax: key=value[,key=value...] over the training_data keys of the schema, e.g.
-``crops=importance,importance_floor=0.1``.
+``crops=importance,importance_floor=0.1``; ``net.<key>=value`` overrides the network instead (a size
+comparison on identical data, e.g. ``net.width=0.5 net.width=0.25``).
 """
 from __future__ import annotations
 
@@ -54,6 +55,9 @@ from scenegen.config import load_config
 
 #: Arm keys that are not training-data keys: the arm's training scenes and the folder holding their renders.
 SCENE_KEYS: tuple[str, ...] = ("train", "root")
+#: Arm keys starting with this override the model's ``net`` (e.g. ``net.width=0.25``): a size comparison on
+#: the same data and validation sequences (the network's config class checks the key when it is built).
+NET_PREFIX = "net."
 
 
 def scene_list(text: str) -> list[str]:
@@ -69,7 +73,7 @@ def scene_list(text: str) -> list[str]:
 
 
 def split_arm(text: str) -> tuple[dict[str, str], str]:
-    """An arm's scene keys (``train``, ``root``) and the rest of its text (the data keys)."""
+    """An arm's scene keys (``train``, ``root``) and the rest of its text (the data and net keys)."""
     scene_keys, rest = {}, []
     for part in filter(None, text.split(",")):
         key = part.partition("=")[0].strip()
@@ -78,6 +82,16 @@ def split_arm(text: str) -> tuple[dict[str, str], str]:
         else:
             rest.append(part)
     return scene_keys, ",".join(rest)
+
+
+def net_overrides(text: str) -> dict[str, Any]:
+    """An arm's ``net.<key>=value`` parts as {key: value}."""
+    out = {}
+    for part in filter(None, split_arm(text)[1].split(",")):
+        key, _, value = part.partition("=")
+        if key.strip().startswith(NET_PREFIX):
+            out[key.strip()[len(NET_PREFIX):]] = yaml.safe_load(value)
+    return out
 
 
 def render_seconds(render_dirs: list[Path]) -> float:
@@ -99,7 +113,8 @@ def parse_arm(text: str, base: dict[str, Any]) -> dict[str, Any]:
         key, sep, value = part.partition("=")
         if not sep:
             raise ValueError(f"arm {text!r}: {part!r} is not key=value")
-        overrides[key.strip()] = yaml.safe_load(value)
+        if not key.strip().startswith(NET_PREFIX):
+            overrides[key.strip()] = yaml.safe_load(value)
     try:
         return _schema_defaults("training_data", {**base, **overrides})
     except jsonschema.ValidationError as err:
@@ -166,7 +181,7 @@ def main() -> None:
 
     runs: dict[str, dict[str, Any]] = {}
     for arm, data in arms.items():
-        arm_spec: ModelSpec = dataclasses.replace(base, data=data)
+        arm_spec: ModelSpec = dataclasses.replace(base, data=data, net={**base.net, **net_overrides(arm)})
         clips = load_training_clips(arm_scenes[arm], buffers)
         seconds = render_seconds(arm_scenes[arm])
         print(f"{arm}: {len(clips)} training clips ({', '.join(p.name for p in arm_scenes[arm])}), "

@@ -1,0 +1,197 @@
+"""Estimate the wall time of a config's whole DAG on this machine from measured rates (issue 11 §5).
+
+Nothing is rendered or trained; every figure is a measured rate times the work the config asks for:
+
+* render_reference: the config's reference samples per chunk (every scene, stability clips included, at
+  its own reference spp and size) divided by the reference samples/s recorded in the frame sidecars of a
+  finished render folder (``--renders``; median, and the 25-75 % range over its frames, since the rate
+  differs by scene several-fold);
+* render_noisy: seconds per pixel-layer of the noisy sidecars of that folder, times the config's
+  pixel-layers (spp + extra radiance layers) per chunk;
+* train_denoiser: every model's steps (``budget.max_steps``) times its s/step from a training-speed record
+  (``--train-speed``: ``benchmarks/train_speed.py --json`` or a run's ``timing/training.json``, the
+  configured variant). Ablation and capacity variants, which the record does not time, take their base
+  model's s/step scaled by their FLOPs per step (counted on one synthetic step each). Validation passes
+  are not counted, so this part is a lower bound;
+* every other rule: the job count of ``snakemake -n --forceall`` times the median seconds per job of that
+  rule in a finished run's ``benchmarks/`` (``--run``); rules the run never ran are listed as unmeasured.
+
+Render, training and timing jobs take every core (one at a time); the others run ``cores / threads`` at a
+time (evaluation.threads), so their wall time is their summed time divided by that.
+
+Usage: python benchmarks/dag_budget.py [--config config/config.yaml] --renders RESULTS/renders
+           --train-speed training.json [--run RESULTS] [--cores 2]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+#: Rules whose jobs take every core (they run one at a time).
+EXCLUSIVE_RULES = ("render_noisy", "render_reference", "train_denoiser", "time_methods", "time_training")
+#: Rules estimated from the config and measured rates rather than from a prior run's per-job median.
+MODELLED_RULES = ("render_noisy", "render_reference", "train_denoiser")
+
+
+def sidecar_rates(renders: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(reference samples/s per frame, noisy seconds per pixel-layer per frame) from a render folder."""
+    reference, noisy = [], []
+    for path in renders.glob("*/reference/chunk_*/frame_*.json"):
+        meta = json.loads(path.read_text())
+        reference.append(float(meta["samples_per_s"]))
+    for path in renders.glob("*/noisy/chunk_*/frame_*.json"):
+        meta = json.loads(path.read_text())
+        layers = int(meta["spp"]) + int(meta.get("extra_radiance_spp", 0))
+        noisy.append(float(meta["timing_s"]) / (int(meta["width"]) * int(meta["height"]) * layers))
+    if not reference or not noisy:
+        sys.exit(f"{renders}: no reference or noisy frame sidecars (*/{{reference,noisy}}/chunk_*/frame_*.json)")
+    return np.asarray(reference), np.asarray(noisy)
+
+
+def render_work(cfg: dict) -> pd.DataFrame:
+    """One row per (scene, chunk): reference samples and noisy pixel-layers the config asks for."""
+    from scenegen.config import (chunk_count, chunk_frames, scene_ids, scene_reference_spp, scene_render_config,
+                                 stability_scene_ids)
+
+    scenes = scene_ids(cfg) + (stability_scene_ids(cfg) if cfg.get("stability", {}).get("enabled") else [])
+    rows = []
+    for scene in scenes:
+        render = scene_render_config(cfg, scene)
+        pixels = int(render["width"]) * int(render["height"])
+        layers = int(render["spp"]) + int(render.get("extra_radiance_spp") or 0)
+        for chunk in range(chunk_count(cfg, scene)):
+            frames = len(chunk_frames(cfg, scene, chunk))
+            rows.append({"scene": scene, "chunk": chunk, "frames": frames,
+                         "reference_samples": frames * pixels * scene_reference_spp(cfg, scene),
+                         "noisy_pixel_layers": frames * pixels * layers})
+    return pd.DataFrame(rows)
+
+
+def training_work(cfg: dict, speed: dict) -> pd.DataFrame:
+    """One row per model: steps, s/step (measured, or the base's scaled by FLOPs) and seconds."""
+    import torch
+
+    from denoisers.training.models import model_specs
+    from denoisers.training.speed import make_trainer, step_flops
+    from denoisers.training.synthetic import synthetic_batch
+    from denoisers.training.tasks import task_builder
+
+    measured = {}
+    for model in speed["models"]:
+        timed = {v["variant"]: v for v in model["variants"] if v.get("status") == "timed"}
+        variant = timed.get(model["configured_variant"]) or timed.get("fp32_nchw")
+        if variant:
+            measured[model["model"]] = (variant["ms_per_step_median"] / 1e3, float(model["flops_per_step"]))
+    specs = model_specs(cfg)
+    bases = {spec.id: spec for spec in specs if spec.ablation is None}
+    rows = []
+    torch.set_num_threads(1)   # FLOPs do not depend on threads; one thread never spin-waits on a busy machine
+    with tempfile.TemporaryDirectory(prefix="dag_budget-") as work:
+        for spec in specs:
+            steps = int(spec.budget.get("max_steps") or 0)
+            if spec.id in measured:
+                seconds_per_step, how = measured[spec.id][0], "measured"
+            else:
+                base = _base_of(spec, bases)
+                if base is None or base.id not in measured:
+                    rows.append({"model": spec.id, "steps": steps, "s_per_step": np.nan, "seconds": np.nan,
+                                 "how": "no measured base model"})
+                    continue
+                builder = task_builder(spec.method)
+                batch = synthetic_batch(spec, builder.sample_buffers, pixel_buffers=builder.pixel_buffers,
+                                        mean_buffers=builder.mean_buffers)
+                flops = step_flops(make_trainer(spec, batch, "fp32", False, Path(work) / spec.id))
+                base_seconds, base_flops = measured[base.id]
+                seconds_per_step = base_seconds * flops / base_flops
+                how = f"{base.id} x {flops / base_flops:.2f} FLOPs"
+            rows.append({"model": spec.id, "steps": steps, "s_per_step": seconds_per_step,
+                         "seconds": steps * seconds_per_step, "how": how})
+    return pd.DataFrame(rows)
+
+
+def _base_of(spec, bases: dict):
+    """The configured model an ablation variant derives from (its method's first base model)."""
+    return next((base for base in bases.values() if base.method == spec.method), None)
+
+
+def dry_run_counts(config: Path) -> dict[str, int]:
+    """Jobs per rule of ``snakemake -n --forceall`` for the config."""
+    out = subprocess.run(["snakemake", "-n", "--forceall", "--quiet", "rules", "--configfile", str(config)],
+                         capture_output=True, text=True, check=True).stdout
+    counts = {}
+    for line in out.splitlines():
+        match = re.fullmatch(r"(\w+)\s+(\d+)", line.strip())
+        if match and match.group(1) != "total":
+            counts[match.group(1)] = int(match.group(2))
+    return counts
+
+
+def per_job_seconds(run: Path) -> dict[str, float]:
+    """Median wall seconds per job of every rule with benchmark files under ``run``/benchmarks."""
+    times: dict[str, list[float]] = {}
+    for tsv in (run / "benchmarks").rglob("*.tsv"):
+        parts = tsv.relative_to(run / "benchmarks").parts
+        rule = parts[0] if len(parts) > 1 else tsv.stem
+        times.setdefault(rule, []).append(float(pd.read_csv(tsv, sep="\t")["s"].iloc[-1]))
+    return {rule: statistics.median(values) for rule, values in times.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    parser.add_argument("--renders", type=Path, required=True, help="a finished render folder (frame sidecars)")
+    parser.add_argument("--train-speed", type=Path, required=True, help="training-speed record (JSON)")
+    parser.add_argument("--run", type=Path, default=None, help="a finished run's folder (its benchmarks/)")
+    parser.add_argument("--cores", type=int, default=2)
+    args = parser.parse_args()
+
+    from scenegen.config import load_config
+
+    cfg = load_config(args.config)
+    reference_rate, noisy_cost = sidecar_rates(args.renders)
+    work = render_work(cfg)
+    q25, q50, q75 = np.percentile(reference_rate, [25, 50, 75])
+    samples = float(work["reference_samples"].sum())
+    noisy_seconds = float(work["noisy_pixel_layers"].sum()) * float(np.median(noisy_cost))
+    print(f"config {args.config}: {work.scene.nunique()} scenes, {len(work)} chunks")
+    print(f"reference: {samples / 1e9:.2f} G samples at a median {q50 / 1e6:.2f} M samples/s "
+          f"(25-75 %: {q25 / 1e6:.2f}-{q75 / 1e6:.2f}; {len(reference_rate)} frames of {args.renders})")
+    stages = [("render_reference", len(work), samples / q50, f"{samples / q75 / 60:.0f}-{samples / q25 / 60:.0f} min"),
+              ("render_noisy", len(work), noisy_seconds, f"{np.median(noisy_cost) * 1e9:.0f} ns per pixel-layer")]
+    training = training_work(cfg, json.loads(args.train_speed.read_text()))
+    print(training.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    stages.append(("train_denoiser", len(training), float(training["seconds"].sum()),
+                   "steps x s/step, validation not counted"))
+    unmeasured = []
+    if args.run is not None:
+        counts, medians = dry_run_counts(args.config), per_job_seconds(args.run)
+        parallel = max(1, args.cores // int(cfg["evaluation"].get("threads") or 1))
+        for rule, count in counts.items():
+            if rule in MODELLED_RULES or rule == "all":
+                continue
+            if rule not in medians:
+                unmeasured.append(f"{rule} ({count})")
+                continue
+            concurrent = 1 if rule in EXCLUSIVE_RULES else parallel
+            stages.append((rule, count, count * medians[rule] / concurrent,
+                           f"{medians[rule]:.1f} s/job in {args.run}, {concurrent} at a time"))
+    print(f"\n{'stage':<18} {'jobs':>5} {'wall min':>9}  how")
+    for rule, jobs, seconds, how in stages:
+        print(f"{rule:<18} {jobs:>5} {seconds / 60:>9.1f}  {how}")
+    total = sum(seconds for *_, seconds, _ in stages if np.isfinite(seconds))
+    print(f"{'total':<18} {'':>5} {total / 60:>9.1f}  = {total / 3600:.2f} h")
+    if unmeasured:
+        print("not estimated (no benchmark files in --run): " + ", ".join(unmeasured))
+
+
+if __name__ == "__main__":
+    main()
