@@ -40,6 +40,9 @@ import pandas as pd
 EXCLUSIVE_RULES = ("render_noisy", "render_reference", "train_denoiser", "time_methods", "time_training")
 #: Rules estimated from the config and measured rates rather than from a prior run's per-job median.
 MODELLED_RULES = ("render_noisy", "render_reference", "train_denoiser")
+#: benchmarks/<folder>/... -> rule, where the folder is not the rule's name (workflow/rules/*.smk).
+BENCHMARK_FOLDERS = {"denoise": "denoise_clip", "evaluate": "evaluate_clip", "robustness": "robustness_clip",
+                     "train": "train_denoiser", "tune": "tune_method"}
 
 
 def sidecar_rates(renders: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -140,7 +143,7 @@ def per_job_seconds(run: Path) -> dict[str, float]:
     times: dict[str, list[float]] = {}
     for tsv in (run / "benchmarks").rglob("*.tsv"):
         parts = tsv.relative_to(run / "benchmarks").parts
-        rule = parts[0] if len(parts) > 1 else tsv.stem
+        rule = BENCHMARK_FOLDERS.get(parts[0], parts[0]) if len(parts) > 1 else tsv.stem
         times.setdefault(rule, []).append(float(pd.read_csv(tsv, sep="\t")["s"].iloc[-1]))
     return {rule: statistics.median(values) for rule, values in times.items()}
 
