@@ -1,0 +1,59 @@
+"""benchmarks/dag_budget.py: the work a config asks for and the rates read from sidecars and benchmark files."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from scenegen.config import validate_config
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
+try:
+    import dag_budget
+finally:
+    sys.path.pop(0)
+
+
+def smoke() -> dict:
+    return validate_config(yaml.safe_load((REPO_ROOT / "config" / "smoke.yaml").read_text()))
+
+
+def test_render_work_counts_every_chunk_at_its_own_reference_spp_and_layers() -> None:
+    cfg = smoke()
+    cfg["render"]["train_reference_spp"] = 16
+    work = dag_budget.render_work(cfg).set_index(["scene", "chunk"])
+    render, scenes = cfg["render"], cfg["scenes"]
+    pixels = render["width"] * render["height"]
+    frames = scenes["frames_per_chunk"]
+    # A training scene that trains (not a validation scene) takes train_reference_spp; a test scene reference_spp.
+    assert work.loc[("train_000", 0), "reference_samples"] == frames * pixels * 16
+    assert work.loc[("test_000", 0), "reference_samples"] == frames * pixels * render["reference_spp"]
+    assert work.loc[("test_000", 0), "noisy_pixel_layers"] == frames * pixels * (render["spp"] + render["extra_radiance_spp"])
+    # Stability clips at their own size and reference spp.
+    stab = cfg["stability"]
+    first = f"stab_{stab['scenarios'][0]}"
+    assert work.loc[(first, 0), "reference_samples"] == stab["frames"] * stab["width"] * stab["height"] * stab["reference_spp"]
+    assert work.index.get_level_values("scene").nunique() == scenes["n_train"] + scenes["n_test"] + len(stab["scenarios"])
+
+
+def test_rates_come_from_the_sidecars_and_benchmark_folders_map_to_rules(tmp_path: Path) -> None:
+    renders = tmp_path / "renders" / "train_000"
+    for kind, meta in (("reference", {"samples_per_s": 2.0e6}),
+                       ("noisy", {"timing_s": 4.0, "width": 10, "height": 20, "spp": 3, "extra_radiance_spp": 1})):
+        chunk = renders / kind / "chunk_000"
+        chunk.mkdir(parents=True)
+        (chunk / "frame_0000.json").write_text(json.dumps(meta))
+    reference, noisy = dag_budget.sidecar_rates(tmp_path / "renders")
+    assert list(reference) == [2.0e6] and noisy[0] == pytest.approx(4.0 / (10 * 20 * 4))
+    for folder, seconds in (("denoise/eaw/test_000", [3.0, 5.0, 4.0]), ("tune", [7.0])):
+        (tmp_path / "run" / "benchmarks" / folder).mkdir(parents=True)
+        for i, value in enumerate(seconds):
+            (tmp_path / "run" / "benchmarks" / folder / f"spp{i}.tsv").write_text(f"s\tmax_rss\n{value}\t10\n")
+    (tmp_path / "run" / "benchmarks" / "build_report.tsv").write_text("s\tmax_rss\n9.0\t10\n")
+    assert dag_budget.per_job_seconds(tmp_path / "run") == {"denoise_clip": 4.0, "tune_method": 7.0, "build_report": 9.0}
+    with pytest.raises(SystemExit, match="no reference or noisy frame sidecars"):
+        dag_budget.sidecar_rates(tmp_path / "empty")
