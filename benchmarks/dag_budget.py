@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -35,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from run_summary import benchmark_jobs  # benchmarks/ is sys.path[0] when run as a script
 
 #: Rules whose jobs take every core (they run one at a time).
 EXCLUSIVE_RULES = ("render_noisy", "render_reference", "train_denoiser", "time_methods", "time_training")
@@ -96,6 +97,7 @@ def training_work(cfg: dict, speed: dict) -> pd.DataFrame:
             measured[model["model"]] = (variant["ms_per_step_median"] / 1e3, float(model["flops_per_step"]))
     specs = model_specs(cfg)
     bases = {spec.id: spec for spec in specs if spec.ablation is None}
+    ablation_base = {ablation["id"]: ablation["model"] for ablation in cfg["training"].get("ablations", [])}
     rows = []
     torch.set_num_threads(1)   # FLOPs do not depend on threads; one thread never spin-waits on a busy machine
     with tempfile.TemporaryDirectory(prefix="dag_budget-") as work:
@@ -104,7 +106,7 @@ def training_work(cfg: dict, speed: dict) -> pd.DataFrame:
             if spec.id in measured:
                 seconds_per_step, how = measured[spec.id][0], "measured"
             else:
-                base = _base_of(spec, bases)
+                base = bases.get(ablation_base.get(spec.ablation))
                 if base is None or base.id not in measured:
                     rows.append({"model": spec.id, "steps": steps, "s_per_step": np.nan, "seconds": np.nan,
                                  "how": "no measured base model"})
@@ -121,11 +123,6 @@ def training_work(cfg: dict, speed: dict) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _base_of(spec, bases: dict):
-    """The configured model an ablation variant derives from (its method's first base model)."""
-    return next((base for base in bases.values() if base.method == spec.method), None)
-
-
 def dry_run_counts(config: Path) -> dict[str, int]:
     """Jobs per rule of ``snakemake -n --forceall`` for the config."""
     out = subprocess.run(["snakemake", "-n", "--forceall", "--quiet", "rules", "--configfile", str(config)],
@@ -140,12 +137,9 @@ def dry_run_counts(config: Path) -> dict[str, int]:
 
 def per_job_seconds(run: Path) -> dict[str, float]:
     """Median wall seconds per job of every rule with benchmark files under ``run``/benchmarks."""
-    times: dict[str, list[float]] = {}
-    for tsv in (run / "benchmarks").rglob("*.tsv"):
-        parts = tsv.relative_to(run / "benchmarks").parts
-        rule = BENCHMARK_FOLDERS.get(parts[0], parts[0]) if len(parts) > 1 else tsv.stem
-        times.setdefault(rule, []).append(float(pd.read_csv(tsv, sep="\t")["s"].iloc[-1]))
-    return {rule: statistics.median(values) for rule, values in times.items()}
+    jobs = benchmark_jobs(run)
+    rules = jobs["rule"].map(lambda folder: BENCHMARK_FOLDERS.get(folder, folder))
+    return {rule: float(seconds) for rule, seconds in jobs.groupby(rules)["seconds"].median().items()}
 
 
 def main() -> None:

@@ -14,11 +14,9 @@ from pathlib import Path
 import pandas as pd
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results", nargs="?", type=Path, default=Path("results"),
-                        help="the run's output directory (default: results)")
-    results = parser.parse_args().results
+def benchmark_jobs(results: Path) -> pd.DataFrame:
+    """One row per job with a Snakemake ``benchmark:`` file under ``results``/benchmarks: ``rule`` (the
+    file's top folder, or its name for one-job rules), ``seconds`` (wall) and ``max_rss_mb``."""
     rows = []
     for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
         parts = tsv.relative_to(results / "benchmarks").parts
@@ -26,9 +24,17 @@ def main() -> None:
         table = pd.read_csv(tsv, sep="\t")
         rows.append({"rule": rule, "seconds": float(table["s"].iloc[-1]),
                      "max_rss_mb": float(pd.to_numeric(table["max_rss"], errors="coerce").iloc[-1])})
-    if not rows:
+    return pd.DataFrame(rows, columns=["rule", "seconds", "max_rss_mb"])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results", nargs="?", type=Path, default=Path("results"),
+                        help="the run's output directory (default: results)")
+    results = parser.parse_args().results
+    jobs = benchmark_jobs(results)
+    if jobs.empty:
         sys.exit(f"no benchmark files under {results / 'benchmarks'}")
-    jobs = pd.DataFrame(rows)
     summary = jobs.groupby("rule").agg(jobs=("seconds", "size"), total_s=("seconds", "sum"),
                                        longest_s=("seconds", "max"), peak_rss_mb=("max_rss_mb", "max"))
     print(summary.to_string(float_format=lambda v: f"{v:.1f}"))

@@ -88,8 +88,7 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
         fastest = [row["mpix_per_s"] * row["ms_per_frame"] / row["ms_per_frame_min"] for row in speeds]
         xerr = [[xi - lo for xi, lo in zip(x, slowest)], [hi - xi for xi, hi in zip(x, fastest)]]
         y = [lookup[(spec.id, s, "psnr")] for s in spps]
-        err = [[0 if math.isnan(v[1]) else v[0] - v[1] for v in y], [0 if math.isnan(v[2]) else v[2] - v[0] for v in y]]
-        ax.errorbar(x, [v[0] for v in y], xerr=xerr, yerr=err, marker="o", color=colours[spec.id], label=spec.id,
+        ax.errorbar(x, [v[0] for v in y], xerr=xerr, yerr=_ci_yerr(y), marker="o", color=colours[spec.id], label=spec.id,
                     capsize=3)
         # Only the spp next to each point (the colour says the method): long labels overlapped.
         for xi, yi, s in zip(x, y, spps):
@@ -133,10 +132,15 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     plt.close(fig)
 
 
+def _ci_yerr(y: Sequence[tuple[float, float, float, int]]) -> list[list[float]]:
+    """matplotlib yerr (below, above) from summary_lookup values (mean, CI low, CI high, n); 0 without a CI."""
+    return [[0 if math.isnan(v[1]) else v[0] - v[1] for v in y], [0 if math.isnan(v[2]) else v[2] - v[0] for v in y]]
+
+
 def _plot_quality_vs_training_time(res: Results, lookup: dict, colours: dict[str, Any], ax: Any) -> None:
     """PSNR (mean ± 95 % CI over scenes) of every row backed by a trained model against its training wall
     time in minutes (log x); one point per evaluated spp, numbers = spp."""
-    shown, labels = 0, {}
+    labels: dict[str, dict[str, Any]] = {}   # model id -> where and what to label (rows sharing a model share one)
     for spec in res.main_specs:
         model = res.model_of(spec.id)
         seconds = float(model.summary.get("elapsed_seconds") or 0.0) if model is not None else 0.0
@@ -145,23 +149,21 @@ def _plot_quality_vs_training_time(res: Results, lookup: dict, colours: dict[str
             continue
         minutes = seconds / 60.0
         y = [lookup[(spec.id, s, "psnr")] for s in spps]
-        err = [[0 if math.isnan(v[1]) else v[0] - v[1] for v in y], [0 if math.isnan(v[2]) else v[2] - v[0] for v in y]]
-        ax.errorbar([minutes] * len(spps), [v[0] for v in y], yerr=err, marker="s", linestyle="none",
+        ax.errorbar([minutes] * len(spps), [v[0] for v in y], yerr=_ci_yerr(y), marker="s", linestyle="none",
                     color=colours[spec.id], capsize=3)
         for yi, s in zip(y, spps):
             ax.annotate(str(s), (minutes, yi[0]), textcoords="offset points", xytext=(4, -9), fontsize=7,
                         color=colours[spec.id])
-        # Rows sharing a model (e.g. rae and rae_per_frame) share one label at the model's training time.
-        key = (model.spec.id, minutes)
-        labels.setdefault(key, [minutes, -math.inf, [], model.summary.get("steps")])
-        labels[key][1] = max(labels[key][1], max(v[0] for v in y))
-        labels[key][2].append(spec.id)
-        shown += 1
-    for (model_id, _), (minutes, top, rows, steps) in labels.items():
+        label = labels.setdefault(model.spec.id, {"minutes": minutes, "top": -math.inf, "rows": [],
+                                                  "steps": model.summary.get("steps")})
+        label["top"] = max(label["top"], max(v[0] for v in y))
+        label["rows"].append(spec.id)
+    for model_id, label in labels.items():
+        rows = label["rows"]
         model_text = "" if rows == [model_id] else f" [model {model_id}]"
-        ax.annotate(f"{', '.join(rows)}{model_text}, {steps} steps", (minutes, top), textcoords="offset points",
-                    xytext=(4, 4), fontsize=7, color=colours[rows[0]])
-    if not shown:
+        ax.annotate(f"{', '.join(rows)}{model_text}, {label['steps']} steps", (label["minutes"], label["top"]),
+                    textcoords="offset points", xytext=(4, 4), fontsize=7, color=colours[rows[0]])
+    if not labels:
         ax.text(0.5, 0.5, "no row with a trained model", ha="center", va="center", transform=ax.transAxes)
     else:
         from matplotlib.ticker import FuncFormatter
