@@ -306,13 +306,15 @@ def stability_scenario(cfg: dict[str, Any], scene_id: str) -> str:
 
 def scene_render_config(cfg: dict[str, Any], scene_id: str) -> dict[str, Any]:
     """The ``render`` settings a scene is rendered with: ``render`` itself, except for the stability scenes,
-    whose width, height, spp and reference_spp come from the ``stability`` section (spp null = render.spp)."""
+    whose width, height, spp and reference_spp come from the ``stability`` section (spp null = render.spp),
+    and whose references always hold the feature means (their texture masks read the reference albedo)."""
     if not scene_id.startswith(STABILITY_PREFIX):
         return cfg["render"]
     stability = cfg["stability"]
     spp = stability["spp"] if stability.get("spp") is not None else cfg["render"]["spp"]
     return {**cfg["render"], "width": stability["width"], "height": stability["height"], "spp": spp,
-            "reference_spp": stability["reference_spp"], "train_reference_spp": None}
+            "reference_spp": stability["reference_spp"], "train_reference_spp": None,
+            "reference_integrator": "features"}
 
 
 def training_scene_split(cfg: dict[str, Any]) -> tuple[list[str], list[str]]:

@@ -259,7 +259,10 @@ def load_custom_frame_scene(manifest: dict, frame: int, *, width: int, height: i
     if hashlib.sha256(xml.read_bytes()).hexdigest() != manifest["xml_sha256"]:
         raise CustomSceneError(f"{xml} changed since the scene was imported; re-run generate_scene")
     scene = load_xml(xml).scene
-    scene_dict = {"type": "scene", "integrator": {**integrator, **integrator_settings(manifest)},
+    settings = {**integrator, **integrator_settings(manifest)}
+    if settings["type"] == "path" and settings.get("max_depth") == UNBOUNDED_DEPTH:
+        settings["max_depth"] = -1   # Mitsuba's own integrators take a signed int: -1 is "no limit"
+    scene_dict = {"type": "scene", "integrator": settings,
                   "sensor": sensor_dict(manifest, frame, width=width, height=height, sampler=sampler)}
     for index, shape in enumerate(scene.shapes()):
         scene_dict[f"shape_{index:03d}"] = shape

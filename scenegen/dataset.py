@@ -361,12 +361,22 @@ def load_frame(path: Path, *, buffers: Sequence[str] = ALL, spp: int | None = No
     return samples, pixel_data, _read_meta(path, attributes)
 
 
+#: Buffers every reference frame holds, whatever render.reference_integrator rendered it.
+REQUIRED_REFERENCE_BUFFERS: tuple[str, ...] = ("radiance", "radiance_half0", "radiance_half1")
+
+
 def load_reference_frame(path: Path, buffers: Sequence[str] | None = None) -> tuple[dict[str, np.ndarray], dict]:
-    """Read one reference frame: ({buffer: (C, H, W) float32}, meta). Default: every REFERENCE_BUFFERS entry."""
+    """Read one reference frame: ({buffer: (C, H, W) float32}, meta). Default: every REFERENCE_BUFFERS entry
+    stored in the file (radiance and its two halves always; the feature means only when the reference was
+    rendered with ``render.reference_integrator: features``)."""
     path = Path(path)
     names, attributes = read_header(path)
     stored = set(names)
-    buffers = list(REFERENCE_BUFFERS) if buffers is None else list(buffers)
+    if buffers is None:
+        buffers = [*REQUIRED_REFERENCE_BUFFERS,
+                   *(b for b in REFERENCE_BUFFERS
+                     if b not in REQUIRED_REFERENCE_BUFFERS and stored.issuperset(reference_channel_names(b)))]
+    buffers = list(buffers)
     for buffer in buffers:
         if buffer not in REFERENCE_BUFFERS or not stored.issuperset(reference_channel_names(buffer)):
             present = [b for b in REFERENCE_BUFFERS if stored.issuperset(reference_channel_names(b))]

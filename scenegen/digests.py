@@ -17,7 +17,8 @@ SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
 NOISY_ONLY_KEYS = frozenset({"spp", "extra_radiance_spp"})
 #: render.* keys only the references depend on; train_reference_spp enters a reference digest as the scene's
 #: effective reference_spp (scenegen.config.scene_reference_spp), so null or absent changes no digest.
-REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp", "train_reference_spp"})
+REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp", "train_reference_spp",
+                                 "reference_integrator"})
 
 
 def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
@@ -51,7 +52,8 @@ def render_digest(cfg: dict, scene: str, kind: str) -> str:
         own = {key: scene_render_config(cfg, scene)[key] for key in sorted(NOISY_ONLY_KEYS)}
     else:   # the spp this scene's references are rendered with, under the key reference_spp
         own = {"reference_batch_spp": cfg["render"]["reference_batch_spp"],
-               "reference_spp": scene_reference_spp(cfg, scene)}
+               "reference_spp": scene_reference_spp(cfg, scene),
+               "reference_integrator": scene_render_config(cfg, scene)["reference_integrator"]}
     return config_digest({"scene": scene_settings(cfg, scene), "frames": scene_frame_count(cfg, scene),
                           "frames_per_chunk": scene_frames_per_chunk(cfg, scene), "render": own})
 

@@ -159,7 +159,9 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
 
 def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
     """Render the high-spp references (two independent halves) of one chunk, at the scene's reference spp
-    (render.train_reference_spp for train_* scenes when set, else render.reference_spp); the sidecars record it."""
+    (render.train_reference_spp for train_* scenes when set, else render.reference_spp); the sidecars record it.
+    ``render.reference_integrator``: "path" renders radiance with Mitsuba's ``path`` integrator (the buffers the
+    evaluation and training use); "features" renders with the feature integrator and adds the feature means."""
     from scenegen.dataset import reference_channels
     from scenegen.exr import write_exr
 
@@ -169,22 +171,26 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
     manifest = _load_manifest(scene_dir)
     frames = chunk_frames(manifest["n_frames"], scene_frames_per_chunk(cfg, scene_id), chunk)
     half_spp = settings.reference_spp // 2
+    features = settings.reference_integrator == "features"
+    mode = "samples" if features else "path"
     rates: list[float] = []
     n_batches = math.ceil(half_spp / settings.reference_batch_spp)
     with atomic_directory(out_dir) as tmp_dir, \
             tqdm(total=len(frames) * 2 * half_spp, desc=f"reference {scene_id} chunk {chunk}", unit="spp") as bar:
         for frame in frames:
             start = time.perf_counter()
-            scene = load_frame_scene(manifest, scene_dir, frame, settings)
+            scene = load_frame_scene(manifest, scene_dir, frame, settings, mode=mode)
             counter = NonFiniteCounter()
             seeds = tuple(reference_batch_seeds(cfg["seed"], scene_id, frame, half, n_batches) for half in (0, 1))
             reference = render_reference_frame(scene, spp=2 * half_spp, batch_spp=settings.reference_batch_spp,
-                                               seeds_half=seeds, counter=counter, progress=bar)
+                                               seeds_half=seeds, counter=counter, progress=bar,
+                                               features=features)
             seconds = time.perf_counter() - start
             psnr_halves = psnr_between_halves(reference["radiance_half0"], reference["radiance_half1"])
             meta = _frame_meta(manifest, scene_id, frame, settings, variant)
             meta.update({
                 "spp": 2 * half_spp, "seeds": {"half0": seeds[0], "half1": seeds[1]},
+                "integrator": "mcdn_features" if features else "path", "buffers": sorted(reference),
                 "psnr_halves": psnr_halves,
                 "psnr_reference_noise_floor": psnr_halves + 10.0 * math.log10(4.0),
                 "nonfinite": counter.counts, "nonfinite_total": int(sum(counter.counts.values())),

@@ -33,6 +33,7 @@ class RenderSettings:
     extra_radiance_spp: int = 0
     reference_spp: int = 1024
     reference_batch_spp: int = 32
+    reference_integrator: str = "path"   # "path": radiance only; "features": also the feature means
     max_depth: int = 8
     rr_depth: int = 5
     variant: str = "llvm_ad_rgb"
@@ -58,17 +59,24 @@ class NonFiniteCounter:
         return array
 
 
+#: render.reference_integrator values: Mitsuba's ``path`` (radiance only, about 1.4x the rate of the
+#: feature integrator on generated scenes) or the feature integrator (radiance plus feature means).
+REFERENCE_INTEGRATORS: tuple[str, ...] = ("path", "features")
+
+
 def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: RenderSettings,
                      *, mode: str = "samples"):
-    """Load the Mitsuba scene of ``frame`` with the feature integrator and per-face attributes."""
+    """Load the Mitsuba scene of ``frame`` with per-face attributes and the feature integrator in ``mode``
+    ("samples", "gbuffer"), or with Mitsuba's ``path`` integrator for ``mode="path"`` (same depths)."""
     init_mitsuba(settings.variant)
     import mitsuba as mi
 
     import scenegen.integrator  # noqa: F401 -- registers "mcdn_features"
     from scenegen.mitsuba_scene import attach_face_attributes, build_scene_dict
 
-    integrator = {"type": "mcdn_features", "max_depth": settings.max_depth,
-                  "rr_depth": settings.rr_depth, "mode": mode}
+    integrator: dict = {"type": "path", "max_depth": settings.max_depth, "rr_depth": settings.rr_depth}
+    if mode != "path":
+        integrator.update(type="mcdn_features", mode=mode)
     if manifest.get("kind") == "custom":
         from scenegen.custom import load_custom_frame_scene
 
@@ -201,13 +209,14 @@ def reference_batch_seeds(global_seed: int, scene_id: str, frame: int, half: int
 
 
 def render_reference_frame(scene, *, spp: int, batch_spp: int, seeds_half: tuple[list[int], list[int]],
-                           counter: NonFiniteCounter, progress=None) -> dict[str, np.ndarray]:
+                           counter: NonFiniteCounter, progress=None, features: bool = True) -> dict[str, np.ndarray]:
     """Two independent halves of ``spp/2`` samples each; returns {buffer: (C, H, W)} with
-    ``radiance`` (their mean), ``radiance_half0``, ``radiance_half1``, and the mean of diffuse,
-    specular, albedo, normal and depth over all samples."""
+    ``radiance`` (their mean), ``radiance_half0``, ``radiance_half1``, and, with ``features`` (a scene
+    loaded with the feature integrator), the mean of diffuse, specular, albedo, normal and depth over all
+    samples. ``features=False`` expects a radiance-only integrator (Mitsuba's ``path``)."""
     from scenegen.integrator import SAMPLE_AOVS
 
-    layout = [("radiance", 3), *SAMPLE_AOVS]
+    layout = [("radiance", 3), *SAMPLE_AOVS] if features else [("radiance", 3)]
     half_spp = spp // 2
     n_batches = math.ceil(half_spp / batch_spp)
     sums: dict[str, np.ndarray] = {}
@@ -219,7 +228,7 @@ def render_reference_frame(scene, *, spp: int, batch_spp: int, seeds_half: tuple
             batch_count = min(batch_spp, remaining)
             remaining -= batch_count
             parts = _split_channels(_render(scene, spp=batch_count, seed=seeds_half[half][batch]), layout)
-            for name in ("radiance", "diffuse", "albedo", "normal", "depth"):
+            for name in ("radiance", "diffuse", "albedo", "normal", "depth") if features else ("radiance",):
                 value = counter.sanitise(name, parts[name]).astype(np.float64) * batch_count
                 sums[name] = sums.get(name, 0.0) + value
                 if name == "radiance":
@@ -229,7 +238,8 @@ def render_reference_frame(scene, *, spp: int, batch_spp: int, seeds_half: tuple
         half_radiance.append(acc / half_spp)
     total = 2 * half_spp
     out = {name: (value / total).astype(np.float32) for name, value in sums.items()}
-    out["specular"] = out["radiance"] - out["diffuse"]
+    if features:
+        out["specular"] = out["radiance"] - out["diffuse"]
     out["radiance_half0"] = half_radiance[0].astype(np.float32)
     out["radiance_half1"] = half_radiance[1].astype(np.float32)
     return out

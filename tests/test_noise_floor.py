@@ -19,7 +19,7 @@ import pytest
 
 from scenegen import jobs
 from scenegen import render as render_module
-from scenegen.dataset import load_reference_frame
+from scenegen.dataset import REFERENCE_BUFFERS, MissingBufferError, load_reference_frame
 from scenegen.integrator import SAMPLE_AOVS
 from scenegen.render import psnr_between_halves
 
@@ -99,32 +99,59 @@ def true_image() -> np.ndarray:
     return np.stack([base, 0.8 * base + 0.05, 0.6 * base + 0.1])
 
 
-def fake_render(scene, *, spp: int, seed: int, sensor=None) -> np.ndarray:
-    """Stands in for mi.render of the feature integrator: an (H, W, 3 + AOVs) image whose radiance is
-    the mean of ``spp`` samples true_image() + N(0, SAMPLE_STD^2), drawn from ``seed``; AOVs zero."""
+def fake_render(scene, *, spp: int, seed: int, sensor=None, aov_channels: int = AOV_CHANNELS) -> np.ndarray:
+    """Stands in for mi.render of the feature integrator (or of ``path`` with ``aov_channels=0``): an
+    (H, W, 3 + AOVs) image whose radiance is the mean of ``spp`` samples true_image() + N(0, SAMPLE_STD^2),
+    drawn from ``seed``; AOVs zero."""
     noise = np.random.default_rng(seed).normal(0.0, SAMPLE_STD / math.sqrt(spp), (3, HEIGHT, WIDTH))
-    image = np.zeros((HEIGHT, WIDTH, 3 + AOV_CHANNELS), np.float32)
+    image = np.zeros((HEIGHT, WIDTH, 3 + aov_channels), np.float32)
     image[..., :3] = np.moveaxis(true_image() + noise, 0, -1)
     return image
 
 
-@pytest.fixture(scope="module")
-def reference_chunk(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Run scenegen.jobs.run_render_reference on two frames with fake_render as the renderer."""
-    root = tmp_path_factory.mktemp("noise_floor")
+@pytest.fixture(scope="module", params=["path", "features"])
+def reference_chunk(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Run scenegen.jobs.run_render_reference on two frames with fake_render as the renderer, for both
+    render.reference_integrator values (the scene loader is asked for the matching integrator)."""
+    integrator = request.param
+    root = tmp_path_factory.mktemp(f"noise_floor_{integrator}")
     scene_dir, out_dir = root / "scene", root / "reference" / "chunk_000"
     scene_dir.mkdir()
     (scene_dir / "manifest.json").write_text(json.dumps({"n_frames": 2}))
     cfg = {"seed": 3, "scenes": {"frames_per_chunk": 2},
            "render": {"width": WIDTH, "height": HEIGHT, "reference_spp": REFERENCE_SPP,
-                      "reference_batch_spp": BATCH_SPP}}
+                      "reference_batch_spp": BATCH_SPP, "reference_integrator": integrator}}
+    modes: list[str] = []
+    aov_channels = AOV_CHANNELS if integrator == "features" else 0
+
+    def fake_load(*args, mode: str = "samples", **kwargs):
+        modes.append(mode)
+
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(render_module, "_render", fake_render)
-        patch.setattr(jobs, "load_frame_scene", lambda *args, **kwargs: None)
+        patch.setattr(render_module, "_render", lambda scene, **kw: fake_render(scene, **kw, aov_channels=aov_channels))
+        patch.setattr(jobs, "load_frame_scene", fake_load)
         patch.setattr(jobs, "_frame_meta", lambda manifest, scene_id, frame, settings, variant:
                       {"scene": scene_id, "frame": frame, "camera_cut": False})
         jobs.run_render_reference(cfg, "test_000", 0, scene_dir, out_dir)
+    assert modes == (["samples"] * 2 if integrator == "features" else ["path"] * 2)
     return out_dir
+
+
+def test_reference_buffers_follow_the_reference_integrator(reference_chunk: Path) -> None:
+    """path stores radiance and its halves only; features adds the feature means; the default read
+    returns what is stored, and asking for an absent feature mean names the buffer."""
+    meta = json.loads((reference_chunk / "frame_0000.json").read_text())
+    data, _ = load_reference_frame(reference_chunk / "frame_0000.exr")
+    required = {"radiance", "radiance_half0", "radiance_half1"}
+    if meta["integrator"] == "path":
+        assert set(data) == required == set(meta["buffers"])
+        with pytest.raises(MissingBufferError, match="'albedo'"):
+            load_reference_frame(reference_chunk / "frame_0000.exr", ["albedo"])
+    else:
+        assert meta["integrator"] == "mcdn_features"
+        assert set(data) == set(REFERENCE_BUFFERS) == set(meta["buffers"])
+    np.testing.assert_allclose(data["radiance"], 0.5 * (data["radiance_half0"] + data["radiance_half1"]),
+                               rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("frame", [0, 1])

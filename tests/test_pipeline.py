@@ -39,7 +39,7 @@ from denoisers.reproductions import all_claims
 from denoisers.training.models import MODEL_FILES, capacity_model_ids, model_dir, model_specs
 from scenegen.config import (CUSTOM_PREFIX, chunk_count, chunk_frames, load_config, scene_frame_count, scene_ids,
                              scene_reference_spp)
-from scenegen.dataset import REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
+from scenegen.dataset import REFERENCE_BUFFERS, REQUIRED_REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 # Every test here shares one smoke DAG run (minutes): excluded by `-m "not slow"`.
@@ -193,7 +193,9 @@ def test_clips_load_with_configured_shapes_and_sane_metadata(pipeline: PipelineR
             assert array.shape == (n_frames, layers, len(SAMPLE_BUFFERS[buffer]), height, width), buffer
             assert np.isfinite(array).all(), buffer
         assert clip.motion.shape == (n_frames, 2, height, width)
-        assert set(clip.reference) == set(REFERENCE_BUFFERS)
+        # render.reference_integrator: path stores radiance and its halves; features adds the feature means.
+        expected = (REFERENCE_BUFFERS if render["reference_integrator"] == "features" else REQUIRED_REFERENCE_BUFFERS)
+        assert set(clip.reference) == set(expected)
         for buffer, array in clip.reference.items():
             assert array.shape == (n_frames, len(REFERENCE_BUFFERS[buffer]), height, width), buffer
             assert np.isfinite(array).all(), buffer

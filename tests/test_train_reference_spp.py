@@ -104,7 +104,7 @@ def test_report_states_both_reference_spps() -> None:
 # --------------------------------------------------------------------------------------------- digests
 def _legacy_render_digest(cfg: dict, scene: str, kind: str) -> str:
     """render_digest as it was before render.train_reference_spp existed (for a config without the key)."""
-    noisy, reference = {"spp", "extra_radiance_spp"}, {"reference_spp", "reference_batch_spp"}
+    noisy, reference = {"spp", "extra_radiance_spp"}, {"reference_spp", "reference_batch_spp", "reference_integrator"}
     if scene.startswith("custom_"):
         procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
     else:

@@ -232,7 +232,7 @@ class SequenceDataset:
                                              any(b not in clip.reference for b in config.reference_buffers)):
                 loaded = list(clip.reference or {})
                 raise KeyError(f"clip {clip.scene!r} lacks reference buffers {list(config.reference_buffers)} "
-                               f"(loaded: {loaded})")
+                               f"(loaded: {loaded}; feature means need render.reference_integrator: features)")
             for key in config.pixel_buffers:
                 if key.startswith("gbuffer.") and key.split(".", 1)[1] not in clip.gbuffer:
                     raise KeyError(f"clip {clip.scene!r} has no G-buffer {key!r}")
