@@ -5,7 +5,9 @@ Nothing is rendered or trained; every figure is a measured rate times the work t
 * render_reference: the config's reference samples per chunk (every scene, stability clips included, at
   its own reference spp and size) divided by the reference samples/s recorded in the frame sidecars of a
   finished render folder (``--renders``; median, and the 25-75 % range over its frames, since the rate
-  differs by scene several-fold);
+  differs by scene several-fold), per reference integrator (``render.reference_integrator``; the
+  stability clips always use the feature integrator). Sidecars of the other integrator are scaled by
+  ``benchmarks/reference_speed.py``'s measured rate ratio (``--reference-speed``);
 * render_noisy: seconds per pixel-layer of the noisy sidecars of that folder, times the config's
   pixel-layers (spp + extra radiance layers) per chunk;
 * train_denoiser: every model's steps (``budget.max_steps``) times its s/step from a training-speed record
@@ -20,7 +22,7 @@ Render, training and timing jobs take every core (one at a time); the others run
 time (evaluation.threads), so their wall time is their summed time divided by that.
 
 Usage: python benchmarks/dag_budget.py [--config config/config.yaml] --renders RESULTS/renders
-           --train-speed training.json [--run RESULTS] [--cores 2]
+           --train-speed training.json [--run RESULTS [RESULTS ...]] [--cores 2] [--reference-speed reference_speed.json]
 """
 from __future__ import annotations
 
@@ -46,19 +48,44 @@ BENCHMARK_FOLDERS = {"denoise": "denoise_clip", "evaluate": "evaluate_clip", "ro
                      "train": "train_denoiser", "tune": "tune_method"}
 
 
-def sidecar_rates(renders: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(reference samples/s per frame, noisy seconds per pixel-layer per frame) from a render folder."""
-    reference, noisy = [], []
+#: Sidecar ``integrator`` of reference frames rendered before the key was recorded.
+DEFAULT_REFERENCE_INTEGRATOR = "mcdn_features"
+
+
+def sidecar_rates(renders: Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """({reference integrator: samples/s per frame}, noisy seconds per pixel-layer per frame) from a render folder."""
+    reference: dict[str, list[float]] = {}
+    noisy = []
     for path in renders.glob("*/reference/chunk_*/frame_*.json"):
         meta = json.loads(path.read_text())
-        reference.append(float(meta["samples_per_s"]))
+        integrator = meta.get("integrator", DEFAULT_REFERENCE_INTEGRATOR)
+        reference.setdefault(integrator, []).append(float(meta["samples_per_s"]))
     for path in renders.glob("*/noisy/chunk_*/frame_*.json"):
         meta = json.loads(path.read_text())
         layers = int(meta["spp"]) + int(meta.get("extra_radiance_spp", 0))
         noisy.append(float(meta["timing_s"]) / (int(meta["width"]) * int(meta["height"]) * layers))
     if not reference or not noisy:
         sys.exit(f"{renders}: no reference or noisy frame sidecars (*/{{reference,noisy}}/chunk_*/frame_*.json)")
-    return np.asarray(reference), np.asarray(noisy)
+    return {name: np.asarray(rates) for name, rates in reference.items()}, np.asarray(noisy)
+
+
+def reference_rates(sidecars: dict[str, np.ndarray], needed: set[str], speed: dict | None) -> dict[str, tuple[np.ndarray, str]]:
+    """{integrator: (samples/s per frame, source)} for every integrator the config renders references with:
+    the sidecars' own rates, or the other integrator's scaled by ``benchmarks/reference_speed.py``'s
+    median path/features rate ratio (``--reference-speed``)."""
+    out = {}
+    for name in needed:
+        if name in sidecars:
+            out[name] = (sidecars[name], "sidecars")
+            continue
+        other = "mcdn_features" if name == "path" else "path"
+        if other not in sidecars or speed is None:
+            sys.exit(f"no reference sidecars rendered with {name!r} in --renders (have: {', '.join(sidecars)}); "
+                     "pass --reference-speed (benchmarks/reference_speed.py --json) to scale the other integrator's rates")
+        ratio = float(speed["median_path_rate_ratio"])
+        factor = ratio if name == "path" else 1.0 / ratio
+        out[name] = (sidecars[other] * factor, f"{other} sidecars x {factor:.2f} (reference_speed.py)")
+    return out
 
 
 def render_work(cfg: dict) -> pd.DataFrame:
@@ -74,7 +101,8 @@ def render_work(cfg: dict) -> pd.DataFrame:
         layers = int(render["spp"]) + int(render.get("extra_radiance_spp") or 0)
         for chunk in range(chunk_count(cfg, scene)):
             frames = len(chunk_frames(cfg, scene, chunk))
-            rows.append({"scene": scene, "chunk": chunk, "frames": frames,
+            integrator = "path" if render.get("reference_integrator", "path") == "path" else "mcdn_features"
+            rows.append({"scene": scene, "chunk": chunk, "frames": frames, "reference_integrator": integrator,
                          "reference_samples": frames * pixels * scene_reference_spp(cfg, scene),
                          "noisy_pixel_layers": frames * pixels * layers})
     return pd.DataFrame(rows)
@@ -147,22 +175,34 @@ def main() -> None:
     parser.add_argument("--config", type=Path, default=Path("config/config.yaml"))
     parser.add_argument("--renders", type=Path, required=True, help="a finished render folder (frame sidecars)")
     parser.add_argument("--train-speed", type=Path, required=True, help="training-speed record (JSON)")
-    parser.add_argument("--run", type=Path, default=None, help="a finished run's folder (its benchmarks/)")
+    parser.add_argument("--run", type=Path, nargs="+", default=None,
+                        help="finished runs' folders (their benchmarks/); a rule's median comes from the first run "
+                             "that has it (e.g. the default run, then the smoke run for rules the first lacks)")
     parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument("--reference-speed", type=Path, default=None,
+                        help="benchmarks/reference_speed.py --json output: scales the sidecars' reference rates "
+                             "when they were rendered with the other integrator than the config's")
     args = parser.parse_args()
 
     from scenegen.config import load_config
 
     cfg = load_config(args.config)
-    reference_rate, noisy_cost = sidecar_rates(args.renders)
+    sidecars, noisy_cost = sidecar_rates(args.renders)
     work = render_work(cfg)
-    q25, q50, q75 = np.percentile(reference_rate, [25, 50, 75])
-    samples = float(work["reference_samples"].sum())
-    noisy_seconds = float(work["noisy_pixel_layers"].sum()) * float(np.median(noisy_cost))
+    speed = json.loads(args.reference_speed.read_text()) if args.reference_speed else None
+    rates = reference_rates(sidecars, set(work["reference_integrator"]), speed)
     print(f"config {args.config}: {work.scene.nunique()} scenes, {len(work)} chunks")
-    print(f"reference: {samples / 1e9:.2f} G samples at a median {q50 / 1e6:.2f} M samples/s "
-          f"(25-75 %: {q25 / 1e6:.2f}-{q75 / 1e6:.2f}; {len(reference_rate)} frames of {args.renders})")
-    stages = [("render_reference", len(work), samples / q50, f"{samples / q75 / 60:.0f}-{samples / q25 / 60:.0f} min"),
+    reference_seconds = np.zeros(3)   # at the 75 %, median and 25 % rates
+    for integrator, group in work.groupby("reference_integrator"):
+        rate, source = rates[integrator]
+        q25, q50, q75 = np.percentile(rate, [25, 50, 75])
+        samples = float(group["reference_samples"].sum())
+        reference_seconds += samples / np.array([q75, q50, q25])
+        print(f"reference ({integrator}): {samples / 1e9:.2f} G samples at a median {q50 / 1e6:.2f} M samples/s "
+              f"(25-75 %: {q25 / 1e6:.2f}-{q75 / 1e6:.2f}; {len(rate)} frames of {args.renders}, {source})")
+    noisy_seconds = float(work["noisy_pixel_layers"].sum()) * float(np.median(noisy_cost))
+    fast, typical, slow = reference_seconds
+    stages = [("render_reference", len(work), typical, f"{fast / 60:.0f}-{slow / 60:.0f} min"),
               ("render_noisy", len(work), noisy_seconds, f"{np.median(noisy_cost) * 1e9:.0f} ns per pixel-layer")]
     training = training_work(cfg, json.loads(args.train_speed.read_text()))
     print(training.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
@@ -170,7 +210,11 @@ def main() -> None:
                    "steps x s/step, validation not counted"))
     unmeasured = []
     if args.run is not None:
-        counts, medians = dry_run_counts(args.config), per_job_seconds(args.run)
+        counts, medians, source = dry_run_counts(args.config), {}, {}
+        for run in args.run:
+            for rule, seconds in per_job_seconds(run).items():
+                if rule not in medians:
+                    medians[rule], source[rule] = seconds, run
         parallel = max(1, args.cores // int(cfg["evaluation"].get("threads") or 1))
         for rule, count in counts.items():
             if rule in MODELLED_RULES or rule == "all":
@@ -180,7 +224,7 @@ def main() -> None:
                 continue
             concurrent = 1 if rule in EXCLUSIVE_RULES else parallel
             stages.append((rule, count, count * medians[rule] / concurrent,
-                           f"{medians[rule]:.1f} s/job in {args.run}, {concurrent} at a time"))
+                           f"{medians[rule]:.1f} s/job in {source[rule]}, {concurrent} at a time"))
     print(f"\n{'stage':<18} {'jobs':>5} {'wall min':>9}  how")
     for rule, jobs, seconds, how in stages:
         print(f"{rule:<18} {jobs:>5} {seconds / 60:>9.1f}  {how}")

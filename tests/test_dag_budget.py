@@ -37,6 +37,9 @@ def test_render_work_counts_every_chunk_at_its_own_reference_spp_and_layers() ->
     stab = cfg["stability"]
     first = f"stab_{stab['scenarios'][0]}"
     assert work.loc[(first, 0), "reference_samples"] == stab["frames"] * stab["width"] * stab["height"] * stab["reference_spp"]
+    # The configured reference integrator, except for the stability clips (their masks need the feature means).
+    assert work.loc[("test_000", 0), "reference_integrator"] == "path"
+    assert work.loc[(first, 0), "reference_integrator"] == "mcdn_features"
     assert work.index.get_level_values("scene").nunique() == scenes["n_train"] + scenes["n_test"] + len(stab["scenarios"])
 
 
@@ -48,7 +51,12 @@ def test_rates_come_from_the_sidecars_and_benchmark_folders_map_to_rules(tmp_pat
         chunk.mkdir(parents=True)
         (chunk / "frame_0000.json").write_text(json.dumps(meta))
     reference, noisy = dag_budget.sidecar_rates(tmp_path / "renders")
-    assert list(reference) == [2.0e6] and noisy[0] == pytest.approx(4.0 / (10 * 20 * 4))
+    # A sidecar without the integrator key was rendered by the feature integrator (before the key existed).
+    assert list(reference["mcdn_features"]) == [2.0e6] and noisy[0] == pytest.approx(4.0 / (10 * 20 * 4))
+    rates = dag_budget.reference_rates(reference, {"path", "mcdn_features"}, {"median_path_rate_ratio": 1.5})
+    assert list(rates["path"][0]) == [3.0e6] and list(rates["mcdn_features"][0]) == [2.0e6]
+    with pytest.raises(SystemExit, match="--reference-speed"):
+        dag_budget.reference_rates(reference, {"path"}, None)
     for folder, seconds in (("denoise/eaw/test_000", [3.0, 5.0, 4.0]), ("tune", [7.0])):
         (tmp_path / "run" / "benchmarks" / folder).mkdir(parents=True)
         for i, value in enumerate(seconds):
