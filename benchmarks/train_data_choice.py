@@ -26,7 +26,8 @@ Usage: python benchmarks/train_data_choice.py [--config config/config.yaml] [--m
            [--validation-sequences 8] [--threads 2] [--out /tmp/train_data_choice]
 Arm syntax: key=value[,key=value...] over the training_data keys of the schema, e.g.
 ``crops=importance,importance_floor=0.1``; ``net.<key>=value`` overrides the network instead (a size
-comparison on identical data, e.g. ``net.width=0.5 net.width=0.25``).
+comparison on identical data, e.g. ``net.width=0.5 net.width=0.25``), ``opt.<key>=value`` the optimiser
+(e.g. ``opt.ema_decay=null opt.ema_decay=0.99``).
 """
 from __future__ import annotations
 
@@ -58,6 +59,8 @@ SCENE_KEYS: tuple[str, ...] = ("train", "root")
 #: Arm keys starting with this override the model's ``net`` (e.g. ``net.width=0.25``): a size comparison on
 #: the same data and validation sequences (the network's config class checks the key when it is built).
 NET_PREFIX = "net."
+#: Arm keys starting with this override the model's ``optimizer`` (e.g. ``opt.ema_decay=0.99``).
+OPT_PREFIX = "opt."
 
 
 def scene_list(text: str) -> list[str]:
@@ -84,13 +87,13 @@ def split_arm(text: str) -> tuple[dict[str, str], str]:
     return scene_keys, ",".join(rest)
 
 
-def net_overrides(text: str) -> dict[str, Any]:
-    """An arm's ``net.<key>=value`` parts as {key: value}."""
+def prefixed_overrides(text: str, prefix: str = NET_PREFIX) -> dict[str, Any]:
+    """An arm's ``<prefix><key>=value`` parts (``net.`` or ``opt.``) as {key: value}."""
     out = {}
     for part in filter(None, split_arm(text)[1].split(",")):
         key, _, value = part.partition("=")
-        if key.strip().startswith(NET_PREFIX):
-            out[key.strip()[len(NET_PREFIX):]] = yaml.safe_load(value)
+        if key.strip().startswith(prefix):
+            out[key.strip()[len(prefix):]] = yaml.safe_load(value)
     return out
 
 
@@ -113,7 +116,7 @@ def parse_arm(text: str, base: dict[str, Any]) -> dict[str, Any]:
         key, sep, value = part.partition("=")
         if not sep:
             raise ValueError(f"arm {text!r}: {part!r} is not key=value")
-        if not key.strip().startswith(NET_PREFIX):
+        if not key.strip().startswith((NET_PREFIX, OPT_PREFIX)):
             overrides[key.strip()] = yaml.safe_load(value)
     try:
         return _schema_defaults("training_data", {**base, **overrides})
@@ -181,7 +184,9 @@ def main() -> None:
 
     runs: dict[str, dict[str, Any]] = {}
     for arm, data in arms.items():
-        arm_spec: ModelSpec = dataclasses.replace(base, data=data, net={**base.net, **net_overrides(arm)})
+        arm_spec: ModelSpec = dataclasses.replace(base, data=data, net={**base.net, **prefixed_overrides(arm)},
+                                                  optimizer=_schema_defaults("training_optimizer", {
+                                                      **base.optimizer, **prefixed_overrides(arm, OPT_PREFIX)}))
         clips = load_training_clips(arm_scenes[arm], buffers)
         seconds = render_seconds(arm_scenes[arm])
         print(f"{arm}: {len(clips)} training clips ({', '.join(p.name for p in arm_scenes[arm])}), "

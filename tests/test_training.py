@@ -359,6 +359,46 @@ def test_validation_best_checkpoint_curves_and_summary(tmp_path: Path) -> None:
     assert not list(out.glob(".*tmp*"))                                           # atomic writes leave nothing behind
 
 
+def test_weight_average_is_the_recursive_mean_and_what_validation_and_best_pt_use(tmp_path: Path) -> None:
+    """ema_decay: after every step ema = d_t ema + (1 - d_t) w with d_t = min(decay, (1 + t) / (10 + t)), recomputed
+    here from the raw weights of each step (an independent recursion); best.pt holds the average, the checkpoint both,
+    and a resumed run reproduces the uninterrupted average exactly."""
+    decay = 0.8
+    raw: list[dict[str, torch.Tensor]] = []
+    trainer = make_trainer(tmp_path / "run", steps=6, ema_decay=decay, validate_every=0)
+    trainer.run(on_step=lambda step: raw.append({k: v.detach().clone() for k, v in trainer.model.state_dict().items()}))
+    # The average starts at the initial weights: rebuild them from the seed like the trainer does.
+    torch.manual_seed(0)
+    initial = RAETask(TINY_RAE).build_model().state_dict()
+    expected = {k: v.clone().double() for k, v in initial.items()}
+    for t, w in enumerate(raw):
+        d = min(decay, (1.0 + t) / (10.0 + t))
+        expected = {k: d * expected[k] + (1.0 - d) * w[k].double() for k in expected}
+    checkpoint = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+    for key, value in checkpoint["ema_state"].items():
+        torch.testing.assert_close(value.double(), expected[key], rtol=1e-5, atol=1e-6)
+    assert not all(torch.equal(checkpoint["ema_state"][k], checkpoint["model_state"][k]) for k in initial)
+    best = load_checkpoint(tmp_path / "run" / "best.pt")   # validated at the end: the average is what is stored
+    assert all(torch.equal(best["model_state"][k], checkpoint["ema_state"][k]) for k in initial)
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_step_5(step: int) -> None:
+        if step == 5:
+            raise Killed
+
+    with pytest.raises(Killed):
+        make_trainer(tmp_path / "killed", steps=6, ema_decay=decay, validate_every=0).run(on_step=kill_at_step_5)
+    make_trainer(tmp_path / "killed", steps=6, ema_decay=decay, validate_every=0).run()
+    resumed = load_checkpoint(tmp_path / "killed" / "checkpoint.pt")["ema_state"]
+    assert all(torch.equal(resumed[k], checkpoint["ema_state"][k]) for k in initial)
+    # A run without averaging keeps its fingerprint (checkpoints from before the option resume), one with it does not.
+    assert "ema_decay" not in TrainerConfig(max_steps=1).fingerprint_data()
+    with pytest.raises(ValueError, match="ema_decay"):
+        TrainerConfig(max_steps=1, ema_decay=1.0)
+
+
 def test_time_budget_stops_training(tmp_path: Path) -> None:
     result = make_trainer(tmp_path / "run", steps=None, max_seconds=0.5, validation=False).run()
     assert result.steps >= 1 and result.elapsed_seconds >= 0.5

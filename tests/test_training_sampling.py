@@ -168,14 +168,15 @@ def test_data_choice_arms_name_their_training_scenes(tmp_path) -> None:
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     try:
-        from train_data_choice import net_overrides, parse_arm, render_seconds, scene_list, split_arm
+        from train_data_choice import OPT_PREFIX, parse_arm, prefixed_overrides, render_seconds, scene_list, split_arm
     finally:
         sys.path.pop(0)
-    # net.* keys override the network and leave the data keys alone.
-    assert net_overrides("net.width=0.25,layers=first,net.levels=4") == {"width": 0.25, "levels": 4}
+    # net.* keys override the network, opt.* the optimiser; both leave the data keys alone.
+    assert prefixed_overrides("net.width=0.25,layers=first,net.levels=4") == {"width": 0.25, "levels": 4}
+    assert prefixed_overrides("net.width=0.25,opt.ema_decay=0.99", OPT_PREFIX) == {"ema_decay": 0.99}
     base = {"length": 3, "crop": 32, "spp": 1}
-    data = parse_arm("net.width=0.25,layers=first", base)
-    assert data["layers"] == "first" and "net.width" not in data and "width" not in data
+    data = parse_arm("net.width=0.25,layers=first,opt.ema_decay=null", base)
+    assert data["layers"] == "first" and not {"net.width", "width", "opt.ema_decay", "ema_decay"} & set(data)
     assert scene_list("train_000..train_003") == ["train_000", "train_001", "train_002", "train_003"]
     assert scene_list("train_004+train_009") == ["train_004", "train_009"]
     with pytest.raises(ValueError, match="same prefix"):

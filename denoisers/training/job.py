@@ -84,7 +84,7 @@ def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = Tr
                          validate_every=training["validate_every"], checkpoint_every=training["validate_every"],
                          checkpoint_seconds=300.0, best_metric="loss", validation_warmup_frames=warmup,
                          progress=progress, threads=threads, precision=compute["precision"],
-                         channels_last=compute["channels_last"])
+                         channels_last=compute["channels_last"], ema_decay=optimizer.get("ema_decay"))
 
 
 def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, threads: int = 2,

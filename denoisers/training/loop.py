@@ -24,6 +24,7 @@ the file, as does a checkpoint written for a different configuration.
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import io
 import json
@@ -134,6 +135,8 @@ class TrainerConfig:
     ``validation_warmup_frames`` skips the first frames of each validation sequence in the image metrics.
     ``precision`` ('fp32', 'bf16' or 'auto') and ``channels_last`` (bool or 'auto'): the training step's arithmetic
     (:func:`denoisers.training.precision.resolve`); validation always runs in fp32.
+    ``ema_decay`` (None = off): validate and save an exponential moving average of the weights, updated after
+    every step with decay min(ema_decay, (1 + step) / (10 + step)) (the early steps average over fewer steps).
     """
 
     seed: int = 0
@@ -157,9 +160,12 @@ class TrainerConfig:
     threads: int | None = None
     precision: str = "fp32"
     channels_last: bool | str = False
+    ema_decay: float | None = None
 
     def __post_init__(self) -> None:
         self.betas = tuple(float(b) for b in self.betas)
+        if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must be in (0, 1) or None, got {self.ema_decay}")
         if self.max_steps is None and self.max_seconds is None:
             raise ValueError("training needs a budget: set max_steps and/or max_seconds")
         if self.batch_size < 1 or self.log_every < 1 or self.validate_every < 0 or self.checkpoint_every < 0:
@@ -168,7 +174,10 @@ class TrainerConfig:
         resolve(self.precision, self.channels_last)  # and unknown precisions
 
     def fingerprint_data(self) -> dict[str, Any]:
-        return {k: v for k, v in asdict(self).items() if k not in _NOT_FINGERPRINTED}
+        data = {k: v for k, v in asdict(self).items() if k not in _NOT_FINGERPRINTED}
+        if data["ema_decay"] is None:   # runs from before the key existed resume unchanged
+            del data["ema_decay"]
+        return data
 
 
 @dataclass
@@ -282,6 +291,7 @@ class Trainer:
         }
         self.fingerprint = _fingerprint(self.fingerprint_data)
         self.model: nn.Module | None = None
+        self.ema: nn.Module | None = None                 # averaged weights (config.ema_decay), else None
         self._loss_model: nn.Module | None = None          # what task.loss calls (see _setup)
         self.optimizer: torch.optim.Optimizer | None = None
         self.step = 0
@@ -305,6 +315,8 @@ class Trainer:
         self._loss_model = loss_model(self.model, self.compute)  # the model, or its bf16 autocast forward
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr, betas=config.betas, eps=config.eps,
                                           weight_decay=config.weight_decay)
+        if config.ema_decay is not None:
+            self.ema = copy.deepcopy(self.model).requires_grad_(False)
         if not self.checkpoint_path.exists():
             return None
         data = load_checkpoint(self.checkpoint_path)
@@ -322,6 +334,8 @@ class Trainer:
         try:
             self.model.load_state_dict(data["model_state"])
             self.optimizer.load_state_dict(data["optimizer_state"])
+            if self.ema is not None:
+                self.ema.load_state_dict(data["ema_state"])
             _set_rng_state(data["rng"])
         except (KeyError, TypeError, ValueError, RuntimeError) as error:
             raise CheckpointError(f"{self.checkpoint_path}: cannot restore the training state ({error})") from error
@@ -421,9 +435,25 @@ class Trainer:
         if config.grad_clip_norm is not None:
             nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip_norm)
         optimizer.step()
+        if self.ema is not None:
+            self._update_ema()
         self.step += 1
         self._last_lr = lr
         return float(loss.detach()), terms
+
+    @torch.no_grad()
+    def _update_ema(self) -> None:
+        """ema <- decay * ema + (1 - decay) * model for parameters; buffers are copied."""
+        decay = min(float(self.config.ema_decay), (1.0 + self.step) / (10.0 + self.step))
+        averaged = [p for p in self.ema.parameters()]
+        torch._foreach_lerp_(averaged, [p.detach() for p in self.model.parameters()], 1.0 - decay)
+        for mine, theirs in zip(self.ema.buffers(), self.model.buffers()):
+            mine.copy_(theirs)
+
+    @property
+    def evaluated_model(self) -> nn.Module:
+        """The weights validation scores and best.pt stores: the moving average when enabled."""
+        return self.ema if self.ema is not None else self.model
 
     def _checkpoint_note(self) -> str:
         if not self.checkpoint_path.exists():
@@ -462,7 +492,7 @@ class Trainer:
         from denoisers import metrics
 
         batches = self.validation if batches is None else list(batches)
-        model = self.model
+        model = self.evaluated_model
         model.eval()
         sums: dict[str, float] = {}
         counts: dict[str, int] = {}
@@ -513,8 +543,8 @@ class Trainer:
     # ---------------------------------------------------------------------------------- files
     def _save_model(self, path: Path, metrics: Mapping[str, float]) -> None:
         _save_atomic({"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "kind": "model",
-                      "net": self.task.net_spec(), "model_state": self.model.state_dict(), "step": self.step,
-                      "metrics": dict(metrics)}, path)
+                      "net": self.task.net_spec(), "model_state": self.evaluated_model.state_dict(),
+                      "step": self.step, "metrics": dict(metrics)}, path)
 
     def save_checkpoint(self) -> None:
         """Write ``checkpoint.pt`` (atomically) and refresh the curves."""
@@ -524,6 +554,7 @@ class Trainer:
             "fingerprint_data": json.dumps(self.fingerprint_data, sort_keys=True, default=str),
             "net": self.task.net_spec(), "model_state": self.model.state_dict(),
             "optimizer_state": self.optimizer.state_dict(),
+            **({"ema_state": self.ema.state_dict()} if self.ema is not None else {}),
             "scheduler": {"schedule": dict(self.config.schedule), "base_lr": self.config.lr,
                           "next_lr": self.config.lr * lr_factor(self.config.schedule, self.step)},
             "step": self.step, "elapsed_seconds": self.elapsed,
