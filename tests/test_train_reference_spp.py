@@ -99,6 +99,9 @@ def test_report_states_both_reference_spps() -> None:
     assert _reference_spp_text({"reference_spp": 1024}) == "1024 spp"
     text = _reference_spp_text({"reference_spp": 1024, "train_reference_spp": 256})
     assert "1024 spp" in text and "256 spp" in text and "render.train_reference_spp" in text
+    # The validation scenes keep reference_spp: the text must not put them with the training scenes.
+    assert "evaluated and validation scenes; the training scenes 256 spp" in text
+    assert "Mitsuba's path" in _reference_spp_text({"reference_spp": 64, "reference_integrator": "path"})
 
 
 # --------------------------------------------------------------------------------------------- digests

@@ -53,12 +53,15 @@ def _setup_lines(res: Results) -> list[str]:
 
 
 def _reference_spp_text(render: dict) -> str:
-    """The references' spp; both values when the training scenes' (render.train_reference_spp) differ."""
+    """The references' spp and integrator; both spp values when the training scenes' (render.train_reference_spp)
+    differ (the validation scenes keep reference_spp)."""
+    integrator = {"path": " (Mitsuba's path integrator)", "features": " (the feature integrator)"}.get(
+        render.get("reference_integrator"), "")
     train = render.get("train_reference_spp")
     if train is None or train == render["reference_spp"]:
-        return f"{render['reference_spp']} spp"
-    return (f"{render['reference_spp']} spp (evaluated scenes; training and validation scenes {train} spp, "
-            "render.train_reference_spp)")
+        return f"{render['reference_spp']} spp{integrator}"
+    return (f"{render['reference_spp']} spp{integrator} (evaluated and validation scenes; the training scenes "
+            f"{train} spp, render.train_reference_spp)")
 
 
 def _timing_line(res: Results) -> str:
