@@ -339,11 +339,14 @@ def scene_reference_spp(cfg: dict[str, Any], scene_id: str) -> int:
 
 
 def scene_frame_count(cfg: dict[str, Any], scene_id: str) -> int:
-    """Frames in the clip of a scene (the extra scene's own count for custom scenes)."""
+    """Frames in the clip of a scene (the extra scene's own count for custom scenes; ``scenes.train_frames``,
+    when set, for the train_* scenes)."""
     if scene_id.startswith(CUSTOM_PREFIX):
         return int(extra_scene(cfg, scene_id)["frames"])
     if scene_id.startswith(STABILITY_PREFIX):
         return int(cfg["stability"]["frames"])
+    if scene_id.startswith(TRAIN_PREFIX) and cfg["scenes"].get("train_frames") is not None:
+        return int(cfg["scenes"]["train_frames"])
     return int(cfg["scenes"]["frames"])
 
 

@@ -36,7 +36,11 @@ def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
     if scene.startswith("custom_"):
         procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
     else:
-        procedural = {key: value for key, value in cfg["scenes"].items() if key not in SCENE_LAYOUT_KEYS}
+        # A scene depends on its own frame count only: train_frames (null or absent changes no digest) enters
+        # a train_* scene's settings as its frames, and no other scene's.
+        procedural = {key: value for key, value in cfg["scenes"].items()
+                      if key not in SCENE_LAYOUT_KEYS | {"train_frames"}}
+        procedural["frames"] = scene_frame_count(cfg, scene)
     shared = [f"render.{key}" for key in cfg["render"] if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS]
     return {"seed": cfg["seed"], "scenes": procedural, "render_shared": config_digest(cfg, *shared)}
 

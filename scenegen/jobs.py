@@ -16,7 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen.atomic import atomic_directory, write_text_atomic
-from scenegen.config import (CUSTOM_PREFIX, STABILITY_PREFIX, extra_scene, scene_frames_per_chunk,
+from scenegen.config import (CUSTOM_PREFIX, STABILITY_PREFIX, extra_scene, scene_frame_count, scene_frames_per_chunk,
                              scene_reference_spp, scene_render_config)
 from scenegen.mitsuba_env import init_mitsuba
 from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_frame_seed,
@@ -66,7 +66,7 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
         return manifest
     seed = scene_seed(cfg["seed"], scene_id)
     with atomic_directory(out_dir) as tmp_dir:
-        manifest = generate_scene(cfg["scenes"], seed, scene_id, tmp_dir, n_frames=cfg["scenes"]["frames"],
+        manifest = generate_scene(cfg["scenes"], seed, scene_id, tmp_dir, n_frames=scene_frame_count(cfg, scene_id),
                                   luminance_check=preview_mean_luminance)
     log.info("scene %s: seed %d, %d shapes, %d redraws", scene_id, seed, len(manifest["shapes"]),
              len(manifest.get("redraws", [])))

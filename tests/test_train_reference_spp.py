@@ -111,7 +111,8 @@ def _legacy_render_digest(cfg: dict, scene: str, kind: str) -> str:
     if scene.startswith("custom_"):
         procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
     else:
-        procedural = {k: v for k, v in cfg["scenes"].items() if k not in {"n_train", "n_test", "frames_per_chunk"}}
+        procedural = {k: v for k, v in cfg["scenes"].items()
+                      if k not in {"n_train", "n_test", "frames_per_chunk", "train_frames"}}
     shared = [f"render.{key}" for key in cfg["render"] if key not in noisy | reference]
     settings = {"seed": cfg["seed"], "scenes": procedural, "render_shared": config_digest(cfg, *shared)}
     own = noisy if kind == "noisy" else reference

@@ -230,9 +230,10 @@ def training_problems(cfg: dict) -> list[str]:
         where = f"training model {spec.id!r}"
         if spec.data["crop"] > size:
             problems.append(f"{where}: data.crop = {spec.data['crop']} exceeds the frame size {size}")
-        if spec.data["length"] > cfg["scenes"]["frames"]:
-            problems.append(f"{where}: data.length = {spec.data['length']} exceeds scenes.frames = "
-                            f"{cfg['scenes']['frames']}")
+        frames = cfg["scenes"].get("train_frames") or cfg["scenes"]["frames"]
+        if spec.data["length"] > frames:
+            key = "scenes.train_frames" if cfg["scenes"].get("train_frames") else "scenes.frames"
+            problems.append(f"{where}: data.length = {spec.data['length']} exceeds {key} = {frames}")
         # Radiance has render.spp + extra_radiance_spp layers, every other per-sample buffer render.spp.
         radiance_only = _sample_buffers(spec) == ("radiance",)
         stored = cfg["render"]["spp"] + (cfg["render"].get("extra_radiance_spp") or 0 if radiance_only else 0)
