@@ -60,12 +60,14 @@ def test_shipped_configs_validate(path: Path) -> None:
 def test_default_config_matches_the_shared_contract() -> None:
     cfg = load_config(DEFAULT_CONFIG)
     assert cfg["seed"] == 2026
-    assert cfg["scenes"]["n_train"] == 9 and cfg["scenes"]["n_test"] == 4
+    assert cfg["scenes"]["n_train"] == 26 and cfg["scenes"]["n_test"] == 4
     # Issue 11 §3: convergence is judged on at least two held-out training scenes.
     assert cfg["training"]["validation_scenes"] >= 2
     assert cfg["scenes"]["frames"] == 16 and cfg["scenes"]["frames_per_chunk"] == 8
     assert cfg["render"]["width"] == cfg["render"]["height"] == 128
     assert cfg["render"]["spp"] == 8 and cfg["render"]["reference_spp"] == 1024
+    # Issue 11 §2, the data-scale measurement (README): many short training clips with 256-spp references.
+    assert cfg["scenes"]["train_frames"] == 8 and cfg["render"]["train_reference_spp"] == 256
 
 
 def test_smoke_config_is_tiny() -> None:
@@ -102,13 +104,17 @@ def test_filled_defaults_are_not_shared_between_configs() -> None:
 
 
 def test_default_config_agrees_with_schema_defaults() -> None:
-    """Optional keys in config/config.yaml hold the schema's defaults, so the two cannot drift apart."""
+    """Optional keys in config/config.yaml hold the schema's defaults, so the two cannot drift apart -- except
+    the default run's measured data choices, whose schema default (null: like every other scene) is what a
+    config without them means."""
     schema = load_schema()
     cfg = load_config(DEFAULT_CONFIG)
+    choices = {("scenes", "train_frames"), ("render", "train_reference_spp")}
     for section in ("scenes", "render"):
         for key, subschema in schema["properties"][section]["properties"].items():
-            if "default" in subschema:
+            if "default" in subschema and (section, key) not in choices:
                 assert cfg[section][key] == subschema["default"], f"{section}.{key}"
+    assert all(schema["properties"][section]["properties"][key]["default"] is None for section, key in choices)
 
 
 def test_misspelled_key_is_named_with_the_allowed_keys() -> None:

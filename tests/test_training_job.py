@@ -85,7 +85,7 @@ def test_missing_keys_take_the_schema_defaults() -> None:
 def test_the_last_training_scenes_are_held_out_for_validation() -> None:
     cfg = load_config(REPO_ROOT / "config" / "config.yaml")
     train, validation = training_split(cfg)
-    assert train == [f"train_{i:03d}" for i in range(7)] and validation == ["train_007", "train_008"]
+    assert train == [f"train_{i:03d}" for i in range(24)] and validation == ["train_024", "train_025"]
 
 
 @pytest.mark.parametrize("break_config, message", [
