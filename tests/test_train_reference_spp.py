@@ -27,9 +27,11 @@ KINDS = ("noisy", "reference")
 
 
 def _config(name: str, **render: Any) -> dict:
-    """A shipped config with ``render`` keys set (validated, defaults filled)."""
+    """A shipped config with render.train_reference_spp null unless given, other ``render`` keys set and
+    scenes.train_frames null (validated, defaults filled): the key under test starts from its schema default."""
     cfg = load_config(CONFIGS[name])
-    cfg["render"].update(render)
+    cfg["render"].update({"train_reference_spp": None, **render})
+    cfg["scenes"]["train_frames"] = None   # every clip scenes.frames long, as before either key existed
     return validate_config(cfg)
 
 
@@ -59,7 +61,7 @@ def test_invalid_values_are_rejected_naming_the_key(value: Any, expected: str) -
 
 
 def test_default_is_null_and_means_reference_spp() -> None:
-    cfg = load_config(CONFIGS["default"])
+    cfg = load_config(CONFIGS["smoke"])
     assert cfg["render"]["train_reference_spp"] is None
     assert {scene_reference_spp(cfg, scene) for scene in scene_ids(cfg)} == {cfg["render"]["reference_spp"]}
     # A config file without the key gets the null default filled in.
