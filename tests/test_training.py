@@ -248,15 +248,17 @@ def weights(path: Path) -> dict[str, torch.Tensor]:
     return load_checkpoint(path)["model_state"]
 
 
+class Killed(Exception):
+    """Stands in for a killed training job (raised from the trainer's on_step hook)."""
+
+
+def kill_at_step_5(step: int) -> None:
+    if step == 5:
+        raise Killed
+
+
 def test_resume_after_a_kill_reproduces_the_uninterrupted_weights_exactly(tmp_path: Path) -> None:
     make_trainer(tmp_path / "straight", steps=8).run()
-
-    class Killed(Exception):
-        pass
-
-    def kill_at_step_5(step: int) -> None:
-        if step == 5:
-            raise Killed
 
     with pytest.raises(Killed):
         make_trainer(tmp_path / "killed", steps=8).run(on_step=kill_at_step_5)
@@ -380,13 +382,6 @@ def test_weight_average_is_the_recursive_mean_and_what_validation_and_best_pt_us
     assert not all(torch.equal(checkpoint["ema_state"][k], checkpoint["model_state"][k]) for k in initial)
     best = load_checkpoint(tmp_path / "run" / "best.pt")   # validated at the end: the average is what is stored
     assert all(torch.equal(best["model_state"][k], checkpoint["ema_state"][k]) for k in initial)
-
-    class Killed(Exception):
-        pass
-
-    def kill_at_step_5(step: int) -> None:
-        if step == 5:
-            raise Killed
 
     with pytest.raises(Killed):
         make_trainer(tmp_path / "killed", steps=6, ema_decay=decay, validate_every=0).run(on_step=kill_at_step_5)

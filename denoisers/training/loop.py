@@ -445,8 +445,7 @@ class Trainer:
     def _update_ema(self) -> None:
         """ema <- decay * ema + (1 - decay) * model for parameters; buffers are copied."""
         decay = min(float(self.config.ema_decay), (1.0 + self.step) / (10.0 + self.step))
-        averaged = [p for p in self.ema.parameters()]
-        torch._foreach_lerp_(averaged, [p.detach() for p in self.model.parameters()], 1.0 - decay)
+        torch._foreach_lerp_(list(self.ema.parameters()), [p.detach() for p in self.model.parameters()], 1.0 - decay)
         for mine, theirs in zip(self.ema.buffers(), self.model.buffers()):
             mine.copy_(theirs)
 
