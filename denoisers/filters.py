@@ -315,14 +315,14 @@ def atrous_step(values: torch.Tensor, step: int, guides: dict[str, torch.Tensor]
     return filtered, filtered_variance
 
 
-def warp_previous(prev: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+def warp_previous(prev: torch.Tensor, motion: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Bring previous-frame data to the current frame: sample ``prev`` at (x + motion_x, y + motion_y).
 
     prev: (C, H, W) or (N, C, H, W); motion: (2, H, W) backward motion in pixels (scenegen
     convention: the previous position of pixel centre (x + 0.5, y + 0.5) is centre + motion), shared by
     the batch, or (N, 2, H, W) per image for a batched ``prev``.
-    Bilinear interpolation in pixel-index coordinates, lookups outside the image clamp to the border.
-    Returns the same shape as ``prev``.
+    Bilinear interpolation in pixel-index coordinates (``mode="nearest"``: the nearest pixel, as Isik et al.'s
+    warp), lookups outside the image clamp to the border. Returns the same shape as ``prev``.
     """
     batched = prev.dim() == 4
     images = prev if batched else prev[None]
@@ -340,7 +340,7 @@ def warp_previous(prev: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     # grid_sample with align_corners=True maps -1 / +1 to the centres of the first / last pixel.
     grid = torch.stack([x * (2.0 / max(width - 1, 1)) - 1.0, y * (2.0 / max(height - 1, 1)) - 1.0], dim=-1)
     grid = grid.expand(images.shape[0], height, width, 2)
-    warped = F.grid_sample(images.float(), grid, mode="bilinear", padding_mode="border", align_corners=True)
+    warped = F.grid_sample(images.float(), grid, mode=mode, padding_mode="border", align_corners=True)
     return warped if batched else warped[0]
 
 

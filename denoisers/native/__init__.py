@@ -18,8 +18,9 @@ Where and how (the build must neither be shared between checkouts nor hang after
   sources, flags and torch version, after which loading is a plain import of the built module.
 
 ``load_kernels()`` does the same for the second extension, ``kernels.cpp`` (per-pixel kernel application
-of kernel-predicting denoisers, denoisers/kernels.py), built separately so that neither build depends
-on the other.
+of kernel-predicting denoisers, denoisers/kernels.py), and ``load_affinity()`` for the third,
+``affinity.cpp`` (affinity kernels of Isik et al. 2021, denoisers/affinity.py), each built separately so
+that no build depends on another.
 
 If the build fails or times out, one warning names the error and every later call returns None.
 ``MCDN_NATIVE=0`` in the environment disables the kernels (checked at every call, so a test can switch
@@ -55,6 +56,9 @@ SOURCES = (Path(__file__).with_name("atrous.cpp"),)
 #: The per-pixel kernel extension (load_kernels).
 KERNELS_EXTENSION_NAME = "mcdn_kernels"
 KERNELS_SOURCES = (Path(__file__).with_name("kernels.cpp"),)
+#: The affinity-kernel extension (load_affinity; Isik et al. 2021, denoisers/affinity.py).
+AFFINITY_EXTENSION_NAME = "mcdn_affinity"
+AFFINITY_SOURCES = (Path(__file__).with_name("affinity.cpp"),)
 #: -O3 without -ffast-math: NaN/Inf semantics and results stay as written. -ffp-contract=off keeps
 #: FMA contraction out, so the baseline and AVX2 clones of each loop give identical results;
 #: -fno-trapping-math and -fno-math-errno only drop FP-exception and errno side effects, which lets
@@ -64,6 +68,7 @@ CFLAGS = ("-O3", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno")
 _lock = threading.Lock()
 _built: list[ModuleType | None] = []     # empty until the first build attempt, then [module or None]
 _built_kernels: list[ModuleType | None] = []   # the same for load_kernels()
+_built_affinity: list[ModuleType | None] = []  # the same for load_affinity()
 
 
 class BuildError(RuntimeError):
@@ -95,6 +100,17 @@ def load_kernels() -> ModuleType | None:
             if not _built_kernels:
                 _built_kernels.append(_build(KERNELS_EXTENSION_NAME, KERNELS_SOURCES))
     return _built_kernels[0]
+
+
+def load_affinity() -> ModuleType | None:
+    """The affinity-kernel extension (affinity.cpp), built on the first call; None when disabled or unavailable."""
+    if not enabled():
+        return None
+    if not _built_affinity:
+        with _lock:
+            if not _built_affinity:
+                _built_affinity.append(_build(AFFINITY_EXTENSION_NAME, AFFINITY_SOURCES))
+    return _built_affinity[0]
 
 
 def backend() -> str:

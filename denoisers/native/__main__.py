@@ -13,4 +13,6 @@ if __name__ == "__main__":
     print(f"native kernels: {backend} (build directory {native.build_directory()})")
     kernels = "native" if native.load_kernels() is not None else "torch"
     print(f"per-pixel kernel application (denoisers.kernels): {kernels}")
+    affinity = "native" if native.load_affinity() is not None else "torch"
+    print(f"affinity kernels (denoisers.affinity): {affinity}")
     sys.exit(0)

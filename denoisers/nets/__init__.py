@@ -13,9 +13,10 @@ from torch import nn
 
 
 def _builders() -> dict[str, Any]:
-    from denoisers.nets import ntasd, rae
+    from denoisers.nets import afn, ntasd, rae
 
-    return {rae.RecurrentAutoencoder.NET_NAME: rae.RecurrentAutoencoder, ntasd.NTASDNet.NET_NAME: ntasd.NTASDNet}
+    return {rae.RecurrentAutoencoder.NET_NAME: rae.RecurrentAutoencoder, ntasd.NTASDNet.NET_NAME: ntasd.NTASDNet,
+            afn.AFNNet.NET_NAME: afn.AFNNet}
 
 
 def available_nets() -> list[str]:

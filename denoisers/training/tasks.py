@@ -116,3 +116,33 @@ for _method in NTASD_VARIANTS:
     register_task(_method, sample_buffers=("radiance",), pixel_buffers=("motion", "valid", "gbuffer.normal",
                                                                         "gbuffer.depth"),
                   mean_buffers=("albedo",))(_ntasd_task)
+
+
+# ------------------------------------------------------------------------------------------- AFN
+def _afn_task(spec: ModelSpec) -> Any:
+    """AFN (Isik et al. 2021): net keys of AFNConfig; loss keys ``temporal`` (0.25), ``regularizer`` (1e-5) and
+    ``spp_choices`` (the training round-robin over samples per pixel, [1, 2, 4]; each <= data.spp)."""
+    from denoisers.nets.afn import AFNConfig
+    from denoisers.nets.afn_task import LOSS_DEFAULTS, AFNTask
+
+    unknown = set(spec.loss) - set(LOSS_DEFAULTS)
+    if unknown:
+        raise KeyError(f"afn: unknown loss keys {sorted(unknown)}; known: {sorted(LOSS_DEFAULTS)}")
+    loss = {**LOSS_DEFAULTS, **spec.loss}
+    choices = tuple(int(s) for s in loss["spp_choices"])
+    if not choices or any(not 1 <= s <= int(spec.data["spp"]) for s in choices):
+        raise ValueError(f"afn: loss.spp_choices {list(choices)} must be non-empty, each in 1..data.spp = "
+                         f"{spec.data['spp']}")
+    if float(loss["temporal"]) < 0 or float(loss["regularizer"]) < 0:
+        raise ValueError(f"afn: loss weights must be >= 0, got temporal {loss['temporal']}, regularizer "
+                         f"{loss['regularizer']}")
+    config = AFNConfig.from_dict(spec.net)
+    if config.temporal and spec.data.get("backward_prob", 0):
+        raise ValueError("afn: data.backward_prob must be 0 for a temporal model (backward playback has no "
+                         "motion vectors)")
+    return AFNTask(config=config, temporal_weight=float(loss["temporal"]), regularizer=float(loss["regularizer"]),
+                   spp_choices=choices)
+
+
+register_task("afn", sample_buffers=("radiance", "diffuse", "specular", "normal", "depth", "roughness", "albedo",
+                                     "flags"), pixel_buffers=("motion", "valid"))(_afn_task)
