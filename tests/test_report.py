@@ -187,16 +187,17 @@ def video_psnr_of(method: str, scene: str, spp: int) -> float:
     return float(-10 * np.log10(np.mean(10 ** (-frame_psnr / 10))))
 
 
-def test_isik_tables_use_video_psnr_and_markdown_summary(built: tuple[Path, dict]) -> None:
-    root, _ = built
-    column = "video PSNR (dB, Isik Eq. 14) @ 2 spp"
-    pivot = pd.read_csv(root / "tables" / "isik_table2.csv").set_index("method")
-    assert pivot.loc["path_x2", column] == "not run"
-    mean = np.mean([video_psnr_of("wrls", s, 2) for s in SCENES])
-    assert round(mean, 2) < round(np.mean([psnr_of("wrls", s, 2) for s in SCENES]), 2)   # pooled MSE != mean of dB
-    assert pivot.loc["wrls", column].startswith(f"{mean:.2f} ± ")
-    table3 = pd.read_csv(root / "tables" / "isik_table3.csv").set_index("method")
-    assert table3.loc["rls", "TRMAE @ 1 spp"].startswith(f"{TRMAE['rls']:.4f}")
+def test_video_psnr_is_pooled_and_isik_tables_need_afn_rows(built: tuple[Path, dict]) -> None:
+    """Video PSNR (Isik et al. Eq. 14, the Table 3 metric) pools the frames' MSE; the Isik tables are laid out
+    from AFN rows only, so this fixture (no afn row) writes none and the report says why."""
+    root, cfg = built
+    per_scene = collect(cfg, root).per_scene
+    wrls = per_scene[(per_scene.method_id == "wrls") & (per_scene.spp == 2)].set_index("scene")["video_psnr"]
+    for scene in SCENES:
+        assert math.isclose(wrls[scene], video_psnr_of("wrls", scene, 2), rel_tol=1e-9)
+    assert video_psnr_of("wrls", SCENES[0], 2) < psnr_of("wrls", SCENES[0], 2)     # pooled MSE != mean of dB
+    assert not (root / "tables" / "isik_table2.csv").exists()
+    assert "No `afn` rows are configured" in (root / "REPORT.md").read_text()
     markdown = (root / "tables" / "summary.md").read_text()
     assert "### 1 spp (3 scenes)" in markdown and "| wrls |" in markdown
 

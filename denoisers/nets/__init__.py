@@ -13,10 +13,10 @@ from torch import nn
 
 
 def _builders() -> dict[str, Any]:
-    from denoisers.nets import afn, ntasd, rae
+    from denoisers.nets import afn, kpcn, ntasd, rae
 
     return {rae.RecurrentAutoencoder.NET_NAME: rae.RecurrentAutoencoder, ntasd.NTASDNet.NET_NAME: ntasd.NTASDNet,
-            afn.AFNNet.NET_NAME: afn.AFNNet}
+            afn.AFNNet.NET_NAME: afn.AFNNet, kpcn.KPCNNet.NET_NAME: kpcn.KPCNNet}
 
 
 def available_nets() -> list[str]:

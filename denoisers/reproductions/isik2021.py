@@ -1,15 +1,22 @@
-"""Isik et al. 2021, affinity of neural features (AFN): Tables 2 and 3 laid out like the paper, with video
-PSNR as the paper's Eq. 14 (MSE pooled over a clip's frames), and claims C3.1-C3.5
-(../shared/papers/isik2021-affinity-of-neural-features.md).
+"""Isik et al. 2021, affinity of neural features (AFN): Tables 2-5 laid out like the paper, Fig. 8 (PSNR against
+throughput) and claims C3.1-C3.5 (../shared/papers/isik2021-affinity-of-neural-features.md).
 
-The AFN and KPCN methods are not built yet: their claims are 'not run', naming the missing rows.
+AFN rows are found by what their model is, not by their names: a row of registry method ``afn`` names a model
+(``params.model``) whose ``net`` settings, completed with denoisers.nets.afn.AFNConfig's defaults, say which
+variant it is (:data:`VARIANTS`: full, single, K1, d, heur, ntk, nar, wpred, gather K1 / K3). A row with
+``params.kernel_size`` runs a model with another kernel size at test time (C3.5); the other tables use rows
+without it. Single-frame tables (2, 4, 5) use the frame-mean PSNR, the video table (3) the paper's video PSNR
+(Eq. 14: MSE pooled over a clip's frames) and TRMAE (Eq. 16). The paper evaluates at 2-32 spp; claims use
+the spp of 2, 4, 8 that the config evaluates (evaluation.spp) and say which.
 """
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from denoisers.report.claims import Claim, RowNeed
+from denoisers.report.claims import Claim, Decision, Part, RowNeed, compare_rows, not_run
 from denoisers.report.stats import LABELS, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction
 
@@ -19,19 +26,29 @@ if TYPE_CHECKING:
     from denoisers.report.collect import Results
 
 PAPER = "Isik 2021"
-AFN = RowNeed("afn", "AFN, the full temporal model")
-AFN_SINGLE = RowNeed("afn", "AFN ours-single (temporal accumulation and filtering off)", (("variant", "single"),))
-AFN_K1 = RowNeed("afn", "AFN ours-K1 (one 17x17 kernel)", (("variant", "k1"),))
-AFN_D1 = RowNeed("afn", "AFN with affinity dimension d = 1", (("variant", "d1"),))
-AFN_HEUR = RowNeed("afn", "AFN ours-heur (fixed temporal weight 0.8)", (("variant", "heur"),))
-KPCN = RowNeed("kpcn", "KPCN")
-CLAIMS = (
-    Claim("C3.1", PAPER, "ours-single beats ours-K1 and KPCN at 2-8 spp", (AFN_SINGLE, AFN_K1, KPCN)),
-    Claim("C3.2", PAPER, "affinity dimension d=1 is much worse than d>=2", (AFN, AFN_D1)),
-    Claim("C3.3", PAPER, "the temporal model has lower TRMAE than the single-frame model", (AFN, AFN_SINGLE)),
-    Claim("C3.4", PAPER, "the learned temporal weight beats a fixed 0.8", (AFN, AFN_HEUR)),
-    Claim("C3.5", PAPER, "kernel size can change at test time; larger kernels help more at low spp", (AFN,)),
-)
+CLAIM_SPP = (2, 4, 8)
+#: Variant -> the AFNConfig values that define it (every other key may take any value).
+FULL_FLAGS: dict[str, Any] = {"temporal": True, "kernels": 3, "dilate": True, "affinity_dim": 8,
+                              "kernel_kind": "affinity", "temporal_kernel": True, "accumulate_radiance": True,
+                              "fixed_lambda": None, "history_input": "embedding"}
+SINGLE_FLAGS: dict[str, Any] = {"temporal": False, "kernels": 3, "dilate": True, "affinity_dim": 8,
+                                "kernel_kind": "affinity"}
+VARIANTS: dict[str, dict[str, Any]] = {
+    "ours": FULL_FLAGS,
+    "ours-single": SINGLE_FLAGS,
+    "ours-K1": {"temporal": False, "kernels": 1, "kernel_kind": "affinity"},
+    "ours-heur": {**FULL_FLAGS, "fixed_lambda": 0.8},
+    "ours-ntk": {**FULL_FLAGS, "temporal_kernel": False},
+    "ours-nar": {**FULL_FLAGS, "accumulate_radiance": False},
+    "ours-wpred": {**FULL_FLAGS, "history_input": "prediction"},
+    **{f"d={d}": {**SINGLE_FLAGS, "affinity_dim": d} for d in (1, 2, 4)},
+    "gather K1": {"temporal": False, "kernels": 1, "kernel_kind": "gather"},
+    "gather K3": {"temporal": False, "kernels": 3, "kernel_kind": "gather"},
+}
+AFN = RowNeed("afn", "AFN, the full temporal model (net defaults)")
+KPCN = RowNeed("kpcn", "KPCN (Bako et al. 2017)")
+OIDN = RowNeed("oidn", "OIDN (standing in for the OptiX denoiser)")
+
 #: Published PSNR (dB) of Table 2 (single frame) at 2/4/8/16/32 spp, rows relevant to our targets.
 PAPER_TABLE2 = {"KPCN": (27.95, 30.86, 32.79, 33.90, 34.54), "NBG*": (26.04, 27.58, 28.52, 29.11, 29.42),
                 "ours-K1": (29.13, 31.87, 33.28, 34.11, 34.42), "ours-single": (30.93, 32.67, 33.66, 34.34, 34.81)}
@@ -46,22 +63,158 @@ PAPER_TABLE3 = {"NBG": (26.67, 28.48, 29.56, 2.058, 1.695, 1.453),
                 "ours-nar": (32.37, 33.76, 34.56, 0.508, 0.473, 0.454),
                 "ours": (32.34, 33.93, 34.81, 0.517, 0.467, 0.446)}
 PAPER_TABLE3_SPP = (2, 4, 8)
+TABLES = ("isik_table2", "isik_table3", "isik_table4", "isik_table5")
+FIG8 = "isik_fig8"
 
 
-def pivot(res: Results, metrics: tuple[str, ...]) -> pd.DataFrame:
-    """Rows = configured methods, columns = (metric, spp) 'mean ± CI' over scenes (Isik's layout)."""
+# ------------------------------------------------------------------------------------------ rows
+def row_net(res: Results, row: str) -> dict[str, Any] | None:
+    """The AFNConfig (as a dict, defaults filled) of the model an ``afn`` row runs; None when unknown."""
+    from denoisers.nets.afn import AFNConfig
+    from denoisers.training.models import model_spec
+
+    model = res.spec(row).params.get("model")
+    if not model:
+        return None
+    try:
+        return AFNConfig.from_dict(model_spec(res.cfg, model).net).to_dict()
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def variant_of(net: Mapping[str, Any]) -> str | None:
+    """The first variant of :data:`VARIANTS` whose flags ``net`` has (None: none)."""
+    return next((name for name, flags in VARIANTS.items() if all(net.get(k) == v for k, v in flags.items())), None)
+
+
+def afn_rows(res: Results, test_time_size: bool = False) -> dict[str, tuple[str, dict[str, Any]]]:
+    """row id -> (variant, net) of the ``afn`` rows that ran; rows with params.kernel_size only when
+    ``test_time_size`` (then only those)."""
+    found = {}
+    for row in res.rows_of("afn"):
+        if bool(res.spec(row).params.get("kernel_size")) != test_time_size:
+            continue
+        net = row_net(res, row)
+        variant = variant_of(net) if net else None
+        if variant is not None:
+            found[row] = (variant, net)
+    return found
+
+
+def variant_row(res: Results, variant: str) -> str | None:
+    return next((row for row, (name, _) in afn_rows(res).items() if name == variant), None)
+
+
+def claim_spps(res: Results, rows: list[str | None]) -> list[int]:
+    """The claim spp (2, 4, 8) the config evaluates and every row ran at."""
+    return [spp for spp in CLAIM_SPP if spp in res.cfg["evaluation"]["spp"] and all(res.ran(r, spp) for r in rows)]
+
+
+# ------------------------------------------------------------------------------------------ claims
+def _pairs(res: Results, pairs: list[tuple[str | None, str | None, str, str, str]], note: str) -> Decision:
+    """Parts (row a, row b, metric, claimed, label) at every claim spp both rows ran at."""
+    missing = sorted({label for a, b, _, _, label in pairs if a is None or b is None})
+    if missing:
+        return not_run("missing rows: " + "; ".join(missing))
+    rows = [r for a, b, *_ in pairs for r in (a, b)]
+    spps = claim_spps(res, rows)
+    if not spps:
+        return not_run(f"no row set ran at any of {list(CLAIM_SPP)} spp (evaluation.spp = "
+                       f"{res.cfg['evaluation']['spp']})")
+    parts = [compare_rows(res, a, b, metric, spp, claimed) for a, b, metric, claimed, _ in pairs for spp in spps]
+    return Decision(parts, note=f"{note}; at {', '.join(map(str, spps))} spp")
+
+
+def decide_c31(res: Results) -> Decision:
+    kpcn = res.row_of("kpcn")
+    single, k1 = variant_row(res, "ours-single"), variant_row(res, "ours-K1")
+    return _pairs(res, [(single, k1, "psnr", "higher", "AFN ours-single / ours-K1 (afn models with net.temporal false)"),
+                        (single, kpcn, "psnr", "higher", "KPCN (method 'kpcn')")],
+                  "frame-mean PSNR (Table 2 is single-frame)")
+
+
+def decide_c32(res: Results) -> Decision:
+    """d = 1 against every other d of the same variant flags (the single-frame model, d = 2, 4, 8)."""
+    rows = afn_rows(res)
+    d1 = next((row for row, (name, _) in rows.items() if name == "d=1"), None)
+    others = [row for row, (name, net) in rows.items() if name in ("ours-single", "d=2", "d=4")]
+    if d1 is None or not others:
+        return not_run("missing rows: a single-frame afn model with net.affinity_dim 1 and one with 2, 4 or 8")
+    return _pairs(res, [(other, d1, "psnr", "higher", "") for other in others],
+                  "single-frame models, d >= 2 minus d = 1 (the paper calls d = 1 'much worse'; judged as worse)")
+
+
+def decide_c33(res: Results) -> Decision:
+    return _pairs(res, [(variant_row(res, "ours"), variant_row(res, "ours-single"), "trmae", "lower",
+                         "AFN full and ours-single")], "TRMAE (Eq. 16) of the full temporal model minus the single-frame model's")
+
+
+def decide_c34(res: Results) -> Decision:
+    return _pairs(res, [(variant_row(res, "ours"), variant_row(res, "ours-heur"), "video_psnr", "higher",
+                         "AFN full and ours-heur (net.fixed_lambda 0.8)")], "video PSNR (Eq. 14), Table 3")
+
+
+def decide_c35(res: Results) -> Decision:
+    """The full model run at its trained size and at other kernel sizes (rows with params.kernel_size):
+    (a) the largest size beats the smallest at the lowest claim spp; (b) that gain is larger at the lowest
+    claim spp than at the highest (paired per scene)."""
+    full = variant_row(res, "ours")
+    if full is None:
+        return not_run("missing rows: AFN full model")
+    trained = int(row_net(res, full)["kernel_size"])
+    sized = {trained: full}
+    for row, (name, net) in afn_rows(res, test_time_size=True).items():
+        if name == "ours" and net == row_net(res, full):
+            sized.setdefault(int(res.spec(row).params["kernel_size"]), row)
+    if len(sized) < 2:
+        return not_run("missing rows: the full AFN model at another kernel size (params.kernel_size)")
+    small, large = sized[min(sized)], sized[max(sized)]
+    spps = claim_spps(res, [small, large])
+    if not spps:
+        return not_run(f"the kernel-size rows ran at none of {list(CLAIM_SPP)} spp")
+    low, high = spps[0], spps[-1]
+    parts = [compare_rows(res, large, small, "psnr", low, "higher")]
+    note = f"kernel sizes {min(sized)} and {max(sized)} of a model trained at {trained}"
+    if high != low:
+        gain_low = res.scene_values(large, low, "psnr") - res.scene_values(small, low, "psnr")
+        gain_high = res.scene_values(large, high, "psnr") - res.scene_values(small, high, "psnr")
+        parts.append(Part.paired(gain_low, gain_high, "psnr", f"gain @ {low} spp", f"gain @ {high} spp", "higher",
+                                 rows=((large, low), (small, low), (large, high), (small, high))))
+    else:
+        note += "; only one claim spp ran, so part (b) (larger gain at low spp) is not decided"
+    return Decision(parts, note=note)
+
+
+CLAIMS = (
+    Claim("C3.1", PAPER, "ours-single beats ours-K1 and KPCN at 2-8 spp", (AFN, KPCN), decide_c31),
+    Claim("C3.2", PAPER, "affinity dimension d=1 is much worse than d>=2", (AFN,), decide_c32),
+    Claim("C3.3", PAPER, "the temporal model has lower TRMAE than the single-frame model", (AFN,), decide_c33),
+    Claim("C3.4", PAPER, "the learned temporal weight beats a fixed 0.8", (AFN,), decide_c34),
+    Claim("C3.5", PAPER, "kernel size can change at test time; larger kernels help more at low spp", (AFN,),
+          decide_c35),
+)
+
+
+# ------------------------------------------------------------------------------------------ tables
+def _cell(res: Results, row: str, spp: int, metric: str) -> str:
+    if not res.ran(row, spp):
+        return "not run"
+    return fmt_ci(*mean_ci(res.scene_values(row, spp, metric).to_numpy(float))[:3], metric)
+
+
+def _layout(res: Results, rows: list[tuple[str, str]], metrics: tuple[str, ...],
+            extra: Mapping[str, Mapping[str, Any]] | None = None) -> pd.DataFrame:
+    """One line per (label, row id), columns (metric, spp) 'mean ± CI' over scenes, spp = evaluation.spp."""
     import pandas as pd
 
-    rows = []
-    for spec in res.main_specs:
-        row: dict[str, Any] = {"method": spec.id}
+    lines = []
+    for label, row in rows:
+        line: dict[str, Any] = {"method": label, "row": row, **(extra or {}).get(row, {})}
         for metric in metrics:
             for spp in res.cfg["evaluation"]["spp"]:
-                row[f"{LABELS[metric]} @ {spp} spp"] = fmt_ci(
-                    *mean_ci(res.scene_values(spec.id, spp, metric).to_numpy(float))[:3], metric) \
-                    if res.ran(spec.id, spp) else "not run"
-        rows.append(row)
-    return pd.DataFrame(rows)
+                line[f"{LABELS[metric]} @ {spp} spp"] = _cell(res, row, spp, metric)
+        lines.append(line)
+    return pd.DataFrame(lines)
 
 
 def _paper_table(values: dict[str, tuple[float, ...]], columns: list[str]) -> pd.DataFrame:
@@ -70,27 +223,74 @@ def _paper_table(values: dict[str, tuple[float, ...]], columns: list[str]) -> pd
     return pd.DataFrame([{"method": name, **dict(zip(columns, row))} for name, row in values.items()])
 
 
-def write(res: Results, tables: Path, figures: Path) -> str:
-    from denoisers.report.tables import write_table
+def _baselines(res: Results) -> list[tuple[str, str]]:
+    return [(label, row) for label, row in (("KPCN", res.row_of("kpcn")), ("OIDN", res.row_of("oidn"))) if row]
 
-    note = ("Video PSNR is Isik et al. Eq. 14: the MSE of the tonemapped frames pooled over a clip, then "
-            "−10 log10; mean ± 95 % CI over scenes.")
-    table2 = pivot(res, ("video_psnr",))
+
+def _variant_lines(res: Results, names: tuple[str, ...]) -> list[tuple[str, str]]:
+    rows = afn_rows(res)
+    return [(name, row) for name in names for row, (variant, _) in rows.items() if variant == name]
+
+
+def tables(res: Results) -> dict[str, pd.DataFrame]:
+    """Tables 2-5 (module docstring); each lists only rows that ran."""
+    rows = afn_rows(res)
+    nets = {row: net for row, (_, net) in rows.items()}
+    d_lines = sorted(((f"d={net['affinity_dim']}", row) for row, (name, net) in rows.items()
+                      if name in ("ours-single", "d=1", "d=2", "d=4")), key=lambda x: nets[x[1]]["affinity_dim"])
+    kernel_lines = sorted(((f"{'gather' if net['kernel_kind'] == 'gather' else 'affinity'} K={net['kernels']}, "
+                            f"{net['kernel_size']}x{net['kernel_size']}", row) for row, (name, net) in rows.items()
+                           if not net["temporal"] and name in ("ours-single", "ours-K1", "gather K1", "gather K3")),
+                          key=lambda x: x[0])
+    return {
+        "isik_table2": _layout(res, _baselines(res) + _variant_lines(res, ("d=1", "ours-K1", "ours-single")), ("psnr",)),
+        "isik_table3": _layout(res, [(label, row) for label, row in _baselines(res) if label == "OIDN"]
+                               + _variant_lines(res, ("ours-K1", "ours-single", "ours-wpred", "ours-heur", "ours-ntk",
+                                                      "ours-nar", "ours")), ("video_psnr", "trmae")),
+        "isik_table4": _layout(res, d_lines, ("psnr",)),
+        "isik_table5": _layout(res, kernel_lines, ("psnr",)),
+    }
+
+
+def table_names(cfg: dict) -> list[str]:
+    return list(TABLES) if any(m["method"] == "afn" for m in cfg["evaluation"]["methods"]) else []
+
+
+def figure_names(cfg: dict) -> list[str]:
+    return [FIG8] if table_names(cfg) else []
+
+
+def write(res: Results, tables_dir: Path, figures: Path) -> str:
+    from denoisers.report.tables import write_table
+    from denoisers.reproductions._isik2021_figures import plot_fig8
+
+    if not table_names(res.cfg):
+        return "No `afn` rows are configured (evaluation.methods): the AFN tables are not built."
+    built = tables(res)
     paper2 = _paper_table(PAPER_TABLE2, [f"PSNR @ {s} spp" for s in PAPER_TABLE2_SPP])
-    md2 = (frame_to_markdown(table2) + "\nPaper (Table 2, single frame, 1080p; for context only):\n\n"
-           + frame_to_markdown(paper2))
-    write_table(table2, tables, "isik_table2", md2)
-    table3 = pivot(res, ("video_psnr", "trmae"))
     paper3 = _paper_table(PAPER_TABLE3, [f"PSNR @ {s} spp" for s in PAPER_TABLE3_SPP]
                           + [f"TRMAE @ {s} spp" for s in PAPER_TABLE3_SPP])
-    md3 = (frame_to_markdown(table3) + "\nPaper (Table 3, video; for context only):\n\n" + frame_to_markdown(paper3))
-    write_table(table3, tables, "isik_table3", md3)
-    return "\n".join([note, "", "### Table 2 layout: video PSNR by spp", "", md2,
-                      "### Table 3 layout: video PSNR and TRMAE by spp", "", md3])
+    context = {"isik_table2": "\nPaper (Table 2, single frame, 1080p; for context only):\n\n" + frame_to_markdown(paper2),
+               "isik_table3": "\nPaper (Table 3, video; for context only):\n\n" + frame_to_markdown(paper3)}
+    titles = {"isik_table2": "Table 2 layout: single-frame PSNR (frame mean)",
+              "isik_table3": "Table 3 layout: video PSNR (Eq. 14) and TRMAE (Eq. 16)",
+              "isik_table4": "Table 4 layout: affinity feature dimension d (single-frame models)",
+              "isik_table5": "Table 5 layout: affinity versus gather kernels (single-frame models)"}
+    lines = ["AFN rows are identified by their model's net settings (module denoisers.reproductions.isik2021); "
+             "mean ± 95 % CI over the evaluated scenes."]
+    for name, table in built.items():
+        markdown = frame_to_markdown(table) if len(table) else "No row of this layout ran.\n"
+        markdown += context.get(name, "")
+        write_table(table, tables_dir, name, markdown)
+        lines += ["", f"### {titles[name]}", "", markdown]
+    reason = plot_fig8(res, figures / f"{FIG8}.png")
+    lines += ["", "### Fig. 8 layout: PSNR against throughput", "",
+              f"![PSNR against Mpix/s]({FIG8}.png)" if not reason else f"Not drawn: {reason}."]
+    return "\n".join(lines)
 
 
 REPRODUCTION = Reproduction(
     key="isik2021", paper="Isik et al. 2021", order=3,
     title="Interactive Monte Carlo denoising using affinity of neural features",
     source="isik2021-affinity-of-neural-features.md", claims=CLAIMS,
-    tables=lambda cfg: ["isik_table2", "isik_table3"], write=write)
+    tables=table_names, figures=figure_names, write=write)

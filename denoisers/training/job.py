@@ -59,7 +59,7 @@ def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
 
 
 def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...], pixel_buffers: tuple[str, ...] = (),
-                    mean_buffers: tuple[str, ...] = ()) -> Any:
+                    mean_buffers: tuple[str, ...] = (), reference_buffers: tuple[str, ...] = ("radiance",)) -> Any:
     from denoisers.training.data import SequenceConfig
 
     data = spec.data
@@ -67,7 +67,17 @@ def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...], pixel_buff
                           flip=data["flip"], color_range=data["color_range"], backward_prob=data["backward_prob"],
                           stop_prob=data["stop_prob"], sample_buffers=sample_buffers, layers=data["layers"],
                           crops=data["crops"], importance_floor=data["importance_floor"],
-                          pixel_buffers=pixel_buffers, mean_buffers=mean_buffers)
+                          pixel_buffers=pixel_buffers, mean_buffers=mean_buffers,
+                          reference_buffers=reference_buffers)
+
+
+def reference_buffers(builder: Any, clips: Any) -> tuple[str, ...]:
+    """Reference buffers a task's batches carry: radiance, plus each of the builder's
+    ``optional_reference_buffers`` that every clip's references hold (all clips or none, so that every batch,
+    training and validation, has the same keys)."""
+    optional = tuple(getattr(builder, "optional_reference_buffers", ()))
+    held = [b for b in optional if all(c.reference is not None and b in c.reference for c in clips)]
+    return ("radiance", *held)
 
 
 def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = True) -> Any:
@@ -113,7 +123,12 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
 
     from denoisers.training.data import SequenceDataset
 
-    sequences = sequence_config(spec, builder.sample_buffers, builder.pixel_buffers, builder.mean_buffers)
+    references = reference_buffers(builder, train_clips + validation_clips)
+    if builder.optional_reference_buffers:
+        log.info("model %s: reference buffers %s (optional: %s)", model_id, ", ".join(references),
+                 ", ".join(builder.optional_reference_buffers))
+    sequences = sequence_config(spec, builder.sample_buffers, builder.pixel_buffers, builder.mean_buffers,
+                                references)
     dataset = SequenceDataset(train_clips, sequences, seed=spec.seed)
     # The same validation sequences for every model of the config (seeded by the global seed), so
     # models are compared pairwise on identical data.

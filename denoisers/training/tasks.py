@@ -17,24 +17,29 @@ from denoisers.training.spec import ModelSpec
 class TaskBuilder:
     """build(spec) -> task; sample_buffers: per-sample buffers the batches carry (``data.spp`` layers each);
     pixel_buffers: per-pixel buffers (denoisers.training.data.PIXEL_KEYS); mean_buffers: per-sample buffers
-    carried as their mean over every stored layer (``mean.{buffer}``)."""
+    carried as their mean over every stored layer (``mean.{buffer}``); optional_reference_buffers: reference
+    buffers besides radiance (``reference.{buffer}``) carried when every training and validation clip's
+    references hold them (e.g. diffuse / specular: render.reference_integrator features), else left out --
+    the task must handle both (denoisers.training.job.reference_buffers)."""
 
     build: Callable[[ModelSpec], Any]
     sample_buffers: tuple[str, ...]
     pixel_buffers: tuple[str, ...] = ()
     mean_buffers: tuple[str, ...] = ()
+    optional_reference_buffers: tuple[str, ...] = ()
 
 
 _TASKS: dict[str, TaskBuilder] = {}
 
 
 def register_task(method: str, sample_buffers: tuple[str, ...], pixel_buffers: tuple[str, ...] = (),
-                  mean_buffers: tuple[str, ...] = ()) -> Callable[[Callable[[ModelSpec], Any]],
-                                                              Callable[[ModelSpec], Any]]:
+                  mean_buffers: tuple[str, ...] = (), optional_reference_buffers: tuple[str, ...] = ()
+                  ) -> Callable[[Callable[[ModelSpec], Any]], Callable[[ModelSpec], Any]]:
     """Decorator: ``build(spec)`` makes the training task of registry method ``method``."""
 
     def decorate(build: Callable[[ModelSpec], Any]) -> Callable[[ModelSpec], Any]:
-        _TASKS[method] = TaskBuilder(build, tuple(sample_buffers), tuple(pixel_buffers), tuple(mean_buffers))
+        _TASKS[method] = TaskBuilder(build, tuple(sample_buffers), tuple(pixel_buffers), tuple(mean_buffers),
+                                     tuple(optional_reference_buffers))
         return build
 
     return decorate
@@ -146,3 +151,19 @@ def _afn_task(spec: ModelSpec) -> Any:
 
 register_task("afn", sample_buffers=("radiance", "diffuse", "specular", "normal", "depth", "roughness", "albedo",
                                      "flags"), pixel_buffers=("motion", "valid"))(_afn_task)
+
+
+# ------------------------------------------------------------------------------------------- KPCN
+def _kpcn_task(spec: ModelSpec) -> Any:
+    """KPCN (Bako et al. 2017): net keys of KPCNConfig; no loss keys (per-branch L1 when the references hold
+    diffuse / specular, else L1 on log radiance: denoisers.nets.kpcn_task)."""
+    from denoisers.nets.kpcn import KPCNConfig
+    from denoisers.nets.kpcn_task import KPCNTask
+
+    if spec.loss:
+        raise KeyError(f"kpcn: unknown loss keys {sorted(spec.loss)}; the loss has no settings")
+    return KPCNTask(config=KPCNConfig.from_dict(spec.net))
+
+
+register_task("kpcn", sample_buffers=("radiance", "diffuse", "specular", "albedo", "normal", "depth"),
+              optional_reference_buffers=("diffuse", "specular"))(_kpcn_task)

@@ -1,0 +1,152 @@
+"""The Isik et al. 2021 reproduction module (denoisers/reproductions/isik2021.py): AFN rows identified by their
+models' net settings, claims C3.1-C3.5 on constructed per-scene numbers (each outcome, at every claim spp),
+the Table 2-5 layouts and the Fig. 8 figure.
+
+Results are built in memory with the helpers of tests/test_claims.py; the models and rows are set here.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from denoisers import evaluate
+from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED, evaluate_claim
+from denoisers.reproductions import isik2021 as isik
+from scenegen.config import validate_config
+from tests.test_claims import AGAINST, CLEAR, SPANNING, TWO_SCENES, Table, build, claims_config
+
+SPP = (2, 4, 8)
+BASE_MODEL = {"method": "afn", "net": {"width": 0.25}, "data": {"spp": 8, "backward_prob": 0.0, "length": 3},
+              "budget": {"max_steps": 10}}
+#: model id -> net overrides (the variant is what the module must recognise).
+MODELS = {"afn": {}, "afn_single": {"temporal": False}, "afn_k1": {"temporal": False, "kernels": 1, "dilate": False,
+                                                                    "kernel_size": 17},
+          "afn_d1": {"temporal": False, "affinity_dim": 1}, "afn_d2": {"temporal": False, "affinity_dim": 2},
+          "afn_heur": {"fixed_lambda": 0.8}, "afn_gather": {"temporal": False, "kernel_kind": "gather", "kernels": 1,
+                                                              "kernel_size": 5}}
+ROWS = [{"id": "noisy", "method": "noisy"}, {"id": "oidn", "method": "oidn"},
+        {"id": "kpcn", "method": "kpcn", "params": {"model": "kpcn"}},
+        *[{"id": m, "method": "afn", "params": {"model": m}} for m in MODELS],
+        {"id": "afn_k7", "method": "afn", "params": {"model": "afn", "kernel_size": 7}}]
+#: (a, b, metric, claimed) per claim, at every claim spp.
+PARTS = {
+    "C3.1": [("afn_single", "afn_k1", "psnr", "higher"), ("afn_single", "kpcn", "psnr", "higher")],
+    "C3.2": [("afn_single", "afn_d1", "psnr", "higher"), ("afn_d2", "afn_d1", "psnr", "higher")],
+    "C3.3": [("afn", "afn_single", "trmae", "lower")],
+    "C3.4": [("afn", "afn_heur", "video_psnr", "higher")],
+}
+CLAIMS = {claim.id: claim for claim in isik.CLAIMS}
+#: Per-unit step of each metric (the d_i of the fixtures are ~1).
+STEP = {"psnr": 1.0, "video_psnr": 1.0, "trmae": 0.01}
+
+
+def shift(table: Table, a: tuple[str, int], b: tuple[str, int], metric: str, claimed: str, d: list[float]) -> None:
+    """a's metric = b's + d_i (in steps of STEP[metric]) per scene on the claimed side."""
+    sign = 1.0 if claimed == "higher" else -1.0
+    table.values[a][metric] = [v + sign * STEP[metric] * di for v, di in zip(table.values[b][metric], d)]
+
+
+def config() -> dict:
+    cfg = claims_config(SPP)
+    models = [{**BASE_MODEL, "id": m, "net": {**BASE_MODEL["net"], **net}} for m, net in MODELS.items()]
+    models.append({"id": "kpcn", "method": "kpcn", "data": {"spp": 8, "length": 1}, "budget": {"max_steps": 10}})
+    cfg["training"]["models"] = models
+    cfg["training"]["ablations"] = []
+    cfg["evaluation"]["methods"] = ROWS
+    cfg["evaluation"]["ablation_spp"] = []
+    return validate_config(cfg)
+
+
+def shifted(claim: str, d: list[float], cfg: dict | None = None) -> tuple[dict, Table]:
+    """A table where every part of ``claim`` at every claim spp differs by d_i per scene (parts applied from the
+    last to the first, so each part's paired difference is exactly d even when parts share a row)."""
+    cfg = cfg or config()
+    table = Table(cfg, len(d))
+    for spp in SPP:
+        for a, b, metric, claimed in reversed(PARTS[claim]):
+            shift(table, (a, spp), (b, spp), metric, claimed, d)
+    return cfg, table
+
+
+def test_rows_are_identified_by_their_models_net_settings() -> None:
+    cfg, table = shifted("C3.3", CLEAR)
+    rows = isik.afn_rows(build(cfg, table))
+    assert {row: variant for row, (variant, _) in rows.items()} == {
+        "afn": "ours", "afn_single": "ours-single", "afn_k1": "ours-K1", "afn_d1": "d=1", "afn_d2": "d=2",
+        "afn_heur": "ours-heur", "afn_gather": "gather K1"}
+    assert list(isik.afn_rows(build(cfg, table), test_time_size=True)) == ["afn_k7"]
+
+
+@pytest.mark.parametrize("claim", sorted(PARTS))
+@pytest.mark.parametrize("d, expected", [(CLEAR, REPRODUCED), (AGAINST, CONTRADICTED), (SPANNING, INCONCLUSIVE),
+                                         (TWO_SCENES, INCONCLUSIVE)])
+def test_every_claim_has_each_outcome(claim: str, d: list[float], expected: str) -> None:
+    cfg, table = shifted(claim, d)
+    decision = evaluate_claim(build(cfg, table), CLAIMS[claim])
+    assert decision.verdict == expected, (claim, [(p.claim_text(), p.interval_text()) for p in decision.parts])
+    expected_labels = [(f"{a} @ {spp} spp", f"{b} @ {spp} spp") for a, b, _, _ in PARTS[claim] for spp in SPP]
+    assert sorted((p.a, p.b) for p in decision.parts) == sorted(expected_labels)
+    assert all(p.n == len(d) for p in decision.parts)
+
+
+def test_claims_use_only_the_evaluated_claim_spp() -> None:
+    cfg = config()
+    cfg["evaluation"]["spp"] = [1, 2, 4]
+    table = Table(cfg, 4)
+    for spp in (2, 4):
+        shift(table, ("afn", spp), ("afn_single", spp), "trmae", "lower", CLEAR)
+    decision = evaluate_claim(build(cfg, table), CLAIMS["C3.3"])
+    assert decision.verdict == REPRODUCED and "at 2, 4 spp" in decision.note
+    assert len(decision.parts) == 2
+
+
+def test_a_missing_variant_makes_the_claim_not_run() -> None:
+    cfg, table = shifted("C3.4", CLEAR)
+    results = build(cfg, table, drop=tuple(("afn_heur", s) for s in SPP))
+    decision = evaluate_claim(results, CLAIMS["C3.4"])
+    assert decision.verdict == NOT_RUN and "ours-heur" in decision.not_run
+
+
+def test_c35_larger_kernels_help_more_at_low_spp() -> None:
+    """Rows: the full model at its trained 13 x 13 and at 7 x 7 (params.kernel_size). Part (a): 13 beats 7 at
+    2 spp; part (b): the gain at 2 spp exceeds the gain at 8 spp."""
+    cfg = config()
+    table = Table(cfg, 4)
+    gains = {2: [2.0, 2.2, 1.9, 2.1], 4: [1.0] * 4, 8: [0.5, 0.4, 0.6, 0.5]}
+    for spp, gain in gains.items():
+        table.values[("afn", spp)]["psnr"] = [v + g for v, g in zip(table.values[("afn_k7", spp)]["psnr"], gain)]
+    decision = evaluate_claim(build(cfg, table), CLAIMS["C3.5"])
+    assert decision.verdict == REPRODUCED, [(p.claim_text(), p.interval_text()) for p in decision.parts]
+    assert (decision.parts[0].a, decision.parts[0].b) == ("afn @ 2 spp", "afn_k7 @ 2 spp")
+    assert decision.parts[1].a == "gain @ 2 spp" and decision.parts[1].b == "gain @ 8 spp"
+    assert decision.parts[1].interval[0] == pytest.approx(1.55)
+    # Equal gains at every spp: part (b) spans 0 only if the gains differ by noise; here exactly 0 -> not above.
+    for spp in SPP:
+        table.values[("afn", spp)]["psnr"] = [v + 1.0 for v in table.values[("afn_k7", spp)]["psnr"]]
+    assert evaluate_claim(build(cfg, table), CLAIMS["C3.5"]).verdict != REPRODUCED
+    without = build(cfg, table, drop=tuple(("afn_k7", s) for s in SPP))
+    assert evaluate_claim(without, CLAIMS["C3.5"]).verdict == NOT_RUN
+
+
+def test_tables_and_figure_are_written(tmp_path: Path) -> None:
+    cfg, table = shifted("C3.3", CLEAR)
+    table.values[("afn_d1", 4)]["psnr"] = [20.0] * 4
+    results = build(cfg, table)
+    (tmp_path / "tables").mkdir()
+    (tmp_path / "figures").mkdir()
+    section = isik.write(results, tmp_path / "tables", tmp_path / "figures")
+    assert isik.table_names(cfg) == list(isik.TABLES) and isik.figure_names(cfg) == [isik.FIG8]
+    for name in isik.TABLES:
+        assert (tmp_path / "tables" / f"{name}.csv").is_file() and (tmp_path / "tables" / f"{name}.md").is_file()
+    assert (tmp_path / "figures" / f"{isik.FIG8}.png").stat().st_size > 0 and "isik_fig8.png" in section
+    table2 = pd.read_csv(tmp_path / "tables" / "isik_table2.csv").set_index("method")
+    assert list(table2.index) == ["KPCN", "OIDN", "d=1", "ours-K1", "ours-single"]
+    table3 = pd.read_csv(tmp_path / "tables" / "isik_table3.csv").set_index("method")
+    assert table3.loc["ours", "TRMAE @ 4 spp"].startswith(f"{1.0 - STEP['trmae'] * 1.05:.4f}")
+    table4 = pd.read_csv(tmp_path / "tables" / "isik_table4.csv").set_index("method")
+    assert list(table4.index) == ["d=1", "d=2", "d=8"]
+    assert table4.loc["d=1", "PSNR (dB, frame mean) @ 4 spp"].startswith("20.00")
+    table5 = pd.read_csv(tmp_path / "tables" / "isik_table5.csv")
+    assert set(table5["method"]) == {"affinity K=1, 17x17", "affinity K=3, 13x13", "gather K=1, 5x5"}
