@@ -18,8 +18,9 @@ kernels of Bako et al. 2017 that Isik et al. Table 5 compares with), dilated the
 
 Gradients: :class:`_AffinitySums` computes the backward pass analytically, one tap at a time, from the saved
 inputs, so training stores no (k*k, H, W) temporaries (memory of a few images, whatever k). The torch
-implementation is the reference; the native kernel (denoisers/native/affinity.cpp, ``backend``) computes
-the same sums in one pass over the taps. Shapes: image (N, C, H, W), features / neighbours (N, d, H, W),
+implementation (:func:`_sums_torch`, :func:`_backward_torch`) is the reference; the native kernels
+(denoisers/native/affinity.cpp, ``backend``) compute the same forward sums and gradients in passes over the
+taps (the backward as two gathers, so without atomics and deterministic). Shapes: image (N, C, H, W), features / neighbours (N, d, H, W),
 bandwidth a and centre c (N, 1, H, W); float32 (autocast is switched off inside).
 """
 from __future__ import annotations
@@ -82,12 +83,53 @@ def _sums_torch(image: torch.Tensor, features: torch.Tensor, neighbours: torch.T
     return num, den
 
 
+def _backward_torch(image: torch.Tensor, features: torch.Tensor, neighbours: torch.Tensor, bandwidth: torch.Tensor,
+                    center: torch.Tensor | None, grad_num: torch.Tensor, grad_den: torch.Tensor, size: int,
+                    dilation: int, need: tuple[bool, ...]) -> tuple[torch.Tensor | None, ...]:
+    """Gradients (image, features, neighbours, bandwidth, center) of _sums_torch's (num, den) given grad_num and
+    grad_den, tap by tap (the reference of the native affinity_sums_backward); None where ``need`` is False."""
+    height, width = image.shape[-2:]
+    radius = (size // 2) * dilation
+    pad = (radius, radius, radius, radius)
+    image_p, neighbours_p = F.pad(image, pad), F.pad(neighbours, pad)
+    inside_p = F.pad(torch.ones(1, 1, height, width, dtype=image.dtype), pad)
+    g_image_p = torch.zeros_like(image_p) if need[0] else None
+    g_neighbours_p = torch.zeros_like(neighbours_p) if need[2] else None
+    g_features = torch.zeros_like(features) if need[1] else None
+    g_bandwidth = torch.zeros_like(bandwidth) if need[3] else None
+    g_center = None
+    for dy, dx in tap_offsets(size, dilation):
+        shifted = _window(image_p, radius, dy, dx, height, width)
+        # d loss / d w_t(p) = sum_c grad_num_c(p) L_c(p + o) + grad_den(p)
+        g_weight = (grad_num * shifted).sum(1, keepdim=True) + grad_den
+        if center is not None and dy == 0 and dx == 0:
+            weight = center
+            if need[4]:
+                g_center = g_weight
+        else:
+            difference = features - _window(neighbours_p, radius, dy, dx, height, width)
+            distance = difference.square().sum(1, keepdim=True)
+            weight = torch.exp(-bandwidth * distance) * _window(inside_p, radius, dy, dx, height, width)
+            if g_bandwidth is not None:
+                g_bandwidth -= g_weight * weight * distance
+            scale = -2.0 * g_weight * weight * bandwidth      # d loss / d f(p) = scale * (f(p) - g(p + o))
+            if g_features is not None:
+                g_features += scale * difference
+            if g_neighbours_p is not None:
+                _window(g_neighbours_p, radius, dy, dx, height, width).sub_(scale * difference)
+        if g_image_p is not None:
+            _window(g_image_p, radius, dy, dx, height, width).add_(weight * grad_num)
+    crop = (slice(None), slice(None), slice(radius, radius + height), slice(radius, radius + width))
+    return (g_image_p[crop] if g_image_p is not None else None, g_features,
+            g_neighbours_p[crop] if g_neighbours_p is not None else None, g_bandwidth, g_center)
+
+
 class _AffinitySums(torch.autograd.Function):
     """(num, den) of :func:`affinity_sums` with an analytic, tap-by-tap backward (module docstring)."""
 
     @staticmethod
     def forward(ctx, image, features, neighbours, bandwidth, center, size, dilation, backend):  # type: ignore[override]
-        ctx.size, ctx.dilation = size, dilation
+        ctx.size, ctx.dilation, ctx.backend = size, dilation, backend
         ctx.save_for_backward(image, features, neighbours, bandwidth, center)
         module = native.load_affinity() if backend != "torch" else None
         if backend == "native" and module is None:
@@ -103,45 +145,20 @@ class _AffinitySums(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_num, grad_den):  # type: ignore[override]
         image, features, neighbours, bandwidth, center = ctx.saved_tensors
-        size, dilation = ctx.size, ctx.dilation
-        n, channels, height, width = image.shape
-        radius = (size // 2) * dilation
-        pad = (radius, radius, radius, radius)
+        n, _, height, width = image.shape
         grad_num = torch.zeros_like(image) if grad_num is None else grad_num.contiguous()
-        grad_den = torch.zeros(n, 1, height, width, dtype=image.dtype) if grad_den is None else grad_den
-        image_p, neighbours_p = F.pad(image, pad), F.pad(neighbours, pad)
-        inside_p = F.pad(torch.ones(1, 1, height, width, dtype=image.dtype), pad)
-        need = ctx.needs_input_grad
-        g_image_p = torch.zeros_like(image_p) if need[0] else None
-        g_neighbours_p = torch.zeros_like(neighbours_p) if need[2] else None
-        g_features = torch.zeros_like(features) if need[1] else None
-        g_bandwidth = torch.zeros_like(bandwidth) if need[3] else None
-        g_center = None
-        for dy, dx in tap_offsets(size, dilation):
-            shifted = _window(image_p, radius, dy, dx, height, width)
-            # d loss / d w_t(p) = sum_c grad_num_c(p) L_c(p + o) + grad_den(p)
-            g_weight = (grad_num * shifted).sum(1, keepdim=True) + grad_den
-            if center is not None and dy == 0 and dx == 0:
-                weight = center
-                if need[4]:
-                    g_center = g_weight
-            else:
-                difference = features - _window(neighbours_p, radius, dy, dx, height, width)
-                distance = difference.square().sum(1, keepdim=True)
-                weight = torch.exp(-bandwidth * distance) * _window(inside_p, radius, dy, dx, height, width)
-                if g_bandwidth is not None:
-                    g_bandwidth -= g_weight * weight * distance
-                scale = -2.0 * g_weight * weight * bandwidth      # d loss / d f(p) = scale * (f(p) - g(p + o))
-                if g_features is not None:
-                    g_features += scale * difference
-                if g_neighbours_p is not None:
-                    _window(g_neighbours_p, radius, dy, dx, height, width).sub_(scale * difference)
-            if g_image_p is not None:
-                _window(g_image_p, radius, dy, dx, height, width).add_(weight * grad_num)
-        crop = (slice(None), slice(None), slice(radius, radius + height), slice(radius, radius + width))
-        return (g_image_p[crop] if g_image_p is not None else None, g_features,
-                g_neighbours_p[crop] if g_neighbours_p is not None else None, g_bandwidth, g_center,
-                None, None, None)
+        grad_den = torch.zeros(n, 1, height, width, dtype=image.dtype) if grad_den is None else grad_den.contiguous()
+        need = tuple(bool(flag) for flag in ctx.needs_input_grad[:5])
+        # The native backward (affinity.cpp) in float32; otherwise (float64 gradcheck, no build) the torch reference.
+        module = native.load_affinity() if ctx.backend != "torch" else None
+        tensors = (image, features, neighbours, bandwidth, center, grad_num, grad_den)
+        if module is not None and hasattr(module, "affinity_sums_backward") and all(
+                t is None or t.dtype == torch.float32 for t in tensors):
+            grads = module.affinity_sums_backward(*(t.contiguous() if t is not None else None for t in tensors),
+                                                  ctx.size, ctx.dilation, need)
+        else:
+            grads = _backward_torch(*tensors, ctx.size, ctx.dilation, need)
+        return (*grads, None, None, None)
 
 
 def affinity_sums(image: torch.Tensor, features: torch.Tensor, bandwidth: torch.Tensor, center: torch.Tensor | None,
@@ -150,8 +167,8 @@ def affinity_sums(image: torch.Tensor, features: torch.Tensor, bandwidth: torch.
     """(num (N, C, H, W), den (N, 1, H, W)) of a dilated affinity kernel (module docstring).
 
     ``neighbours`` defaults to ``features`` (a spatial kernel); ``center`` None makes the centre tap an
-    affinity weight like the others (the temporal kernel). backend "auto": the native kernel's forward when
-    it is built (the backward is always the torch one), "torch" the reference, "native" raises without it.
+    affinity weight like the others (the temporal kernel). backend "auto": the native forward and backward
+    when built (float32), "torch" the reference in both directions, "native" raises without the build.
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")

@@ -1,6 +1,7 @@
 """The native affinity kernel (denoisers/native/affinity.cpp) against the torch reference of
 denoisers/affinity.py: random inputs over sizes, dilations and borders, the bandwidth-0 box filter, and
-independence of the thread count."""
+independence of the thread count; the same for the native backward (affinity_sums_backward, which
+_AffinitySums.backward uses in float32) against the torch backward (_backward_torch)."""
 from __future__ import annotations
 
 import pytest
@@ -109,3 +110,104 @@ def test_native_rejects_bad_shapes() -> None:
         module.affinity_sums(image, features, neighbours, bandwidth, center, 4, 1)
     with pytest.raises(RuntimeError, match="float32"):
         module.affinity_sums(image.double(), features, neighbours, bandwidth, None, 3, 1)
+
+
+def backward_case(dims: int, with_center: bool, seed: int, height: int = 11, width: int = 14):
+    """random_case inputs of odd size plus random output gradients (grad_num, grad_den)."""
+    image, features, neighbours, bandwidth, center = random_case(dims, with_center, seed, height=height, width=width)
+    generator = torch.Generator().manual_seed(seed + 1)
+    grad_num = torch.randn(image.shape, generator=generator)
+    grad_den = torch.randn(bandwidth.shape, generator=generator)
+    return image, features, neighbours, bandwidth, center, grad_num, grad_den
+
+
+def autograd_gradients(inputs, grad_num, grad_den, size: int, dilation: int, shared: bool):
+    """d/d inputs of sum(num * grad_num) + sum(den * grad_den) through affinity_sums (backend "auto": the native
+    kernels when available). With ``shared`` the neighbours are the features tensor itself, whose gradient
+    autograd sums over both uses; its slot holds None then."""
+    image, features, neighbours, bandwidth, center = (t.clone().requires_grad_() if t is not None else None
+                                                      for t in inputs)
+    neighbours = None if shared else neighbours
+    num, den = affinity.affinity_sums(image, features, bandwidth, center, size, dilation, neighbours=neighbours)
+    leaves = (image, features, neighbours, bandwidth, center)
+    grads = iter(torch.autograd.grad((num * grad_num).sum() + (den * grad_den).sum(),
+                                     [t for t in leaves if t is not None]))
+    return [next(grads) if t is not None else None for t in leaves]
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("with_center", [False, True])
+@pytest.mark.parametrize("dims", [1, 8])
+@pytest.mark.parametrize("dilation", [1, 2, 4])
+@pytest.mark.parametrize("size", [1, 3, 5, 13])
+def test_native_backward_matches_torch_backward(size: int, dilation: int, dims: int, with_center: bool,
+                                                shared: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    require_native()
+    *inputs, grad_num, grad_den = backward_case(dims, with_center, seed=size * 100 + dilation * 10 + dims)
+    # 13 x 4 reaches 24 pixels out of the 11 x 14 image: all but the centre tap are partly or wholly outside.
+    got = autograd_gradients(inputs, grad_num, grad_den, size, dilation, shared)
+    monkeypatch.setenv(native.ENVIRONMENT_SWITCH, "0")       # load_affinity() None: torch forward and backward
+    expected = autograd_gradients(inputs, grad_num, grad_den, size, dilation, shared)
+    for name, a, b in zip(("image", "features", "neighbours", "bandwidth", "center"), got, expected):
+        assert (a is None) == (b is None), name
+        if a is not None:
+            assert a.dtype == torch.float32 and a.shape == b.shape, name
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=lambda m, name=name: f"{name}: {m}")
+
+
+def test_native_backward_returns_only_the_needed_gradients() -> None:
+    require_native()
+    module = native.load_affinity()
+    image, features, neighbours, bandwidth, center, grad_num, grad_den = backward_case(3, True, seed=5)
+    args = (image, features, neighbours, bandwidth, center, grad_num, grad_den, 5, 2)
+    full = module.affinity_sums_backward(*args, [True] * 5)
+    reference = affinity._backward_torch(*args, (True,) * 5)
+    for got, expected in zip(full, reference):
+        torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-5)
+    for index in range(5):                         # each gradient alone: the same values, None elsewhere
+        needs = [i == index for i in range(5)]
+        alone = module.affinity_sums_backward(*args, needs)
+        assert all((t is None) == (not need) for t, need in zip(alone, needs))
+        assert torch.equal(alone[index], full[index])
+    no_center = module.affinity_sums_backward(*args[:4], None, *args[5:], [True] * 5)
+    assert no_center[4] is None and all(t is not None for t in no_center[:4])
+    # Through autograd, only the inputs that require a gradient get one (here the bandwidth).
+    bandwidth = bandwidth.clone().requires_grad_()
+    num, den = affinity.affinity_sums(image, features, bandwidth, center, 5, 2, neighbours=neighbours)
+    ((num * grad_num).sum() + (den * grad_den).sum()).backward()
+    assert torch.equal(bandwidth.grad, full[3])
+
+
+def test_native_backward_does_not_depend_on_the_thread_count() -> None:
+    require_native()
+    module = native.load_affinity()
+    image, features, neighbours, bandwidth, center, grad_num, grad_den = backward_case(8, True, seed=3, height=61,
+                                                                                        width=37)
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for count in (1, 2):
+            torch.set_num_threads(count)
+            for c in (center, None):
+                results.append(module.affinity_sums_backward(image, features, neighbours, bandwidth, c, grad_num,
+                                                             grad_den, 5, 2, [True] * 5))
+    finally:
+        torch.set_num_threads(threads)
+    for one, two in zip(results[:2], results[2:]):
+        for a, b in zip(one, two):
+            assert (a is None and b is None) or torch.equal(a, b)
+
+
+def test_native_backward_rejects_bad_gradients() -> None:
+    require_native()
+    module = native.load_affinity()
+    image, features, neighbours, bandwidth, center, grad_num, grad_den = backward_case(2, True, seed=1)
+    with pytest.raises(RuntimeError, match="grad_num"):
+        module.affinity_sums_backward(image, features, neighbours, bandwidth, center, grad_num[:, :2].contiguous(),
+                                      grad_den, 3, 1, [True] * 5)
+    with pytest.raises(RuntimeError, match="grad_den"):
+        module.affinity_sums_backward(image, features, neighbours, bandwidth, center, grad_num, grad_den.double(),
+                                      3, 1, [True] * 5)
+    with pytest.raises(RuntimeError, match="5 flags"):
+        module.affinity_sums_backward(image, features, neighbours, bandwidth, center, grad_num, grad_den, 3, 1,
+                                      [True] * 4)

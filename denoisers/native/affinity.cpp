@@ -1,19 +1,30 @@
-// Affinity kernel sums of Isik et al. 2021 (Sec. 3.4-3.5, Eq. 4-8), the forward pass of
-// denoisers/affinity.py (_sums_torch is the reference; _AffinitySums keeps the torch backward).
+// Affinity kernel sums of Isik et al. 2021 (Sec. 3.4-3.5, Eq. 4-8) and their gradients: the forward and backward
+// passes of denoisers/affinity.py (_sums_torch and _backward_torch are the references).
 //
 // For every pixel p and tap offset o_t = dilation * (i - k/2, j - k/2), i, j = 0..k-1 (row-major, top-left first):
 //   w_t(p) = center(p)                                                   centre tap, when center is given,
-//   w_t(p) = exp(-bandwidth(p) * sum_d (features_d(p) - neighbours_d(p + o_t))^2)   otherwise,
+//   w_t(p) = exp(-bandwidth(p) * D_t(p)),  D_t(p) = sum_d (features_d(p) - neighbours_d(p + o_t))^2,   otherwise,
 //   num_c(p) = sum_t w_t(p) image_c(p + o_t),   den(p) = sum_t w_t(p).
 // Taps with p + o_t outside the image get weight 0 and are left out of both sums (the reference's zero-padded
 // windows times its inside mask). Rows (n, y) are split across at::parallel_for workers (torch.set_num_threads
 // applies); within a row the taps are the outer loop, in the reference's row-major order, and the pixels the
 // inner, contiguous loop (vectorised except the exp). Each output value is summed over the taps, and each
 // distance over d, in ascending order whatever the thread count (deterministic); the results agree with the
-// torch reference to float rounding (std::exp against torch's vectorised exp). Forward only: no backward.
+// torch reference to float rounding (std::exp against torch's vectorised exp).
+//
+// Backward (affinity_sums_backward), with gw_t(p) = sum_c grad_num_c(p) image_c(p + o_t) + grad_den(p) and, for
+// the affinity taps, s_t(p) = -2 gw_t(p) w_t(p) bandwidth(p):
+//   g_center(p) = gw_centre(p);   g_bandwidth(p) = -sum_t gw_t(p) w_t(p) D_t(p);
+//   g_features(p) = sum_t s_t(p) (f(p) - g(p + o_t));   g_neighbours(q) = -sum_t s_t(q - o_t) (f(q - o_t) - g(q));
+//   g_image(q) = sum_t w_t(q - o_t) grad_num(q - o_t)    (the centre tap included; affinity taps only otherwise).
+// The scatter to q = p + o_t is done as a gather instead, so that every output value belongs to one worker (no
+// atomics): pass 1 over pixels p gives g_features, g_bandwidth, g_center; pass 2 over pixels q recomputes w_t and
+// s_t at p = q - o_t and gives g_image, g_neighbours. Both run over the taps in row-major order (that of the
+// reference's accumulation), so the results are deterministic and independent of the thread count too.
 //
 // Tensors are float32, contiguous, CPU: image (N, C, H, W), features and neighbours (N, d, H, W), bandwidth and
-// center (N, 1, H, W); size odd >= 1, dilation >= 1. Returns num (N, C, H, W) and den (N, 1, H, W).
+// center (N, 1, H, W); size odd >= 1, dilation >= 1. Forward returns num (N, C, H, W) and den (N, 1, H, W);
+// backward takes grad_num and grad_den of those shapes.
 
 #include <torch/extension.h>
 
@@ -41,9 +52,43 @@ namespace {
 #define MCDN_PIXEL_LOOP
 #endif
 
+#if defined(__GNUC__)
+#define MCDN_INLINE inline __attribute__((always_inline))
+#else
+#define MCDN_INLINE inline
+#endif
+
 struct Shapes {
     int64_t channels, dims, height, width, size, dilation;
 };
+
+// The helpers take row pointers already shifted so that index x addresses the values of output column x; d and c
+// planes are `plane` apart. They are inlined into the (cloned) row functions.
+
+// Zeroes one row of `width` floats in each of `count` planes.
+MCDN_INLINE void zero_rows(float* row, int64_t count, int64_t plane, int64_t width) {
+    for (int64_t k = 0; k < count; ++k) {
+        std::fill(row + k * plane, row + k * plane + width, 0.0f);
+    }
+}
+
+// distance[x] = sum_d (f_d[x] - g_d[x])^2 (ascending d) and weight[x] = exp(-a[x] distance[x]).
+MCDN_INLINE void affinity_weights(const float* f, const float* g, const float* a, int64_t dims, int64_t plane,
+                                  int64_t x_begin, int64_t x_end, float* distance, float* weight) {
+    std::fill(distance + x_begin, distance + x_end, 0.0f);
+    for (int64_t d = 0; d < dims; ++d) {
+        const float* f_row = f + d * plane;
+        const float* g_row = g + d * plane;
+        MCDN_PIXEL_LOOP
+        for (int64_t x = x_begin; x < x_end; ++x) {
+            const float difference = f_row[x] - g_row[x];
+            distance[x] += difference * difference;
+        }
+    }
+    for (int64_t x = x_begin; x < x_end; ++x) {
+        weight[x] = std::exp(-a[x] * distance[x]);
+    }
+}
 
 // Rows [row_begin, row_end) of the flattened (N * H) output rows; scratch holds 2 * width floats.
 MCDN_VECTOR_CLONES
@@ -62,10 +107,8 @@ void sum_rows(const float* image, const float* features, const float* neighbours
         const float* bandwidth_row = bandwidth + n * plane + y * width;
         float* num_base = num + n * s.channels * plane + y * width;
         float* den_row = den + n * plane + y * width;
-        for (int64_t c = 0; c < s.channels; ++c) {
-            std::fill(num_base + c * plane, num_base + c * plane + width, 0.0f);
-        }
-        std::fill(den_row, den_row + width, 0.0f);
+        zero_rows(num_base, s.channels, plane, width);
+        zero_rows(den_row, 1, plane, width);
         for (int64_t i = 0; i < s.size; ++i) {
             const int64_t dy = (i - radius) * s.dilation;
             const int64_t sy = y + dy;
@@ -84,19 +127,8 @@ void sum_rows(const float* image, const float* features, const float* neighbours
                 if (center != nullptr && dy == 0 && dx == 0) {
                     w_row = center + n * plane + y * width;
                 } else {
-                    std::fill(distance + x_begin, distance + x_end, 0.0f);
-                    for (int64_t d = 0; d < s.dims; ++d) {
-                        const float* f_row = feature_base + d * plane;
-                        const float* g_row = neighbour_base + d * plane + sy * width + dx;
-                        MCDN_PIXEL_LOOP
-                        for (int64_t x = x_begin; x < x_end; ++x) {
-                            const float difference = f_row[x] - g_row[x];
-                            distance[x] += difference * difference;
-                        }
-                    }
-                    for (int64_t x = x_begin; x < x_end; ++x) {
-                        weight[x] = std::exp(-bandwidth_row[x] * distance[x]);
-                    }
+                    affinity_weights(feature_base, neighbour_base + sy * width + dx, bandwidth_row, s.dims, plane,
+                                     x_begin, x_end, distance, weight);
                     w_row = weight;
                 }
                 MCDN_PIXEL_LOOP
@@ -116,6 +148,190 @@ void sum_rows(const float* image, const float* features, const float* neighbours
     }
 }
 
+// --- Backward ---------------------------------------------------------------------------------------------------
+
+// g_weight[x] = sum_c grad_num_c[x] image_c[x] + grad_den[x]: d loss / d w_t.
+MCDN_INLINE void weight_gradient(const float* grad_num, const float* image, const float* grad_den,
+                                 int64_t channels, int64_t plane, int64_t x_begin, int64_t x_end, float* g_weight) {
+    std::fill(g_weight + x_begin, g_weight + x_end, 0.0f);
+    for (int64_t c = 0; c < channels; ++c) {
+        const float* gn_row = grad_num + c * plane;
+        const float* in_row = image + c * plane;
+        MCDN_PIXEL_LOOP
+        for (int64_t x = x_begin; x < x_end; ++x) {
+            g_weight[x] += gn_row[x] * in_row[x];
+        }
+    }
+    MCDN_PIXEL_LOOP
+    for (int64_t x = x_begin; x < x_end; ++x) {
+        g_weight[x] += grad_den[x];
+    }
+}
+
+// scale[x] = -2 g_weight[x] weight[x] a[x] (d loss / d f(p) = scale (f(p) - g(p + o))), then
+// out_d[x] += sign * scale[x] (f_d[x] - g_d[x]) for every d.
+MCDN_INLINE void add_scaled_differences(const float* f, const float* g, const float* a, const float* g_weight,
+                                        const float* weight, int64_t dims, int64_t plane, int64_t x_begin,
+                                        int64_t x_end, float sign, float* scale, float* out) {
+    MCDN_PIXEL_LOOP
+    for (int64_t x = x_begin; x < x_end; ++x) {
+        scale[x] = -2.0f * g_weight[x] * weight[x] * a[x];
+    }
+    for (int64_t d = 0; d < dims; ++d) {
+        const float* f_row = f + d * plane;
+        const float* g_row = g + d * plane;
+        float* out_row = out + d * plane;
+        MCDN_PIXEL_LOOP
+        for (int64_t x = x_begin; x < x_end; ++x) {
+            out_row[x] += sign * (scale[x] * (f_row[x] - g_row[x]));
+        }
+    }
+}
+
+struct BackwardInputs {
+    const float *image, *features, *neighbours, *bandwidth, *center, *grad_num, *grad_den;
+};
+
+// Gradient outputs; nullptr where not wanted.
+struct BackwardOutputs {
+    float *image, *features, *neighbours, *bandwidth, *center;
+};
+
+// Pass 1, rows [row_begin, row_end) of pixels p: g_features, g_bandwidth, g_center at p. Scratch: 4 * width.
+MCDN_VECTOR_CLONES
+void backward_at_pixels(const BackwardInputs& in, const BackwardOutputs& out, const Shapes& s, int64_t row_begin,
+                        int64_t row_end, float* scratch) {
+    const int64_t width = s.width, height = s.height, plane = s.height * s.width;
+    const int64_t radius = s.size / 2;
+    float* distance = scratch;
+    float* weight = scratch + width;
+    float* g_weight = scratch + 2 * width;
+    float* scale = scratch + 3 * width;
+    const bool affinity_grads = out.features != nullptr || out.bandwidth != nullptr;
+    for (int64_t row = row_begin; row < row_end; ++row) {
+        const int64_t n = row / height, y = row % height;
+        const int64_t pixel = n * plane + y * width;    // (n, 0, y, 0) of a one-channel tensor
+        const float* f_row = in.features + n * s.dims * plane + y * width;
+        const float* neighbour_base = in.neighbours + n * s.dims * plane;
+        const float* image_base = in.image + n * s.channels * plane;
+        const float* gn_row = in.grad_num + n * s.channels * plane + y * width;
+        const float* a_row = in.bandwidth + pixel;
+        float* gf_row = out.features != nullptr ? out.features + n * s.dims * plane + y * width : nullptr;
+        float* gb_row = out.bandwidth != nullptr ? out.bandwidth + pixel : nullptr;
+        if (gf_row != nullptr) {
+            zero_rows(gf_row, s.dims, plane, width);
+        }
+        if (gb_row != nullptr) {
+            zero_rows(gb_row, 1, plane, width);
+        }
+        for (int64_t i = 0; i < s.size; ++i) {
+            const int64_t dy = (i - radius) * s.dilation;
+            const int64_t sy = y + dy;
+            if (sy < 0 || sy >= height) {
+                continue;
+            }
+            for (int64_t j = 0; j < s.size; ++j) {
+                const int64_t dx = (j - radius) * s.dilation;
+                const int64_t x_begin = std::max<int64_t>(0, -dx);
+                const int64_t x_end = std::min<int64_t>(width, width - dx);
+                const bool centre = in.center != nullptr && dy == 0 && dx == 0;
+                if (x_begin >= x_end || (centre ? out.center == nullptr : !affinity_grads)) {
+                    continue;
+                }
+                weight_gradient(gn_row, image_base + sy * width + dx, in.grad_den + pixel, s.channels, plane,
+                                x_begin, x_end, g_weight);
+                if (centre) {    // the centre tap covers the whole row
+                    std::copy(g_weight, g_weight + width, out.center + pixel);
+                    continue;
+                }
+                const float* g_row = neighbour_base + sy * width + dx;
+                affinity_weights(f_row, g_row, a_row, s.dims, plane, x_begin, x_end, distance, weight);
+                if (gb_row != nullptr) {
+                    MCDN_PIXEL_LOOP
+                    for (int64_t x = x_begin; x < x_end; ++x) {
+                        gb_row[x] -= g_weight[x] * weight[x] * distance[x];
+                    }
+                }
+                if (gf_row != nullptr) {
+                    add_scaled_differences(f_row, g_row, a_row, g_weight, weight, s.dims, plane, x_begin, x_end,
+                                           1.0f, scale, gf_row);
+                }
+            }
+        }
+    }
+}
+
+// Pass 2, rows [row_begin, row_end) of pixels q: g_image and g_neighbours at q, gathered from the pixels
+// p = q - o_t whose tap t reads q. Scratch: 4 * width.
+MCDN_VECTOR_CLONES
+void backward_at_taps(const BackwardInputs& in, const BackwardOutputs& out, const Shapes& s, int64_t row_begin,
+                      int64_t row_end, float* scratch) {
+    const int64_t width = s.width, height = s.height, plane = s.height * s.width;
+    const int64_t radius = s.size / 2;
+    float* distance = scratch;
+    float* weight = scratch + width;
+    float* g_weight = scratch + 2 * width;
+    float* scale = scratch + 3 * width;
+    for (int64_t row = row_begin; row < row_end; ++row) {
+        const int64_t n = row / height, y = row % height;
+        const float* g_row = in.neighbours + n * s.dims * plane + y * width;
+        const float* image_row = in.image + n * s.channels * plane + y * width;
+        float* gi_row = out.image != nullptr ? out.image + n * s.channels * plane + y * width : nullptr;
+        float* gg_row = out.neighbours != nullptr ? out.neighbours + n * s.dims * plane + y * width : nullptr;
+        if (gi_row != nullptr) {
+            zero_rows(gi_row, s.channels, plane, width);
+        }
+        if (gg_row != nullptr) {
+            zero_rows(gg_row, s.dims, plane, width);
+        }
+        for (int64_t i = 0; i < s.size; ++i) {
+            const int64_t dy = (i - radius) * s.dilation;
+            const int64_t py = y - dy;                  // the row of p = q - o_t
+            if (py < 0 || py >= height) {
+                continue;
+            }
+            for (int64_t j = 0; j < s.size; ++j) {
+                const int64_t dx = (j - radius) * s.dilation;
+                // Columns x of q whose p column x - dx lies inside the image.
+                const int64_t x_begin = std::max<int64_t>(0, dx);
+                const int64_t x_end = std::min<int64_t>(width, width + dx);
+                const bool centre = in.center != nullptr && dy == 0 && dx == 0;
+                if (x_begin >= x_end || (centre && gi_row == nullptr)) {
+                    continue;
+                }
+                // Values at p, indexed by the column x of q.
+                const int64_t p_pixel = n * plane + py * width - dx;
+                const float* f_row = in.features + n * s.dims * plane + py * width - dx;
+                const float* gn_row = in.grad_num + n * s.channels * plane + py * width - dx;
+                const float* a_row = in.bandwidth + p_pixel;
+                const float* w_row;
+                if (centre) {
+                    w_row = in.center + p_pixel;
+                } else {
+                    affinity_weights(f_row, g_row, a_row, s.dims, plane, x_begin, x_end, distance, weight);
+                    w_row = weight;
+                }
+                if (gi_row != nullptr) {
+                    for (int64_t c = 0; c < s.channels; ++c) {
+                        const float* gn_c = gn_row + c * plane;
+                        float* gi_c = gi_row + c * plane;
+                        MCDN_PIXEL_LOOP
+                        for (int64_t x = x_begin; x < x_end; ++x) {
+                            gi_c[x] += w_row[x] * gn_c[x];
+                        }
+                    }
+                }
+                if (gg_row != nullptr && !centre) {
+                    weight_gradient(gn_row, image_row, in.grad_den + p_pixel, s.channels, plane, x_begin, x_end,
+                                    g_weight);
+                    add_scaled_differences(f_row, g_row, a_row, g_weight, weight, s.dims, plane, x_begin, x_end,
+                                           -1.0f, scale, gg_row);
+                }
+            }
+        }
+    }
+}
+
 void check_like(const at::Tensor& t, const char* name, const at::Tensor& image, int64_t channels) {
     TORCH_CHECK(t.dim() == 4 && t.size(0) == image.size(0) && t.size(2) == image.size(2) &&
                     t.size(3) == image.size(3) && (channels < 0 || t.size(1) == channels),
@@ -126,10 +342,9 @@ void check_like(const at::Tensor& t, const char* name, const at::Tensor& image, 
                 " on ", t.device());
 }
 
-std::tuple<at::Tensor, at::Tensor> affinity_sums(const at::Tensor& image, const at::Tensor& features,
-                                                 const at::Tensor& neighbours, const at::Tensor& bandwidth,
-                                                 const std::optional<at::Tensor>& center, int64_t size,
-                                                 int64_t dilation) {
+void check_inputs(const at::Tensor& image, const at::Tensor& features, const at::Tensor& neighbours,
+                  const at::Tensor& bandwidth, const std::optional<at::Tensor>& center, int64_t size,
+                  int64_t dilation) {
     TORCH_CHECK(size >= 1 && size % 2 == 1, "affinity_sums: kernel size must be odd and >= 1, got ", size);
     TORCH_CHECK(dilation >= 1, "affinity_sums: dilation must be >= 1, got ", dilation);
     TORCH_CHECK(image.dim() == 4, "affinity_sums: image must be (N, C, H, W), got ", image.sizes());
@@ -140,6 +355,13 @@ std::tuple<at::Tensor, at::Tensor> affinity_sums(const at::Tensor& image, const 
     if (center.has_value()) {
         check_like(*center, "center", image, 1);
     }
+}
+
+std::tuple<at::Tensor, at::Tensor> affinity_sums(const at::Tensor& image, const at::Tensor& features,
+                                                 const at::Tensor& neighbours, const at::Tensor& bandwidth,
+                                                 const std::optional<at::Tensor>& center, int64_t size,
+                                                 int64_t dilation) {
+    check_inputs(image, features, neighbours, bandwidth, center, size, dilation);
     const Shapes s{image.size(1), features.size(1), image.size(2), image.size(3), size, dilation};
     const int64_t batch = image.size(0);
     at::Tensor num = at::empty_like(image);
@@ -164,6 +386,48 @@ std::tuple<at::Tensor, at::Tensor> affinity_sums(const at::Tensor& image, const 
     return {num, den};
 }
 
+using MaybeTensor = std::optional<at::Tensor>;
+
+std::tuple<MaybeTensor, MaybeTensor, MaybeTensor, MaybeTensor, MaybeTensor> affinity_sums_backward(
+    const at::Tensor& image, const at::Tensor& features, const at::Tensor& neighbours, const at::Tensor& bandwidth,
+    const std::optional<at::Tensor>& center, const at::Tensor& grad_num, const at::Tensor& grad_den, int64_t size,
+    int64_t dilation, const std::vector<bool>& needs) {
+    TORCH_CHECK(needs.size() == 5, "affinity_sums_backward: needs must hold 5 flags, got ", needs.size());
+    check_inputs(image, features, neighbours, bandwidth, center, size, dilation);
+    check_like(grad_num, "grad_num", image, image.size(1));
+    check_like(grad_den, "grad_den", image, 1);
+    const Shapes s{image.size(1), features.size(1), image.size(2), image.size(3), size, dilation};
+    const int64_t rows = image.size(0) * s.height;
+    auto output = [](bool wanted, const at::Tensor& like) {
+        return wanted ? MaybeTensor(at::empty_like(like)) : MaybeTensor();
+    };
+    MaybeTensor g_image = output(needs[0], image), g_features = output(needs[1], features),
+                g_neighbours = output(needs[2], neighbours), g_bandwidth = output(needs[3], bandwidth),
+                g_center = output(needs[4] && center.has_value(), bandwidth);
+    auto data = [](MaybeTensor& t) { return t.has_value() ? t->data_ptr<float>() : nullptr; };
+    const BackwardInputs in{image.data_ptr<float>(), features.data_ptr<float>(), neighbours.data_ptr<float>(),
+                            bandwidth.data_ptr<float>(), center.has_value() ? center->data_ptr<float>() : nullptr,
+                            grad_num.data_ptr<float>(), grad_den.data_ptr<float>()};
+    const BackwardOutputs out{data(g_image), data(g_features), data(g_neighbours), data(g_bandwidth),
+                              data(g_center)};
+    // Each pass writes every row of its outputs (empty tensors: no rows, nothing to do).
+    const int64_t work = std::max<int64_t>(1, s.width * size * size * (2 * s.dims + 2 * s.channels + 6));
+    const int64_t grain = std::max<int64_t>(1, 262144 / work);
+    if (out.features != nullptr || out.bandwidth != nullptr || out.center != nullptr) {
+        at::parallel_for(0, rows, grain, [&](int64_t begin, int64_t end) {
+            std::vector<float> scratch(4 * s.width);
+            backward_at_pixels(in, out, s, begin, end, scratch.data());
+        });
+    }
+    if (out.image != nullptr || out.neighbours != nullptr) {
+        at::parallel_for(0, rows, grain, [&](int64_t begin, int64_t end) {
+            std::vector<float> scratch(4 * s.width);
+            backward_at_taps(in, out, s, begin, end, scratch.data());
+        });
+    }
+    return {g_image, g_features, g_neighbours, g_bandwidth, g_center};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -173,4 +437,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "num = sum_t w_t image(p+o_t), den = sum_t w_t",
           pybind11::arg("image"), pybind11::arg("features"), pybind11::arg("neighbours"), pybind11::arg("bandwidth"),
           pybind11::arg("center"), pybind11::arg("size"), pybind11::arg("dilation"));
+    m.def("affinity_sums_backward", &affinity_sums_backward,
+          "(g_image, g_features, g_neighbours, g_bandwidth, g_center) of affinity_sums given grad_num, grad_den; "
+          "None where needs[i] is false (g_center also when center is None)",
+          pybind11::arg("image"), pybind11::arg("features"), pybind11::arg("neighbours"), pybind11::arg("bandwidth"),
+          pybind11::arg("center"), pybind11::arg("grad_num"), pybind11::arg("grad_den"), pybind11::arg("size"),
+          pybind11::arg("dilation"), pybind11::arg("needs"));
 }
