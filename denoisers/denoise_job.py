@@ -2,7 +2,8 @@
 
 * ``denoise_clip`` (rule denoise_clip): one method on one evaluated scene at one spp -> EXR + PNG + timing.json
   (+ sample_maps.npz for an adaptive method: its per-frame sample maps; the evaluated spp is its average
-  budget, checked per frame with denoisers.adaptive.budget_problems, realised spp in timing.json)
+  budget, checked per frame with denoisers.adaptive.budget_problems, realised spp in timing.json; + maps.npz
+  for a method with per-pixel diagnostics, Denoiser.diagnostics: e.g. AFN's temporal weight lambda)
 
 ``run_method`` is the measured loop (per-frame time, peak RSS, non-finite and out-of-range counts)
 that the robustness job (denoisers.robustness) and the timing job (denoisers.timing) reuse, with the
@@ -27,6 +28,7 @@ from denoisers import native
 from denoisers.evaluate import (
     FRAME_EXR,
     FRAME_PNG,
+    MAPS_FILE,
     OUT_OF_RANGE_FACTOR,
     TIMING_FILE,
     EvaluationError,
@@ -101,6 +103,8 @@ class MethodOutput:
     out_of_range_factor: float = OUT_OF_RANGE_FACTOR
     # adaptive methods only: (T, H, W) int64 samples used per pixel (registry.AdaptiveOutput.sample_map)
     sample_maps: np.ndarray | None = None
+    # name -> (T, H, W) float32 of Denoiser.diagnostics() after every frame (empty when the method has none)
+    maps: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _load_method_clip(render_dir: Path, spec: MethodSpec, method, layers: int, reference: bool):
@@ -152,6 +156,7 @@ def run_method(method, frames: Sequence, threads: int,
     torch.set_num_threads(max(1, int(threads)))
     native.load()     # build or import the native kernels now, never inside the timed loop
     outputs, seconds, inputs_bad, outputs_bad, out_of_range, sample_maps = [], [], [], [], [], []
+    maps: dict[str, list[np.ndarray]] = {}
     # Input bounds before the memory measurement (their temporaries are not the method's memory).
     bounds = [input_radiance_bound(frame) for frame in frames]
     checked = all(bound is not None for bound in bounds)
@@ -175,11 +180,14 @@ def run_method(method, frames: Sequence, threads: int,
             outputs_bad.append(int((~torch.isfinite(result)).sum().item()))
             out_of_range.append(count_out_of_range(result, bound, out_of_range_factor))
             outputs.append(result.numpy())
+            for name, image in method.diagnostics().items():
+                maps.setdefault(name, []).append(torch.as_tensor(image).detach().float().cpu().numpy())
     maxrss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return MethodOutput(np.stack(outputs), seconds, inputs_bad, outputs_bad, memory.extra_mb, memory.peak_mb,
                         (maxrss_after - maxrss_before) / 1024.0,  # ru_maxrss is in KiB on Linux
                         out_of_range, checked, float(out_of_range_factor),
-                        np.stack(sample_maps) if sample_maps else None)
+                        np.stack(sample_maps) if sample_maps else None,
+                        {name: np.stack(images) for name, images in maps.items() if len(images) == len(frames)})
 
 
 def _adaptive_result(method, frame, result):
@@ -315,5 +323,8 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
         if result.sample_maps is not None:     # uint8: at most 32 layers
             np.savez_compressed(staging / SAMPLE_MAPS_FILE, frames=np.asarray(clip.frames, np.int64),
                                 sample_maps=result.sample_maps.astype(np.uint8))
+        if result.maps:                       # e.g. AFN's lambda: float16 is plenty for a figure
+            np.savez_compressed(staging / MAPS_FILE, frames=np.asarray(clip.frames, np.int64),
+                                **{name: images.astype(np.float16) for name, images in result.maps.items()})
         (staging / TIMING_FILE).write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
     return record

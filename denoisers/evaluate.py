@@ -40,6 +40,8 @@ REFERENCE_METHODS: frozenset[str] = frozenset({"noisy", "path_tracing"})
 FRAME_EXR = "frame_{:04d}.exr"
 FRAME_PNG = "frame_{:04d}.png"
 TIMING_FILE = "timing.json"
+#: Per-frame diagnostic maps of a method (Denoiser.diagnostics, e.g. AFN's lambda): arrays (T, H, W) + frames.
+MAPS_FILE = "maps.npz"
 ROBUSTNESS_CSV = "metrics.csv"
 ROBUSTNESS_SUMMARY = "summary.json"
 ROBUSTNESS_LAST_EXR = "last_frame.exr"

@@ -119,6 +119,11 @@ class Denoiser:
         """Return the denoised linear HDR radiance (3, H, W) of ``frame``."""
         raise NotImplementedError
 
+    def diagnostics(self) -> dict[str, torch.Tensor]:
+        """Per-pixel maps (H, W) the last denoise() computed that a report may show (e.g. AFN's temporal
+        weight lambda); the evaluation stores them per frame in ``maps.npz``. None by default."""
+        return {}
+
 
 _REGISTRY: dict[str, type[Denoiser]] = {}
 

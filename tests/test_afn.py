@@ -312,3 +312,22 @@ def test_method_matches_the_training_prediction() -> None:
                       pixel={"motion": batch["motion"][0, t], "valid": batch["valid"][0, t]}, index=t,
                       meta={"camera": {"to_world": torch.eye(4).tolist()}})
         assert torch.allclose(denoiser.denoise(frame), expected[t], atol=1e-5)
+
+
+def test_method_reports_its_lambda_maps_and_the_evaluation_stores_them() -> None:
+    """Denoiser.diagnostics of the temporal model: lambda (H, W) of the last frame, 0 at the first frame, the
+    blend the frame step used; run_method (the evaluation's loop) stacks them per frame; single-frame: none."""
+    from denoisers.denoise_job import run_method
+
+    torch.manual_seed(0)
+    model = AFNNet(AFNConfig(**SMALL)).eval()
+    batch = _batch(n=1, length=3)
+    frames = [Frame(samples={b: batch[b][0, t] for b in BUFFERS},
+                    pixel={"motion": batch["motion"][0, t], "valid": batch["valid"][0, t]}, index=t,
+                    meta={"camera": {"to_world": torch.eye(4).tolist()}}) for t in range(3)]
+    result = run_method(registry.get("afn").from_model(model), frames, threads=1)
+    assert set(result.maps) == {"lambda"} and result.maps["lambda"].shape == (3, 16, 16)
+    assert (result.maps["lambda"][0] == 0).all() and 0 < result.maps["lambda"][1:].mean() < 1
+    single = run_method(registry.get("afn").from_model(AFNNet(AFNConfig(**SMALL, temporal=False)).eval()), frames,
+                        threads=1)
+    assert single.maps == {}

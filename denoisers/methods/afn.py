@@ -40,6 +40,7 @@ class AFNDenoiser(Denoiser):
         self.temporal_kernel_size = int(temporal_kernel_size) if temporal_kernel_size is not None else None
         self._model: AFNNet | None = None
         self._history: History | None = None
+        self._blend: torch.Tensor | None = None
 
     @classmethod
     def from_model(cls, model: AFNNet, kernel_size: int | None = None,
@@ -48,7 +49,7 @@ class AFNDenoiser(Denoiser):
         method = cls.__new__(cls)
         Denoiser.__init__(method)
         method.checkpoint, method.kernel_size, method.temporal_kernel_size = None, kernel_size, temporal_kernel_size
-        method._model, method._history = model.eval(), None
+        method._model, method._history, method._blend = model.eval(), None, None
         return method
 
     @property
@@ -64,6 +65,12 @@ class AFNDenoiser(Denoiser):
 
     def reset(self) -> None:
         self._history = None
+        self._blend = None
+
+    def diagnostics(self) -> dict[str, torch.Tensor]:
+        """``lambda`` (H, W): the temporal accumulation weight of the last frame (Eq. 3, 5; 0 at a shot's first
+        frame), the paper's Fig. 5; nothing for single-frame models."""
+        return {} if self._blend is None else {"lambda": self._blend}
 
     def denoise(self, frame: Frame) -> torch.Tensor:
         check_sizes(self.info.name, frame.samples)
@@ -83,4 +90,5 @@ class AFNDenoiser(Denoiser):
                               frame.pixel["valid"][None] if temporal else None, self._history,
                               self.kernel_size, self.temporal_kernel_size)
         self._history = step.history if temporal else None
+        self._blend = step.blend[0, 0] if step.blend is not None else None
         return torch.nan_to_num(step.output[0], nan=0.0, posinf=0.0, neginf=0.0)

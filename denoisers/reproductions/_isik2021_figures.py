@@ -1,5 +1,6 @@
 """Figures of the Isik et al. 2021 reproduction (denoisers.reproductions.isik2021): Fig. 8, PSNR against
-throughput (Mpix/s of the timing job, every row timed with the same threads) for every row and spp.
+throughput (Mpix/s of the timing job, every row timed with the same threads) for every row and spp, and
+Fig. 5, the temporal accumulation weight lambda of the full model beside the reference and its output.
 
 A module of its own (leading underscore: denoisers.reproductions skips it when collecting papers).
 """
@@ -8,7 +9,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from denoisers.report.figures import placeholder, pyplot
+import numpy as np
+
+from denoisers.evaluate import FRAME_EXR, MAPS_FILE, EvaluationError, denoised_dir, preview_rgb8
+from denoisers.report.figures import _grid_frame, _reference_frame, placeholder, pyplot
 
 if TYPE_CHECKING:
     from denoisers.report.collect import Results
@@ -51,5 +55,58 @@ def plot_fig8(res: Results, path: Path) -> str:
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return ""
+
+
+def lambda_map(res: Results, row: str, scene: str, spp: int) -> tuple[int, np.ndarray] | None:
+    """(grid frame, (H, W) lambda) from a row's maps.npz (denoisers.denoise_job), None without one."""
+    path = denoised_dir(res.results_dir, row, scene, spp) / MAPS_FILE
+    if not res.ran(row, spp) or not path.is_file():
+        return None
+    with np.load(path) as data:
+        if "lambda" not in data:
+            return None
+        by_frame = dict(zip(data["frames"].tolist(), data["lambda"]))
+    frame = _grid_frame(res.cfg, sorted(by_frame))
+    return frame, np.asarray(by_frame[frame], dtype=np.float64)
+
+
+def plot_lambda_maps(res: Results, path: Path, row: str | None, spp: int) -> str:
+    """Fig. 5 layout: per evaluated scene the reference, the row's output and its lambda map at the grid frame
+    (lambda = 0: the warped history is discarded, e.g. at disocclusions); '' when drawn, else why not."""
+    from denoisers.evaluate import read_radiance_exr
+
+    maps = {scene: lambda_map(res, row, scene, spp) for scene in res.scenes} if row else {}
+    scenes = [scene for scene, found in maps.items() if found is not None]
+    if not scenes:
+        reason = f"no lambda maps of the full AFN model at {spp} spp"
+        placeholder(path, reason)
+        return reason
+    plt = pyplot()
+    fig, axes = plt.subplots(len(scenes), 3, squeeze=False, figsize=(8.6, 2.7 * len(scenes)))
+    image = None
+    for r, scene in enumerate(scenes):
+        frame, weights = maps[scene]
+        panels = [("reference", lambda: _reference_frame(res.results_dir / "renders" / scene, frame)),
+                  (f"{row} @ {spp} spp", lambda: read_radiance_exr(
+                      denoised_dir(res.results_dir, row, scene, spp) / FRAME_EXR.format(frame)))]
+        for c, (title, load) in enumerate(panels):
+            ax = axes[r][c]
+            try:
+                ax.imshow(preview_rgb8(load()), interpolation="nearest")
+                ax.set_title(f"{scene}, frame {frame}\n{title}", fontsize=8)
+            except (EvaluationError, OSError) as error:
+                ax.text(0.5, 0.5, f"{title}: {str(error)[:60]}", ha="center", va="center", fontsize=7)
+        image = axes[r][2].imshow(weights, cmap="magma", vmin=0.0, vmax=1.0, interpolation="nearest")
+        axes[r][2].set_title(f"lambda (mean {weights.mean():.2f})", fontsize=8)
+        for ax in axes[r]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.suptitle("Temporal accumulation weight lambda (Isik et al. 2021, Fig. 5 layout; 0 = history discarded)",
+                 fontsize=9)
+    fig.tight_layout(rect=(0, 0, 0.9, 0.95))
+    fig.colorbar(image, ax=axes.ravel().tolist(), fraction=0.03, pad=0.02).ax.tick_params(labelsize=7)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return ""

@@ -65,6 +65,7 @@ PAPER_TABLE3 = {"NBG": (26.67, 28.48, 29.56, 2.058, 1.695, 1.453),
 PAPER_TABLE3_SPP = (2, 4, 8)
 TABLES = ("isik_table2", "isik_table3", "isik_table4", "isik_table5")
 FIG8 = "isik_fig8"
+FIG5 = "isik_fig5_lambda"
 
 
 # ------------------------------------------------------------------------------------------ rows
@@ -257,12 +258,12 @@ def table_names(cfg: dict) -> list[str]:
 
 
 def figure_names(cfg: dict) -> list[str]:
-    return [FIG8] if table_names(cfg) else []
+    return [FIG8, FIG5] if table_names(cfg) else []
 
 
 def write(res: Results, tables_dir: Path, figures: Path) -> str:
     from denoisers.report.tables import write_table
-    from denoisers.reproductions._isik2021_figures import plot_fig8
+    from denoisers.reproductions._isik2021_figures import plot_fig8, plot_lambda_maps
 
     if not table_names(res.cfg):
         return "No `afn` rows are configured (evaluation.methods): the AFN tables are not built."
@@ -286,6 +287,15 @@ def write(res: Results, tables_dir: Path, figures: Path) -> str:
     reason = plot_fig8(res, figures / f"{FIG8}.png")
     lines += ["", "### Fig. 8 layout: PSNR against throughput", "",
               f"![PSNR against Mpix/s]({FIG8}.png)" if not reason else f"Not drawn: {reason}."]
+    full = variant_row(res, "ours")
+    spp = next((s for s in (4, 2, 8) if full and res.ran(full, s)), None)
+    reason = plot_lambda_maps(res, figures / f"{FIG5}.png", full, spp) if spp else "the full AFN model did not run"
+    if spp is None:
+        from denoisers.report.figures import placeholder
+
+        placeholder(figures / f"{FIG5}.png", reason)
+    lines += ["", "### Fig. 5 layout: temporal accumulation weight lambda", "",
+              f"![lambda maps]({FIG5}.png)" if not reason else f"Not drawn: {reason}."]
     return "\n".join(lines)
 
 
