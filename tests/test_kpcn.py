@@ -247,6 +247,8 @@ def test_task_settings_are_checked() -> None:
     assert any("width" in p for p in task_problems(spec(net={"width": 0})))
     assert any("features" in p for p in task_problems(spec(net={"features": 0})))
     assert any("loss" in p for p in task_problems(spec(loss={"temporal": 0.25})))
+    assert any("spp_choices" in p for p in task_problems(spec(loss={"spp_choices": [16]})))
+    assert task_problems(spec(loss={"spp_choices": [1, 2]})) == []
     builder = task_builder("kpcn")
     assert builder.sample_buffers == SAMPLE_BUFFERS
     assert builder.optional_reference_buffers == SPLIT_REFERENCE
@@ -307,3 +309,26 @@ def test_method_matches_the_training_prediction() -> None:
         assert torch.allclose(denoiser.denoise(frame), expected[t], atol=1e-5)
     with pytest.raises(ValueError, match="checkpoint"):
         registry.get("kpcn")()
+
+
+def test_training_uses_the_spp_round_robin_and_validation_every_layer() -> None:
+    """loss.spp_choices (2, 4): batch i denoises with the first choices[i % 2] layers in training (the input
+    variance differs between 2 and 4 samples, so the outputs do), every carried layer in eval mode."""
+    from denoisers.nets.kpcn_task import KPCNTask
+
+    torch.manual_seed(0)
+    task = KPCNTask(KPCNConfig(**SMALL), spp_choices=(2, 4))
+    model = task.build_model()
+    batch = _batch(layers=4)
+    with torch.no_grad():
+        batch.index = 0
+        at_two = task.predict(model, batch)
+        batch.index = 1
+        at_four = task.predict(model, batch)
+        model.eval()
+        validation = task.predict(model, batch)
+    assert not torch.allclose(at_two, at_four)
+    assert torch.equal(validation, at_four)
+    two = {k: (v[:, :, :2] if k in BUFFERS else v) for k, v in batch.items()}
+    with torch.no_grad():
+        assert torch.allclose(KPCNTask(KPCNConfig(**SMALL)).predict(model, _Batch(two)), at_two)

@@ -36,6 +36,7 @@ from denoisers import affinity
 from denoisers.filters import warp_previous
 from denoisers.metrics import SMAPE_EPS
 from denoisers.nets.afn import AFNConfig, AFNNet, KernelParameters
+from denoisers.training.spp_schedule import samples_for_batch
 
 #: Per-sample buffers an AFN batch / frame carries (the features of Sec. 3.1 and the radiance).
 SAMPLE_BUFFERS: tuple[str, ...] = ("radiance", "diffuse", "specular", "normal", "depth", "roughness", "albedo",
@@ -190,11 +191,7 @@ class AFNTask:
                 "loss": "SMAPE + temporal SMAPE + bandwidth L2 (Isik et al. Eq. 9), linear radiance"}
 
     def samples_used(self, model: nn.Module, batch: Any) -> int:
-        carried = batch["radiance"].shape[2]
-        if not model.training:
-            return carried
-        choice = int(self.spp_choices[int(getattr(batch, "index", 0)) % len(self.spp_choices)])
-        return min(choice, carried)
+        return samples_for_batch(model, batch, self.spp_choices)
 
     def run(self, model: nn.Module, batch: Mapping[str, torch.Tensor]) -> list[StepResult]:
         from denoisers.training.precision import AutocastForward

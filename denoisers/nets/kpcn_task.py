@@ -28,7 +28,8 @@ diffuse / specular exist only for references rendered with ``render.reference_in
 lacks them (the default config renders references with Mitsuba's ``path``, radiance only): L1 on the whole
 output in log space, mean |log(1 + output) - log(1 + reference radiance)| -- ours, the specular branch's space
 applied to the sum. The loss's terms say which one ran ("diffuse" and "specular", or "log_radiance").
-Training uses every sample layer the batch carries (``data.spp``).
+Training uses the first ``loss.spp_choices[i % n]`` of the batch's layers in batch i (as AFN, Isik et al.
+§4.3; unset: every carried layer, ``data.spp``); validation every carried layer.
 """
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ from torch import nn
 
 from denoisers.kernels import apply_kernels
 from denoisers.nets.kpcn import KPCNConfig, KPCNNet
+from denoisers.training.spp_schedule import samples_for_batch
 
 #: Per-sample buffers a KPCN batch / frame carries (radiance: by the data pipeline's conventions, e.g.
 #: importance crops; the output is composed from diffuse and specular, radiance = diffuse + specular).
@@ -209,6 +211,7 @@ class KPCNTask:
     """How the trainer (denoisers.training.loop) trains KPCN on sequences (module docstring): every frame alone."""
 
     config: KPCNConfig = field(default_factory=KPCNConfig)
+    spp_choices: tuple[int, ...] | None = None
     name: str = "kpcn"
 
     def build_model(self) -> KPCNNet:
@@ -218,12 +221,16 @@ class KPCNTask:
         return {"name": KPCNNet.NET_NAME, "config": self.config.to_dict()}
 
     def describe(self) -> dict[str, Any]:
-        return {"task": self.name, "net": self.net_spec(),
+        return {"task": self.name, "net": self.net_spec(), **({"spp_choices": list(self.spp_choices)}
+                                                              if self.spp_choices else {}),
                 "loss": "L1 per branch (demodulated diffuse + log specular, Bako et al.) when the batch carries "
                         "reference diffuse/specular, else L1 on log(1 + radiance)"}
 
     def run(self, model: nn.Module, batch: Mapping[str, torch.Tensor]) -> list[StepResult]:
-        return [frame_step(model, {b: batch[b][:, t] for b in SAMPLE_BUFFERS}, batch["world_to_view"][:, t])
+        """Every frame on its own, at the batch's spp (denoisers.training.spp_schedule: ``spp_choices`` round robin
+        in training, every carried layer in validation)."""
+        spp = samples_for_batch(model, batch, self.spp_choices)
+        return [frame_step(model, {b: batch[b][:, t, :spp] for b in SAMPLE_BUFFERS}, batch["world_to_view"][:, t])
                 for t in range(batch["radiance"].shape[1])]
 
     def loss(self, model: nn.Module, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:

@@ -129,15 +129,13 @@ def _afn_task(spec: ModelSpec) -> Any:
     ``spp_choices`` (the training round-robin over samples per pixel, [1, 2, 4]; each <= data.spp)."""
     from denoisers.nets.afn import AFNConfig
     from denoisers.nets.afn_task import LOSS_DEFAULTS, AFNTask
+    from denoisers.training.spp_schedule import check_choices
 
     unknown = set(spec.loss) - set(LOSS_DEFAULTS)
     if unknown:
         raise KeyError(f"afn: unknown loss keys {sorted(unknown)}; known: {sorted(LOSS_DEFAULTS)}")
     loss = {**LOSS_DEFAULTS, **spec.loss}
-    choices = tuple(int(s) for s in loss["spp_choices"])
-    if not choices or any(not 1 <= s <= int(spec.data["spp"]) for s in choices):
-        raise ValueError(f"afn: loss.spp_choices {list(choices)} must be non-empty, each in 1..data.spp = "
-                         f"{spec.data['spp']}")
+    choices = check_choices("afn", loss["spp_choices"], int(spec.data["spp"]))
     if float(loss["temporal"]) < 0 or float(loss["regularizer"]) < 0:
         raise ValueError(f"afn: loss weights must be >= 0, got temporal {loss['temporal']}, regularizer "
                          f"{loss['regularizer']}")
@@ -155,14 +153,19 @@ register_task("afn", sample_buffers=("radiance", "diffuse", "specular", "normal"
 
 # ------------------------------------------------------------------------------------------- KPCN
 def _kpcn_task(spec: ModelSpec) -> Any:
-    """KPCN (Bako et al. 2017): net keys of KPCNConfig; no loss keys (per-branch L1 when the references hold
-    diffuse / specular, else L1 on log radiance: denoisers.nets.kpcn_task)."""
+    """KPCN (Bako et al. 2017): net keys of KPCNConfig; loss key ``spp_choices`` (the training round robin over
+    samples per pixel, as AFN's; default: every carried layer). The loss itself has no settings (per-branch L1
+    when the references hold diffuse / specular, else L1 on log radiance: denoisers.nets.kpcn_task)."""
     from denoisers.nets.kpcn import KPCNConfig
     from denoisers.nets.kpcn_task import KPCNTask
+    from denoisers.training.spp_schedule import check_choices
 
-    if spec.loss:
-        raise KeyError(f"kpcn: unknown loss keys {sorted(spec.loss)}; the loss has no settings")
-    return KPCNTask(config=KPCNConfig.from_dict(spec.net))
+    unknown = set(spec.loss) - {"spp_choices"}
+    if unknown:
+        raise KeyError(f"kpcn: unknown loss keys {sorted(unknown)}; known: ['spp_choices']")
+    choices = spec.loss.get("spp_choices")
+    return KPCNTask(config=KPCNConfig.from_dict(spec.net),
+                    spp_choices=check_choices("kpcn", choices, int(spec.data["spp"])) if choices else None)
 
 
 register_task("kpcn", sample_buffers=("radiance", "diffuse", "specular", "albedo", "normal", "depth"),
