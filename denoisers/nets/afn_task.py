@@ -117,9 +117,10 @@ def frame_step(model: AFNNet, features: torch.Tensor, radiance: torch.Tensor, mo
         blend = params.blend if c.fixed_lambda is None else torch.full_like(params.blend, float(c.fixed_lambda))
         if warped is None:
             blend = torch.zeros_like(blend)           # ebar_0 = e_0, Lbar_0 = L_0
-    accumulated_embedding = affinity.accumulate(embedding, warped.embedding if warped is not None and
-                                                c.history_input == "embedding" else None, blend) \
-        if c.temporal else None
+    accumulated_embedding = None
+    if c.temporal:                                    # Eq. 3 (ours-wpred feeds the prediction instead)
+        carried = warped.embedding if warped is not None and c.history_input == "embedding" else None
+        accumulated_embedding = affinity.accumulate(embedding, carried, blend)
     image = radiance
     if c.temporal and c.accumulate_radiance:
         image = affinity.accumulate(radiance, warped.radiance if warped is not None else None, blend)

@@ -72,15 +72,17 @@ def lambda_map(res: Results, row: str, scene: str, spp: int) -> tuple[int, np.nd
     return frame, np.asarray(by_frame[frame], dtype=np.float64)
 
 
-def plot_lambda_maps(res: Results, path: Path, row: str | None, spp: int) -> str:
+def plot_lambda_maps(res: Results, path: Path, row: str | None, spp: int | None) -> str:
     """Fig. 5 layout: per evaluated scene the reference, the row's output and its lambda map at the grid frame
-    (lambda = 0: the warped history is discarded, e.g. at disocclusions); '' when drawn, else why not."""
+    (lambda = 0: the warped history is discarded, e.g. at disocclusions); '' when drawn, else why not (row or
+    spp None: the full model did not run)."""
     from denoisers.evaluate import read_radiance_exr
 
-    maps = {scene: lambda_map(res, row, scene, spp) for scene in res.scenes} if row else {}
+    maps = {scene: lambda_map(res, row, scene, spp) for scene in res.scenes} if row and spp else {}
     scenes = [scene for scene, found in maps.items() if found is not None]
     if not scenes:
-        reason = f"no lambda maps of the full AFN model at {spp} spp"
+        reason = (f"no lambda maps of the full AFN model at {spp} spp" if row and spp
+                  else "the full AFN model did not run")
         placeholder(path, reason)
         return reason
     plt = pyplot()

@@ -289,11 +289,7 @@ def write(res: Results, tables_dir: Path, figures: Path) -> str:
               f"![PSNR against Mpix/s]({FIG8}.png)" if not reason else f"Not drawn: {reason}."]
     full = variant_row(res, "ours")
     spp = next((s for s in (4, 2, 8) if full and res.ran(full, s)), None)
-    reason = plot_lambda_maps(res, figures / f"{FIG5}.png", full, spp) if spp else "the full AFN model did not run"
-    if spp is None:
-        from denoisers.report.figures import placeholder
-
-        placeholder(figures / f"{FIG5}.png", reason)
+    reason = plot_lambda_maps(res, figures / f"{FIG5}.png", full, spp)
     lines += ["", "### Fig. 5 layout: temporal accumulation weight lambda", "",
               f"![lambda maps]({FIG5}.png)" if not reason else f"Not drawn: {reason}."]
     return "\n".join(lines)
