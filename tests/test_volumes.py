@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenegen.volumes import (TransferFunction, load_field, medium_shape, noise_cloud, shells_from_mesh,
-                              smoke_plume, update_medium)
+from scenegen.volume_fields import load_field, noise_cloud, smoke_plume
+from scenegen.volume_mesh import shells_from_mesh
+from scenegen.volumes import TransferFunction, medium_shape, update_medium
 
 # extinction 0 -> 0, 0.5 -> 4, 1 -> 10; albedo red at 0 to blue at 1
 TF_A = TransferFunction(extinction=[(0.0, 0.0), (0.5, 4.0), (1.0, 10.0)],
