@@ -11,7 +11,6 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from denoisers import evaluate
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED, evaluate_claim
 from denoisers.reproductions import isik2021 as isik
 from scenegen.config import validate_config

@@ -11,7 +11,6 @@ the spp of 2, 4, 8 that the config evaluates (evaluation.spp) and say which.
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -138,7 +137,7 @@ def decide_c32(res: Results) -> Decision:
     """d = 1 against every other d of the same variant flags (the single-frame model, d = 2, 4, 8)."""
     rows = afn_rows(res)
     d1 = next((row for row, (name, _) in rows.items() if name == "d=1"), None)
-    others = [row for row, (name, net) in rows.items() if name in ("ours-single", "d=2", "d=4")]
+    others = [row for row, (name, _) in rows.items() if name in ("ours-single", "d=2", "d=4")]
     if d1 is None or not others:
         return not_run("missing rows: a single-frame afn model with net.affinity_dim 1 and one with 2, 4 or 8")
     return _pairs(res, [(other, d1, "psnr", "higher", "") for other in others],
