@@ -313,6 +313,7 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
         # Cost of rendering one sample with every buffer (for the equal-time view of the report).
         "render_samples_per_s": float(np.mean(render_rates)) if render_rates else None,
         **adaptive,
+        "maps": sorted(result.maps),           # names of the per-frame diagnostic maps in MAPS_FILE (if any)
         DIGEST_KEY: Lineage(cfg).denoised(spec, scene, spp),
     }
     with atomic_directory(out_dir) as staging:

@@ -28,8 +28,8 @@ import yaml
 from PIL import Image
 
 from denoisers.adaptive import SAMPLE_MAPS_FILE
-from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_SUMMARY, TIMING_FILE, denoised_dir, method_spec, metrics_csv,
-                                metrics_sidecar, plan_runs, robustness_dir, robustness_runs)
+from denoisers.evaluate import (ALL_METRICS, MAPS_FILE, ROBUSTNESS_SUMMARY, TIMING_FILE, denoised_dir, method_spec,
+                                metrics_csv, metrics_sidecar, plan_runs, robustness_dir, robustness_runs)
 from denoisers.experiment import DIGEST_KEY, Lineage
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
@@ -264,9 +264,11 @@ def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun
         for run in runs:
             folder = denoised_dir(pipeline.results, run.spec.id, scene, run.spp)
             timing = json.loads((folder / TIMING_FILE).read_text())
-            # Adaptive rows (the Hasselgren variants) also store their per-frame sample maps.
-            expected = {f"frame_{t:04d}.{ext}" for t in frames for ext in ("exr", "png")} | {TIMING_FILE} | (
-                {SAMPLE_MAPS_FILE} if timing.get("adaptive") else set())
+            # Adaptive rows (the Hasselgren variants) also store their per-frame sample maps, and rows with
+            # diagnostic maps (the temporal AFN models: lambda) their maps.
+            expected = ({f"frame_{t:04d}.{ext}" for t in frames for ext in ("exr", "png")} | {TIMING_FILE}
+                        | ({SAMPLE_MAPS_FILE} if timing.get("adaptive") else set())
+                        | ({MAPS_FILE} if timing.get("maps") else set()))
             assert {p.name for p in folder.iterdir()} - {SNAKEMAKE_MARKER} == expected, folder
             assert timing["spp"] == run.spp and timing["threads"] == pipeline.cfg["evaluation"]["threads"]
             assert timing["mean_seconds"] > 0 and timing["nonfinite_outputs"] == 0, (folder, timing)
@@ -276,6 +278,8 @@ def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun
             assert set(ALL_METRICS) <= set(table.columns)
             assert np.isfinite(table["psnr"]).all() and (table["psnr"] > 0).all(), (run, table)
     assert not list((pipeline.results / "denoised").glob("*/train_*")), "a training scene was denoised"
+    assert json.loads((denoised_dir(pipeline.results, "afn", "test_000", 2) / TIMING_FILE).read_text())["maps"] == \
+        ["lambda"]
 
 
 def test_robustness_outputs_stay_finite(pipeline: PipelineRun) -> None:
