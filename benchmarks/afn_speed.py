@@ -24,7 +24,7 @@ from denoisers.methods import afn as _afn, kpcn as _kpcn  # noqa: F401 -- regist
 from denoisers.nets.afn import AFNConfig, AFNNet
 from denoisers.nets.kpcn import KPCNConfig, KPCNNet
 from denoisers.registry import Frame
-from rae_speed import TARGET_FRACTION, Item, gemm_items, load_average, time_rounds
+from rae_speed import TARGET_FRACTION, Item, gemm_items, load_average, print_network_table, time_rounds
 
 BUFFERS = {"radiance": 3, "diffuse": 3, "specular": 3, "normal": 3, "depth": 1, "roughness": 1, "albedo": 3,
            "flags": 4}
@@ -108,19 +108,7 @@ def main() -> None:
                         args.gemm_size)
     with torch.no_grad():
         medians = time_rounds(items, args.repeats, args.warmup)
-    limit = max(item.flops / t / 1e9 for item, t in zip(items, medians) if item.label.startswith("sgemm"))
-    print(f"sgemm {args.gemm_size}^3 float32, same rounds: {limit:.1f} GFLOP/s (the faster backend)")
-    print(f"  {'size':8s} {'path':26s} {'ms/frame':>9s} {'GFLOP/frame':>11s} {'GFLOP/s':>8s} {'of sgemm':>9s}")
-    fractions = []
-    for item, seconds in zip(items, medians):
-        if item.size is None:
-            continue
-        rate = item.flops / seconds / 1e9 if item.flops else None
-        if rate:
-            fractions.append(rate / limit)
-        text = f"{item.flops / 1e9:11.3f} {rate:8.1f} {rate / limit:9.1%}" if rate else f"{'-':>11s} {'-':>8s} {'-':>9s}"
-        print(f"  {f'{item.size}x{item.size}':8s} {item.label:26s} {seconds * 1e3:9.2f} {text}")
-    verdict = "met" if fractions and min(fractions) >= TARGET_FRACTION else "NOT met"
+    fractions, verdict = print_network_table(items, medians, args.gemm_size)
     print(f"  networks reach {min(fractions):.0%}-{max(fractions):.0%} of the sgemm rate (target >= "
           f"{TARGET_FRACTION:.0%}: {verdict}, kernel application excluded); peak resident memory "
           f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB; load average {load_average()}")

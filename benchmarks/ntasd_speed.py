@@ -23,7 +23,7 @@ from denoisers.methods import ntasd as _ntasd_methods  # noqa: F401 -- registers
 from denoisers.nets.ntasd import NTASDConfig, NTASDNet
 from denoisers.registry import Frame
 from denoisers.training.tasks import NTASD_VARIANTS
-from rae_speed import TARGET_FRACTION, Item, gemm_items, load_average, time_rounds
+from rae_speed import TARGET_FRACTION, Item, gemm_items, load_average, print_network_table, time_rounds
 
 LAYERS = 32
 BUDGET = 4.0
@@ -99,19 +99,7 @@ def main() -> None:
     items = build_items(args.sizes, args.width, args.warmup + args.repeats, args.gemm_size)
     with torch.no_grad():
         medians = time_rounds(items, args.repeats, args.warmup)
-    limit = max(item.flops / t / 1e9 for item, t in zip(items, medians) if item.label.startswith("sgemm"))
-    print(f"sgemm {args.gemm_size}^3 float32, same rounds: {limit:.1f} GFLOP/s (the faster backend)")
-    print(f"  {'size':8s} {'path':26s} {'ms/frame':>9s} {'GFLOP/frame':>11s} {'GFLOP/s':>8s} {'of sgemm':>9s}")
-    fractions = []
-    for item, seconds in zip(items, medians):
-        if item.size is None:
-            continue
-        rate = item.flops / seconds / 1e9 if item.flops else None
-        if rate:
-            fractions.append(rate / limit)
-        text = f"{item.flops / 1e9:11.3f} {rate:8.1f} {rate / limit:9.1%}" if rate else f"{'-':>11s} {'-':>8s} {'-':>9s}"
-        print(f"  {f'{item.size}x{item.size}':8s} {item.label:26s} {seconds * 1e3:9.2f} {text}")
-    verdict = "met" if fractions and min(fractions) >= TARGET_FRACTION else "NOT met"
+    fractions, verdict = print_network_table(items, medians, args.gemm_size)
     print(f"  networks reach {min(fractions):.0%}-{max(fractions):.0%} of the sgemm rate (target >= "
           f"{TARGET_FRACTION:.0%}: {verdict}); load average {load_average()} at the end")
 

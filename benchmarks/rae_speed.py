@@ -344,6 +344,24 @@ def report(threads: int, args: argparse.Namespace) -> None:
           f"which disturbs multi-threaded timings most)")
 
 
+def print_network_table(items: list[Item], medians: list[float], gemm_size: int) -> tuple[list[float], str]:
+    """Print the same-run sgemm rate and one line per sized item (ms/frame, GFLOP/frame, GFLOP/s, fraction of
+    the sgemm rate); return the networks' fractions and the verdict against TARGET_FRACTION."""
+    limit = max(item.flops / t / 1e9 for item, t in zip(items, medians) if item.label.startswith("sgemm"))
+    print(f"sgemm {gemm_size}^3 float32, same rounds: {limit:.1f} GFLOP/s (the faster backend)")
+    print(f"  {'size':8s} {'path':26s} {'ms/frame':>9s} {'GFLOP/frame':>11s} {'GFLOP/s':>8s} {'of sgemm':>9s}")
+    fractions = []
+    for item, seconds in zip(items, medians):
+        if item.size is None:
+            continue
+        rate = item.flops / seconds / 1e9 if item.flops else None
+        if rate:
+            fractions.append(rate / limit)
+        text = f"{item.flops / 1e9:11.3f} {rate:8.1f} {rate / limit:9.1%}" if rate else f"{'-':>11s} {'-':>8s} {'-':>9s}"
+        print(f"  {f'{item.size}x{item.size}':8s} {item.label:26s} {seconds * 1e3:9.2f} {text}")
+    return fractions, "met" if fractions and min(fractions) >= TARGET_FRACTION else "NOT met"
+
+
 def load_average() -> str:
     """The 1, 5 and 15 minute load averages."""
     return " / ".join(f"{value:.2f}" for value in os.getloadavg())
