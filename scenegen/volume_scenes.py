@@ -35,12 +35,12 @@ from typing import Any
 import numpy as np
 
 from scenegen.camera import look_at_matrix
+from scenegen.generate import FLOAT_DECIMALS, _jsonable
 from scenegen.seeds import derive_seed
 from scenegen.volume_fields import noise_cloud, smoke_plume
 from scenegen.volumes import TransferFunction
 
 FORMAT_VERSION = 1
-FLOAT_DECIMALS = 6
 SCENARIOS = ("camera", "light", "transfer_function")
 FIELD_KINDS = ("noise_cloud", "smoke_plume", "shells")
 SHELL_PRIMITIVES = ("icosphere", "capsule", "torus")
@@ -52,22 +52,6 @@ ROOM_SIZE_M = (6.0, 4.0, 6.0)
 GRADIENT_MAP_SIZE = (16, 32)          # (height, width) of the latitude-longitude gradient map
 MEDIUM_KEY = "volume"                 # scene-dict key of the medium box: traverse prefix 'volume.interior_medium'
 UP = (0.0, 1.0, 0.0)
-
-
-def _jsonable(value: Any) -> Any:
-    """numpy -> Python, floats rounded to FLOAT_DECIMALS (no '-0.0'), tuples -> lists."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_jsonable(v) for v in (value.tolist() if isinstance(value, np.ndarray) else value)]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        rounded = round(float(value), FLOAT_DECIMALS)
-        return 0.0 if rounded == 0.0 else rounded
-    return value
 
 
 def _r4(x: float) -> float:
