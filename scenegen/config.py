@@ -31,6 +31,10 @@ CUSTOM_PREFIX = "custom_"
 #: Scene ids of the stability scenarios (config section ``stability``, scenegen.scenarios): stab_{scenario}.
 #: They are rendered and masked (target ``stability``), never trained on or evaluated by the evaluation rows.
 STABILITY_PREFIX = "stab_"
+#: Scene ids of the volumetric clips (config section ``volumes``, scenegen.volume_scenes):
+#: vol_{split}_{scenario}_{index:03d}, split "test" or "train". Rendered with the volumetric integrators only.
+VOLUME_PREFIX = "vol_"
+VOLUME_SPLITS = ("test", "train")
 #: Scenes whose references render.train_reference_spp applies to (the training and validation scenes).
 TRAIN_PREFIX = "train_"
 
@@ -304,10 +308,39 @@ def stability_scenario(cfg: dict[str, Any], scene_id: str) -> str:
     return scene_id[len(STABILITY_PREFIX):]
 
 
+def volume_scene_ids(cfg: dict[str, Any]) -> list[str]:
+    """Scene ids of the volumetric clips: for each split (test, then train) and each ``volumes.scenarios``
+    kind in config order, vol_{split}_{scenario}_{index:03d}; empty when ``volumes.enabled`` is false. Not
+    part of scene_ids (the surface scenes' split, training and evaluation never see them)."""
+    volumes = cfg.get("volumes") or {}
+    if not volumes.get("enabled", False):
+        return []
+    return [f"{VOLUME_PREFIX}{split}_{scenario}_{index:03d}" for split in VOLUME_SPLITS
+            for scenario in volumes.get("scenarios", []) for index in range(int(volumes.get(f"n_{split}", 0)))]
+
+
+def volume_clip_spec(cfg: dict[str, Any], scene_id: str) -> tuple[str, str, int]:
+    """(split, scenario, index) of a vol_* scene id; KeyError if the config does not have it."""
+    if scene_id not in volume_scene_ids(cfg):
+        raise KeyError(f"{scene_id!r} is not a volumetric clip of this config (volumes.enabled, volumes.scenarios, "
+                       f"volumes.n_test, volumes.n_train: {', '.join(volume_scene_ids(cfg)) or 'none'})")
+    split, rest = scene_id[len(VOLUME_PREFIX):].split("_", 1)
+    scenario, index = rest.rsplit("_", 1)
+    return split, scenario, int(index)
+
+
 def scene_render_config(cfg: dict[str, Any], scene_id: str) -> dict[str, Any]:
     """The ``render`` settings a scene is rendered with: ``render`` itself, except for the stability scenes,
     whose width, height, spp and reference_spp come from the ``stability`` section (spp null = render.spp),
-    and whose references always hold the feature means (their texture masks read the reference albedo)."""
+    and whose references always hold the feature means (their texture masks read the reference albedo), and
+    the volumetric clips, whose size, spp, reference spp and path depth come from the ``volumes`` section (no
+    radiance-only layers; references with Mitsuba's volpath, radiance only)."""
+    if scene_id.startswith(VOLUME_PREFIX):
+        volumes = cfg["volumes"]
+        spp = volumes["spp"] if volumes.get("spp") is not None else cfg["render"]["spp"]
+        return {**cfg["render"], "width": volumes["width"], "height": volumes["height"], "spp": spp,
+                "extra_radiance_spp": 0, "reference_spp": volumes["reference_spp"], "train_reference_spp": None,
+                "reference_integrator": "path", "max_depth": volumes["max_depth"]}
     if not scene_id.startswith(STABILITY_PREFIX):
         return cfg["render"]
     stability = cfg["stability"]
@@ -329,7 +362,7 @@ def scene_reference_spp(cfg: dict[str, Any], scene_id: str) -> int:
     """Reference spp of a scene: ``render.train_reference_spp`` for the train_* scenes that train, when it is
     set (not null), else ``render.reference_spp``: always for the evaluated test_* and custom_* scenes, and
     for the held-out validation scenes, whose references score every model and decide convergence."""
-    if scene_id.startswith(STABILITY_PREFIX):
+    if scene_id.startswith((STABILITY_PREFIX, VOLUME_PREFIX)):
         return int(scene_render_config(cfg, scene_id)["reference_spp"])
     render = cfg["render"]
     train_spp = render.get("train_reference_spp")
@@ -345,14 +378,16 @@ def scene_frame_count(cfg: dict[str, Any], scene_id: str) -> int:
         return int(extra_scene(cfg, scene_id)["frames"])
     if scene_id.startswith(STABILITY_PREFIX):
         return int(cfg["stability"]["frames"])
+    if scene_id.startswith(VOLUME_PREFIX):
+        return int(cfg["volumes"]["frames"])
     if scene_id.startswith(TRAIN_PREFIX) and cfg["scenes"].get("train_frames") is not None:
         return int(cfg["scenes"]["train_frames"])
     return int(cfg["scenes"]["frames"])
 
 
 def scene_frames_per_chunk(cfg: dict[str, Any], scene_id: str) -> int:
-    """Frames per render job of a scene: ``scenes.frames_per_chunk``; a stability clip is one chunk."""
-    if scene_id.startswith(STABILITY_PREFIX):
+    """Frames per render job of a scene: ``scenes.frames_per_chunk``; a stability or volumetric clip is one chunk."""
+    if scene_id.startswith((STABILITY_PREFIX, VOLUME_PREFIX)):
         return scene_frame_count(cfg, scene_id)
     return int(cfg["scenes"]["frames_per_chunk"])
 

@@ -36,15 +36,22 @@ SAMPLE_BUFFERS: dict[str, tuple[str, ...]] = {
     "roughness": ("Y",),
     "flags": ("emissive", "metallic", "transmissive", "specular_bounce"),
     "position": ("X", "Y", "Z"),
+    # Volumetric clips only (scenegen.volume_integrator): at the camera ray's first real collision.
+    "sigma_t": ("Y",),
+    "medium": ("Y",),
+    "transmittance": ("Y",),
 }
 #: Per-sample buffers stored as HALF; every other channel of a noisy frame is FLOAT.
-HALF_BUFFERS: frozenset[str] = frozenset({"albedo", "normal", "roughness", "flags"})
+HALF_BUFFERS: frozenset[str] = frozenset({"albedo", "normal", "roughness", "flags", "medium", "transmittance"})
 #: The only buffer that may have more layers than the others (radiance-only "sample layers").
 RADIANCE_BUFFER = "radiance"
 #: Sample layers are named s00..s31.
 MAX_SAMPLE_LAYERS = 32
-#: Default for ``buffers=``: every per-sample buffer.
-ALL: tuple[str, ...] = tuple(SAMPLE_BUFFERS)
+#: Per-sample buffers of a volumetric clip's noisy frame (radiance, albedo, position and depth have the
+#: surface names; albedo is the single-scattering albedo at a medium event, see docs/data-format.md).
+VOLUME_BUFFERS: tuple[str, ...] = ("radiance", "albedo", "position", "depth", "sigma_t", "medium", "transmittance")
+#: Default for ``buffers=``: every per-sample buffer of a surface scene's noisy frame.
+ALL: tuple[str, ...] = tuple(name for name in SAMPLE_BUFFERS if name not in {"sigma_t", "medium", "transmittance"})
 
 #: Per-pixel buffers of a noisy frame (pixel-centre G-buffer pass): buffer -> full EXR channel names.
 PIXEL_BUFFERS: dict[str, tuple[str, ...]] = {
@@ -126,12 +133,14 @@ def reference_channel_names(buffer: str) -> list[str]:
     return [f"{buffer}.{suffix}" for suffix in REFERENCE_BUFFERS[buffer]]
 
 
-def noisy_channel_names(spp: int, extra_radiance_spp: int = 0) -> list[str]:
-    """Every channel of a noisy frame with ``spp`` full layers plus radiance-only extra layers."""
+def noisy_channel_names(spp: int, extra_radiance_spp: int = 0, buffers: Sequence[str] | None = None) -> list[str]:
+    """Every channel of a noisy frame with ``spp`` full layers of ``buffers`` (default: a surface scene's,
+    :data:`ALL`; a volumetric clip's: :data:`VOLUME_BUFFERS`) plus radiance-only extra layers."""
     if spp < 1 or spp + extra_radiance_spp > MAX_SAMPLE_LAYERS or extra_radiance_spp < 0:
         raise ValueError(f"need 1 <= spp and spp + extra_radiance_spp <= {MAX_SAMPLE_LAYERS}, "
                          f"got spp={spp}, extra_radiance_spp={extra_radiance_spp}")
-    names = [name for s in range(spp) for buffer in SAMPLE_BUFFERS for name in sample_channel_names(buffer, s)]
+    buffers = ALL if buffers is None else tuple(buffers)
+    names = [name for s in range(spp) for buffer in buffers for name in sample_channel_names(buffer, s)]
     names += [name for s in range(spp, spp + extra_radiance_spp)
               for name in sample_channel_names(RADIANCE_BUFFER, s)]
     names += [name for channel_names in PIXEL_BUFFERS.values() for name in channel_names]

@@ -16,10 +16,10 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen.atomic import atomic_directory, write_text_atomic
-from scenegen.config import (CUSTOM_PREFIX, STABILITY_PREFIX, extra_scene, scene_frame_count, scene_frames_per_chunk,
-                             scene_reference_spp, scene_render_config)
+from scenegen.config import (CUSTOM_PREFIX, STABILITY_PREFIX, VOLUME_PREFIX, extra_scene, scene_frame_count,
+                             scene_frames_per_chunk, scene_reference_spp, scene_render_config)
 from scenegen.mitsuba_env import init_mitsuba
-from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, noisy_frame_seed,
+from scenegen.render import (NonFiniteCounter, RenderSettings, frame_meta, load_frame_scene, noisy_frame_seed,
                              psnr_between_halves, reference_batch_seeds,
                              render_gbuffer, render_reference_frame, render_sample_layers)
 from scenegen.seeds import scene_seed
@@ -64,6 +64,10 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
         log.info("stability scenario %s: %d shapes, %d frames", scene_id, len(manifest["shapes"]),
                  manifest["n_frames"])
         return manifest
+    if scene_id.startswith(VOLUME_PREFIX):
+        from scenegen.volume_render import generate_volume_scene
+
+        return generate_volume_scene(cfg, scene_id, out_dir)
     seed = scene_seed(cfg["seed"], scene_id)
     with atomic_directory(out_dir) as tmp_dir:
         manifest = generate_scene(cfg["scenes"], seed, scene_id, tmp_dir, n_frames=scene_frame_count(cfg, scene_id),
@@ -73,38 +77,6 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
     return manifest
 
 
-def _frame_meta(manifest: dict, scene_id: str, frame: int, settings: RenderSettings, variant: str) -> dict:
-    from scenegen.mitsuba_scene import camera_matrices
-
-    depths = {"max_depth": settings.max_depth, "rr_depth": settings.rr_depth}
-    if manifest.get("kind") == "custom":      # rendered with the XML's (or its entry's) depths
-        from scenegen.custom import integrator_settings
-
-        authored = integrator_settings(manifest)
-        depths.update({key: authored[key] for key in depths if key in authored})
-    meta = {
-        "scene": scene_id, "frame": frame, "width": settings.width, "height": settings.height,
-        "variant": variant, **depths,
-        "camera": _jsonable(camera_matrices(manifest, frame, settings.width, settings.height)),
-        "prev_camera": (_jsonable(camera_matrices(manifest, frame - 1, settings.width, settings.height))
-                        if frame > 0 else None),
-        "camera_cut": bool(manifest["camera"]["frames"][frame].get("cut", False)),
-    }
-    return meta
-
-
-def _jsonable(value):
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
 def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
     """Render the per-sample noisy frames of one chunk, with motion vectors and G-buffers."""
     from scenegen.dataset import noisy_channels, pixel_channels
@@ -112,6 +84,10 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
     from scenegen.motion import motion_vectors
 
     settings = RenderSettings.from_config(scene_render_config(cfg, scene_id))
+    if scene_id.startswith(VOLUME_PREFIX):
+        from scenegen.volume_render import run_render_volume_noisy
+
+        return run_render_volume_noisy(cfg, scene_id, chunk, scene_dir, out_dir, settings)
     variant = init_mitsuba(settings.variant)
     manifest = _load_manifest(scene_dir)
     frames = chunk_frames(manifest["n_frames"], scene_frames_per_chunk(cfg, scene_id), chunk)
@@ -134,7 +110,7 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
             cut = bool(manifest["camera"]["frames"][frame].get("cut", False))
             motion, valid = motion_vectors(gbuffer, gbuffer_prev, manifest, frame, settings.width,
                                            settings.height, camera_cut=cut)
-            meta = _frame_meta(manifest, scene_id, frame, settings, variant)
+            meta = frame_meta(manifest, scene_id, frame, settings, variant)
             meta.update({
                 "spp": settings.spp, "extra_radiance_spp": settings.extra_radiance_spp,
                 "seeds": {"layers": seed}, "nonfinite": counter.counts,
@@ -167,6 +143,10 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
 
     settings = dataclasses.replace(RenderSettings.from_config(scene_render_config(cfg, scene_id)),
                                    reference_spp=scene_reference_spp(cfg, scene_id))
+    if scene_id.startswith(VOLUME_PREFIX):
+        from scenegen.volume_render import run_render_volume_reference
+
+        return run_render_volume_reference(cfg, scene_id, chunk, scene_dir, out_dir, settings)
     variant = init_mitsuba(settings.variant)
     manifest = _load_manifest(scene_dir)
     frames = chunk_frames(manifest["n_frames"], scene_frames_per_chunk(cfg, scene_id), chunk)
@@ -187,7 +167,7 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
                                                features=features)
             seconds = time.perf_counter() - start
             psnr_halves = psnr_between_halves(reference["radiance_half0"], reference["radiance_half1"])
-            meta = _frame_meta(manifest, scene_id, frame, settings, variant)
+            meta = frame_meta(manifest, scene_id, frame, settings, variant)
             meta.update({
                 "spp": 2 * half_spp, "seeds": {"half0": seeds[0], "half1": seeds[1]},
                 "integrator": "mcdn_features" if features else "path", "buffers": sorted(reference),

@@ -42,7 +42,7 @@ def camera_matrices(manifest: dict, frame: int, width: int, height: int) -> dict
     plus 'width', 'height'.
     """
     cam = _frame_camera(manifest, frame)
-    fov_x = float(cam.get("fov_x_deg", manifest["camera"]["fov_x_deg"]))
+    fov_x = float(cam["fov_x_deg"] if "fov_x_deg" in cam else manifest["camera"]["fov_x_deg"])
     origin, target, up = (np.asarray(cam[k], dtype=np.float64) for k in ("origin", "target", "up"))
     to_world = look_at_matrix(origin, target, up)
     world_to_camera = np.linalg.inv(to_world)

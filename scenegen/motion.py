@@ -53,7 +53,7 @@ def pixel_ray_directions(manifest: dict, frame: int, width: int, height: int) ->
     return world / np.linalg.norm(world, axis=1, keepdims=True)
 
 
-def _project_directions(directions: np.ndarray, manifest: dict, frame: int, width: int,
+def project_directions(directions: np.ndarray, manifest: dict, frame: int, width: int,
                         height: int) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2) pixel coordinates in ``frame`` of the points at infinity along (N, 3) world directions,
     and (N,) bool: in front of that camera."""
@@ -66,7 +66,7 @@ def _project_directions(directions: np.ndarray, manifest: dict, frame: int, widt
     return pixels, homogeneous[:, 2] > 0.0
 
 
-def _bilinear_taps(pixel_prev: np.ndarray, width: int,
+def bilinear_taps(pixel_prev: np.ndarray, width: int,
                    height: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The four taps (x index (N,), y index (N,), bilinear weight (N,)) of a lookup at (N, 2) continuous
     pixel coordinates; indices are clamped to the image (out-of-image lookups are rejected elsewhere)."""
@@ -113,7 +113,7 @@ def motion_vectors(gbuffer: dict[str, np.ndarray], gbuffer_prev: dict[str, np.nd
     normal_prev = _apply(per_pixel, normal, w=0.0)
 
     surface_prev, surface_in_front = project_to_pixels(position_prev, manifest, frame - 1, width, height)
-    sky_prev, sky_in_front = _project_directions(pixel_ray_directions(manifest, frame, width, height),
+    sky_prev, sky_in_front = project_directions(pixel_ray_directions(manifest, frame, width, height),
                                                  manifest, frame - 1, width, height)
     pixel_prev = np.where(hit[:, None], surface_prev, sky_prev)
     in_front = np.where(hit, surface_in_front, sky_in_front)
@@ -135,7 +135,7 @@ def motion_vectors(gbuffer: dict[str, np.ndarray], gbuffer_prev: dict[str, np.nd
     # Test every tap the bilinear warp reads: a vector is only valid when all of them show the warped
     # surface (or the environment), so no occluder's colour leaks in.
     ok = on_screen.copy()
-    for xi, yi, weight in _bilinear_taps(pixel_prev, width, height):
+    for xi, yi, weight in bilinear_taps(pixel_prev, width, height):
         prev_object = np.rint(gbuffer_prev["object"][0, yi, xi]).astype(np.int64)
         prev_position = gbuffer_prev["position"][:, yi, xi].T.astype(np.float64)
         prev_normal = gbuffer_prev["normal"][:, yi, xi].T.astype(np.float64)

@@ -104,7 +104,7 @@ def _gbuffer_sensor(manifest: dict, frame: int, settings: RenderSettings):
                                     sampler=sampler))
 
 
-def _split_channels(image: np.ndarray, sizes: list[tuple[str, int]]) -> dict[str, np.ndarray]:
+def split_channels(image: np.ndarray, sizes: list[tuple[str, int]]) -> dict[str, np.ndarray]:
     """(H, W, C) -> {name: (c, H, W)} following ``sizes`` in order."""
     out, start = {}, 0
     for name, size in sizes:
@@ -115,7 +115,7 @@ def _split_channels(image: np.ndarray, sizes: list[tuple[str, int]]) -> dict[str
     return out
 
 
-def _render(scene, *, spp: int, seed: int, sensor=None) -> np.ndarray:
+def render_spp(scene, *, spp: int, seed: int, sensor=None) -> np.ndarray:
     import mitsuba as mi
 
     image = mi.render(scene, spp=spp, seed=seed, sensor=sensor if sensor is not None else 0)
@@ -135,15 +135,15 @@ def render_gbuffer(manifest: dict, scene_dir: Path, frame: int, settings: Render
     sensor = _gbuffer_sensor(manifest, frame, settings)
     integrator = mi.load_dict({"type": "mcdn_features", "mode": "gbuffer"})
     image = np.array(mi.render(scene, spp=1, seed=0, sensor=sensor, integrator=integrator), np.float32)
-    return _split_channels(image, [("rgb", 3), *GBUFFER_AOVS])
+    return split_channels(image, [("rgb", 3), *GBUFFER_AOVS])
 
 
-def _sample_wavefront(scene, *, n_layers: int, seed: int) -> np.ndarray:
+def sample_wavefront(scene, *, n_layers: int, seed: int) -> np.ndarray:
     """Trace ``n_layers`` independent 1-spp samples of every pixel in one wavefront.
 
     Direct call of the integrator's ``sample`` (JIT variants only): rays are generated like
     Mitsuba's film loop at 1 spp (uniform jitter in the pixel, box filter), lanes ordered
-    layer-major. Returns (S, H, W, 3 + n_aov) float32: radiance then the AOVs.
+    layer-major; rays start in the sensor's medium. Returns (S, H, W, 3 + n_aov) float32: radiance then the AOVs.
     """
     import drjit as dr
     import mitsuba as mi
@@ -160,7 +160,8 @@ def _sample_wavefront(scene, *, n_layers: int, seed: int) -> np.ndarray:
     aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
     ray, _ = sensor.sample_ray_differential(0.0, sampler.next_1d(),
                                             film_position / mi.ScalarVector2f(width, height), aperture)
-    radiance, _, aovs = scene.integrator().sample(scene, sampler, ray, None, mi.Bool(True))
+    # The camera's medium (None unless the sensor sits inside one): volumetric integrators start there.
+    radiance, _, aovs = scene.integrator().sample(scene, sampler, ray, sensor.get_medium(), mi.Bool(True))
     outputs = [radiance.x, radiance.y, radiance.z, *aovs]
     dr.eval(*outputs)
     stacked = np.stack([np.asarray(value, dtype=np.float32) for value in outputs], axis=-1)
@@ -182,10 +183,10 @@ def render_sample_layers(scene, *, n_layers: int, n_radiance_only: int, seed: in
     layout = [("radiance", 3), *SAMPLE_AOVS]
     total = n_layers + n_radiance_only
     if is_jit_variant():
-        images = _sample_wavefront(scene, n_layers=total, seed=seed)
+        images = sample_wavefront(scene, n_layers=total, seed=seed)
     else:
-        images = np.stack([_render(scene, spp=1, seed=derive_seed(seed, layer)) for layer in range(total)])
-    parts = {name: np.stack([_split_channels(image, layout)[name] for image in images])
+        images = np.stack([render_spp(scene, spp=1, seed=derive_seed(seed, layer)) for layer in range(total)])
+    parts = {name: np.stack([split_channels(image, layout)[name] for image in images])
              for name, _ in layout}
     out = {"radiance": counter.sanitise("radiance", parts["radiance"])}
     diffuse = counter.sanitise("diffuse", parts["diffuse"][:n_layers])
@@ -196,6 +197,41 @@ def render_sample_layers(scene, *, n_layers: int, n_radiance_only: int, seed: in
     if progress is not None:
         progress.update(total)
     return out
+
+
+def frame_meta(manifest: dict, scene_id: str, frame: int, settings: RenderSettings, variant: str) -> dict:
+    """Sidecar fields every rendered frame shares: scene, frame, size, variant, path depths, the camera of the frame
+    and of the previous frame (scenegen.mitsuba_scene.camera_matrices as lists), camera_cut."""
+    from scenegen.mitsuba_scene import camera_matrices
+
+    depths = {"max_depth": settings.max_depth, "rr_depth": settings.rr_depth}
+    if manifest.get("kind") == "custom":      # rendered with the XML's (or its entry's) depths
+        from scenegen.custom import integrator_settings
+
+        authored = integrator_settings(manifest)
+        depths.update({key: authored[key] for key in depths if key in authored})
+    meta = {
+        "scene": scene_id, "frame": frame, "width": settings.width, "height": settings.height,
+        "variant": variant, **depths,
+        "camera": _plain(camera_matrices(manifest, frame, settings.width, settings.height)),
+        "prev_camera": (_plain(camera_matrices(manifest, frame - 1, settings.width, settings.height))
+                        if frame > 0 else None),
+        "camera_cut": bool(manifest["camera"]["frames"][frame].get("cut", False)),
+    }
+    return meta
+
+
+def _plain(value):
+    """numpy arrays and scalars -> Python lists and numbers (no rounding: sidecar cameras are exact)."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
 
 
 def noisy_frame_seed(global_seed: int, scene_id: str, frame: int) -> int:
@@ -227,7 +263,7 @@ def render_reference_frame(scene, *, spp: int, batch_spp: int, seeds_half: tuple
         for batch in range(n_batches):
             batch_count = min(batch_spp, remaining)
             remaining -= batch_count
-            parts = _split_channels(_render(scene, spp=batch_count, seed=seeds_half[half][batch]), layout)
+            parts = split_channels(render_spp(scene, spp=batch_count, seed=seeds_half[half][batch]), layout)
             for name in ("radiance", "diffuse", "albedo", "normal", "depth") if features else ("radiance",):
                 value = counter.sanitise(name, parts[name]).astype(np.float64) * batch_count
                 sums[name] = sums.get(name, 0.0) + value

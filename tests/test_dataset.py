@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from scenegen.dataset import (
-    ALL, HALF_BUFFERS, HALF_PIXEL_BUFFERS, PIXEL_BUFFERS, REFERENCE_BUFFERS, SAMPLE_BUFFERS, Clip, DatasetError,
+    ALL, VOLUME_BUFFERS, HALF_BUFFERS, HALF_PIXEL_BUFFERS, PIXEL_BUFFERS, REFERENCE_BUFFERS, SAMPLE_BUFFERS, Clip, DatasetError,
     MissingBufferError, NotEnoughSamplesError, is_half_channel, load_clip, load_frame, noisy_buffers,
     noisy_channel_names, noisy_channels, pixel_channels, reference_channel_names, reference_channels,
     sample_channel_names, sample_layers, write_frame,
@@ -30,7 +30,8 @@ def _frame_arrays(t: int, omit: tuple[str, ...] = ()) -> tuple[dict[str, np.ndar
     """
     rng = np.random.default_rng(100 + t)
     samples = {}
-    for buffer, suffixes in SAMPLE_BUFFERS.items():
+    for buffer in ALL:
+        suffixes = SAMPLE_BUFFERS[buffer]
         if buffer in omit:
             continue
         layers = S_RADIANCE if buffer == "radiance" else S_FULL
@@ -104,12 +105,14 @@ def test_half_channel_rules() -> None:
     assert is_half_channel("motion.valid") and is_half_channel("gbuffer.normal.Z")
     assert not is_half_channel("s03.radiance.G") and not is_half_channel("s00.depth.Z")
     assert not is_half_channel("motion.X") and not is_half_channel("gbuffer.position.X")
-    assert {name.split(".")[1] for name in noisy_channel_names(2) if is_half_channel(name) and name[0] == "s"} \
+    surface = noisy_channel_names(2)
+    volume = noisy_channel_names(2, buffers=VOLUME_BUFFERS)
+    assert {name.split(".")[1] for name in surface + volume if is_half_channel(name) and name[0] == "s"} \
         == set(HALF_BUFFERS)
 
 
 def test_noisy_channel_names_count() -> None:
-    per_layer = sum(len(suffixes) for suffixes in SAMPLE_BUFFERS.values())
+    per_layer = sum(len(SAMPLE_BUFFERS[buffer]) for buffer in ALL)
     pixel = sum(len(names) for names in PIXEL_BUFFERS.values())
     names = noisy_channel_names(8, 24)
     assert len(names) == len(set(names)) == 8 * per_layer + 24 * 3 + pixel
@@ -125,7 +128,7 @@ def test_noisy_channels_round_trip() -> None:
     assert half == {name for name in channels if is_half_channel(name)}
     assert "s03.flags.metallic" in half and "s03.radiance.R" not in half
     np.testing.assert_array_equal(channels["s02.normal.Y"], samples["normal"][2, 1])
-    assert sample_layers(channels) == {b: (S_RADIANCE if b == "radiance" else S_FULL) for b in SAMPLE_BUFFERS}
+    assert sample_layers(channels) == {b: (S_RADIANCE if b == "radiance" else S_FULL) for b in ALL}
     back = noisy_buffers(channels)
     for buffer, array in samples.items():
         np.testing.assert_array_equal(back[buffer], array)
@@ -175,7 +178,8 @@ def test_load_clip_shapes_and_values(clip_dir: Path) -> None:
     assert isinstance(clip, Clip) and clip.scene == "train_007"
     assert clip.frames == list(range(n_frames))
     assert clip.samples["radiance"].shape == (n_frames, S_RADIANCE, 3, H, W)
-    for buffer, suffixes in SAMPLE_BUFFERS.items():
+    for buffer in ALL:
+        suffixes = SAMPLE_BUFFERS[buffer]
         layers = S_RADIANCE if buffer == "radiance" else S_FULL
         assert clip.samples[buffer].shape == (n_frames, layers, len(suffixes), H, W)
         assert clip.samples[buffer].dtype == np.float32
@@ -357,5 +361,8 @@ def test_doc_states_channel_types() -> None:
     assert set(noisy) <= checked
 
 
-def test_all_is_every_sample_buffer() -> None:
-    assert ALL == tuple(SAMPLE_BUFFERS)
+def test_all_is_every_surface_buffer_and_volume_buffers_complete_the_table() -> None:
+    volume_only = {"sigma_t", "medium", "transmittance"}
+    assert not volume_only & set(ALL)
+    assert set(ALL) | set(VOLUME_BUFFERS) == set(SAMPLE_BUFFERS)
+    assert list(ALL) == [name for name in SAMPLE_BUFFERS if name in ALL]      # table order

@@ -128,9 +128,9 @@ def reference_chunk(request: pytest.FixtureRequest, tmp_path_factory: pytest.Tem
         modes.append(mode)
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(render_module, "_render", lambda scene, **kw: fake_render(scene, **kw, aov_channels=aov_channels))
+        patch.setattr(render_module, "render_spp", lambda scene, **kw: fake_render(scene, **kw, aov_channels=aov_channels))
         patch.setattr(jobs, "load_frame_scene", fake_load)
-        patch.setattr(jobs, "_frame_meta", lambda manifest, scene_id, frame, settings, variant:
+        patch.setattr(jobs, "frame_meta", lambda manifest, scene_id, frame, settings, variant:
                       {"scene": scene_id, "frame": frame, "camera_cut": False})
         jobs.run_render_reference(cfg, "test_000", 0, scene_dir, out_dir)
     assert modes == (["samples"] * 2 if integrator == "features" else ["path"] * 2)
