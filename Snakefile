@@ -3,7 +3,8 @@
 # denoised test clips, per-frame metrics and a generated report. Rules live in workflow/rules/, the
 # config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
 # `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake timing`, `snakemake report`,
-# `snakemake stability` (the temporal-stability scenario clips, their masks and the failure atlas).
+# `snakemake stability` (the temporal-stability scenario clips, their masks and the failure atlas), `snakemake volumes`
+# (the volumetric clips' scenes and renders).
 # Every output goes below the config's output_dir (default results/; config/smoke.yaml: results/smoke/);
 # `python -m denoisers clean --config <file>` removes one experiment's outputs.
 
@@ -40,6 +41,7 @@ localrules:
     timing,
     report,
     stability,
+    volumes,
 
 
 rule scenes:
@@ -87,6 +89,12 @@ rule stability:
         stability_outputs(),
 
 
+# The volumetric clips (vol_* scenes, config section volumes): scenes and renders.
+rule volumes:
+    input:
+        volume_outputs(),
+
+
 # Everything implemented so far; the default target.
 rule all:
     default_target: True
@@ -96,3 +104,4 @@ rule all:
         rules.train.input,
         rules.build_report.output,
         rules.stability.input,
+        rules.volumes.input,

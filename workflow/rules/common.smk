@@ -16,6 +16,7 @@ from scenegen.config import (
     output_root,
     scene_ids,
     stability_scene_ids,
+    volume_scene_ids,
 )
 from scenegen.digests import masks_digest as scene_masks_digest
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
@@ -51,7 +52,7 @@ if config_errors:
 
 
 wildcard_constraints:
-    scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+|stab_[a-z0-9_]+",
+    scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+|stab_[a-z0-9_]+|vol_(?:test|train)_[a-z_]+_\d{3}",
     chunk=r"\d{3}",
     method=r"[a-z0-9_]+",
     model=r"[a-z][a-z0-9_]*",
@@ -62,6 +63,9 @@ SCENES = scene_ids(config)
 # The stability scenarios' scenes (stab_{name}; target `stability`): generated and rendered by the same rules,
 # never trained on or evaluated (not in SCENES, which the split and the evaluation read).
 STABILITY_SCENES = stability_scene_ids(config)
+# The volumetric clips (vol_{split}_{scenario}_{index}; target `volumes`): generated and rendered by the same rules
+# with the volumetric integrators; not in SCENES (the surface scenes' split, training and evaluation).
+VOLUME_SCENES = volume_scene_ids(config)
 # The experiment's folder (config key output_dir): every output, log and benchmark of every rule is below it,
 # so two configs with different output_dir never share a file.
 OUT = output_root(config).as_posix()
@@ -114,9 +118,10 @@ def _listing(values) -> str:
 
 
 def check_scene_target(wildcards, job_rule: str = "generate_scene", pattern: str = "scenes/{scene}") -> list:
-    if wildcards.scene not in SCENES + STABILITY_SCENES:
+    known = SCENES + STABILITY_SCENES + VOLUME_SCENES
+    if wildcards.scene not in known:
         raise impossible_target(job_rule, pattern, wildcards, f"scene {wildcards.scene} is not in this config; "
-                                f"scenes: {_listing(SCENES + STABILITY_SCENES)}")
+                                f"scenes: {_listing(known)}")
     return []
 
 
@@ -134,6 +139,12 @@ def stability_outputs(wildcards=None) -> list[str]:
     """Stage target `stability`: every scenario's scene, renders and masks (the masks need the rest), and the
     failure atlas (build_atlas; every configured row denoised and scored on every scenario)."""
     return [results_path(f"stability/{scene}") for scene in STABILITY_SCENES] + ATLAS_OUTPUTS["all"]
+
+
+def volume_outputs(wildcards=None) -> list[str]:
+    """Stage target `volumes`: every volumetric clip's noisy and reference renders (one chunk each)."""
+    return [results_path(f"renders/{scene}/{kind}/chunk_000") for scene in VOLUME_SCENES
+            for kind in ("noisy", "reference")]
 
 
 def masks_digest(wildcards) -> str:
