@@ -282,7 +282,8 @@ class VolumeFeatureIntegrator(mi.SamplingIntegrator):
             active &= on_surface | collide
 
         f_depth = dr.select(found, dr.norm(f_position - ray_in.o), 0.0)
-        t_cam = dr.mean(mi.Color3f(cam_tr))
+        # Ratio tracking's factors 1 - sigma_t / majorant can round to -6e-8 where the grid meets its majorant.
+        t_cam = dr.clip(dr.mean(mi.Color3f(cam_tr)), 0.0, 1.0)
         aovs = [f_position.x, f_position.y, f_position.z, f_depth, f_sigma_t,
                 f_albedo.x, f_albedo.y, f_albedo.z, f_medium, t_cam]
         return L, valid, aovs
