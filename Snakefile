@@ -4,7 +4,7 @@
 # config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
 # `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake timing`, `snakemake report`,
 # `snakemake stability` (the temporal-stability scenario clips, their masks and the failure atlas), `snakemake volumes`
-# (the volumetric clips' scenes and renders).
+# (the volumetric clips: scenes, renders, the volume rows denoised and scored).
 # Every output goes below the config's output_dir (default results/; config/smoke.yaml: results/smoke/);
 # `python -m denoisers clean --config <file>` removes one experiment's outputs.
 
@@ -22,6 +22,7 @@ report: "workflow/report/workflow.rst"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/common_timing.smk"
 include: "workflow/rules/common_stability.smk"
+include: "workflow/rules/common_volumes.smk"
 include: "workflow/rules/scenes.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/train.smk"
@@ -29,6 +30,7 @@ include: "workflow/rules/tune.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/timing.smk"
 include: "workflow/rules/stability.smk"
+include: "workflow/rules/volumes.smk"
 
 
 localrules:
@@ -89,10 +91,12 @@ rule stability:
         stability_outputs(),
 
 
-# The volumetric clips (vol_* scenes, config section volumes): scenes and renders.
+# The volumetric clips (vol_* scenes, config section volumes): scenes, renders, every volume row denoised and scored
+# on the vol_test_* clips (the report's Iglesias-Guitian section reads them).
 rule volumes:
     input:
         volume_outputs(),
+        volume_metrics_files,
 
 
 # Everything implemented so far; the default target.

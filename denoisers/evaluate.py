@@ -57,7 +57,7 @@ class EvaluationError(ValueError):
 # ---------------------------------------------------------------------------------------------------
 
 #: MethodSpec.role of the rows of ``evaluation.methods`` and of the rows added for ablation variants.
-METHOD_ROLE, ABLATION_ROLE = "method", "ablation"
+METHOD_ROLE, ABLATION_ROLE, VOLUME_ROLE = "method", "ablation", "volume"
 #: Default of ``evaluation.out_of_range_factor`` (the schema's default).
 OUT_OF_RANGE_FACTOR = 10.0
 
@@ -66,7 +66,8 @@ OUT_OF_RANGE_FACTOR = 10.0
 class MethodSpec:
     """One evaluation row: row name, registry name, constructor parameters, the sample counts it is
     evaluated at, whether it runs in the spike/NaN scenario, and its role: ``"method"`` for a row of
-    ``evaluation.methods``, ``"ablation"`` for a row added for a trained ablation variant."""
+    ``evaluation.methods``, ``"ablation"`` for a row added for a trained ablation variant, ``"volume"`` for a
+    row of ``volumes.rows`` (run on the volumetric clips only, denoisers.volume_eval)."""
 
     id: str
     method: str
@@ -113,9 +114,22 @@ def method_specs(cfg: dict) -> list[MethodSpec]:
     return configured + ablation_method_specs(cfg)
 
 
+def volume_method_specs(cfg: dict) -> list[MethodSpec]:
+    """The rows run on the volumetric clips (``volumes.rows``, when ``volumes.enabled``), each at the values of
+    ``volumes.denoise_spp`` its own ``spp`` keeps (all when absent); never in the robustness scenario."""
+    volumes = cfg.get("volumes") or {}
+    if not volumes.get("enabled", False):
+        return []
+    denoise_spp = [int(s) for s in volumes.get("denoise_spp", [])]
+    return [MethodSpec(entry["id"], entry["method"], dict(entry.get("params") or {}),
+                       tuple(s for s in denoise_spp if entry.get("spp") is None or s in entry["spp"]),
+                       robustness=False, role=VOLUME_ROLE)
+            for entry in volumes.get("rows", [])]
+
+
 def method_spec(cfg: dict, method_id: str) -> MethodSpec:
-    """The spec of row ``method_id`` (configured or ablation row); KeyError listing the ids otherwise."""
-    specs = method_specs(cfg)
+    """The spec of row ``method_id`` (configured, ablation or volume row); KeyError listing the ids otherwise."""
+    specs = method_specs(cfg) + volume_method_specs(cfg)
     for spec in specs:
         if spec.id == method_id:
             return spec

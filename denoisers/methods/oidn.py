@@ -42,6 +42,10 @@ class OpenImageDenoise(Denoiser):
     created once per image size, the images are shared buffers refilled per frame.
     """
 
+    #: OIDN auxiliary images this row passes besides colour (a subset of albedo, normal; OIDN takes albedo
+    #: alone, or albedo with normal).
+    auxiliary: tuple[str, ...] = ("albedo", "normal")
+
     def __init__(self, quality: str = "high", threads: int = 0) -> None:
         super().__init__()
         if quality not in QUALITIES:
@@ -58,11 +62,11 @@ class OpenImageDenoise(Denoiser):
 
     def denoise(self, frame: Frame) -> torch.Tensor:
         check_sizes(self.info.name, frame.samples)
-        images = {
-            "color": sanitize(frame.mean("radiance")).clamp_min_(0),
-            "albedo": sanitize(frame.mean("albedo")).clamp_(0, 1),
-            "normal": sanitize(frame.mean("normal")).clamp_(-1, 1),
-        }
+        images = {"color": sanitize(frame.mean("radiance")).clamp_min_(0)}
+        if "albedo" in self.auxiliary:
+            images["albedo"] = sanitize(frame.mean("albedo")).clamp_(0, 1)
+        if "normal" in self.auxiliary:
+            images["normal"] = sanitize(frame.mean("normal")).clamp_(-1, 1)
         height, width = images["color"].shape[-2:]
         if self._size != (height, width):
             self._build(height, width)
@@ -84,7 +88,7 @@ class OpenImageDenoise(Denoiser):
         device.commit()
         oidn_filter = pyoidn.Filter(device, pyoidn.OIDN_FILTER_TYPE_RT)
         self._buffers = {name: np.zeros((height, width, 3), dtype=np.float32)
-                         for name in ("color", "albedo", "normal", "output")}
+                         for name in ("color", *self.auxiliary, "output")}
         for name, buffer in self._buffers.items():
             oidn_filter.set_image(name, buffer, pyoidn.OIDN_FORMAT_FLOAT3)
         oidn_filter.set_bool("hdr", True)
@@ -110,3 +114,19 @@ class OpenImageDenoise(Denoiser):
             self.close()
         except Exception:  # interpreter shutdown: the library may already be gone
             pass
+
+
+@register("oidn_albedo", inputs=("radiance", "albedo"),
+          description="Intel Open Image Denoise with colour and albedo only (e.g. volumes, which have no normals)")
+class OpenImageDenoiseAlbedo(OpenImageDenoise):
+    """OIDN's RT filter with the albedo auxiliary image only (OIDN accepts albedo without normal). On the
+    volumetric clips the albedo is the single-scattering albedo at the first real collision."""
+
+    auxiliary = ("albedo",)
+
+
+@register("oidn_color", inputs=("radiance",), description="Intel Open Image Denoise on colour alone")
+class OpenImageDenoiseColor(OpenImageDenoise):
+    """OIDN's RT filter on the noisy colour alone (no auxiliary images), as the colour-only denoisers."""
+
+    auxiliary = ()

@@ -21,7 +21,9 @@ from scenegen.config import (
 from scenegen.digests import masks_digest as scene_masks_digest
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
 from denoisers import experiment
-from denoisers.evaluate import evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids
+from denoisers.evaluate import (evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids,
+                                volume_method_specs)
+from denoisers.volume_eval import volume_problems
 from denoisers.report import report_outputs
 from denoisers.report.atlas import atlas_outputs
 from denoisers.timing import timed_runs, timing_scene, timing_settings
@@ -46,7 +48,8 @@ except Exception as err:  # WorkflowError, or AttributeError when a section is n
     schema_error = err
 config_errors = config_problems(config) or ([str(schema_error)] if schema_error else [])
 if not config_errors:
-    config_errors = evaluation_problems(config) + training_problems(config) + tuning_problems(config)
+    config_errors = (evaluation_problems(config) + training_problems(config) + tuning_problems(config)
+                     + volume_problems(config))
 if config_errors:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
 
@@ -287,11 +290,11 @@ def render_digest(kind: str):
 # ---------------------------------------------------------------------------------------------
 EVALUATED_SCENES = evaluated_scene_ids(config)
 # Row id -> denoisers.evaluate.MethodSpec, resolved once (the ablation rows need the training models).
-METHOD_SPECS = {spec.id: spec for spec in method_specs(config)}
+METHOD_SPECS = {spec.id: spec for spec in method_specs(config) + volume_method_specs(config)}
 
 
 def method_spec(method_id: str):
-    """The evaluation row (configured or ablation row) of a job's {method} wildcard."""
+    """The evaluation row (configured, ablation or volume row) of a job's {method} wildcard."""
     if method_id not in METHOD_SPECS:
         raise WorkflowError(f"no evaluation row with id {method_id!r}; rows: {', '.join(METHOD_SPECS)}")
     return METHOD_SPECS[method_id]

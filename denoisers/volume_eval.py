@@ -1,0 +1,105 @@
+"""The volumetric clips' evaluation (Iglesias-Guitian et al. 2022; issue 14 §3): which rows run on which clips,
+and where their outputs go.
+
+* rule denoise_volume: ``python -m denoisers denoise`` (denoisers.denoise_job.denoise_clip, unchanged) on a
+  vol_test_* clip -> <out>/volumes/denoised/{method}/{scene}/spp{spp}/ (frames, timing.json, like denoise_clip);
+* rule evaluate_volume: ``python -m denoisers evaluate`` (per-frame metrics against the volpath reference)
+  -> <out>/volumes/metrics/{method}/{scene}/spp{spp}.csv + .json.
+
+The rows are ``volumes.rows`` (denoisers.evaluate.volume_method_specs), each at ``volumes.denoise_spp``
+(narrowed by its own ``spp``). A run is not run, with the reason, when its method reads a buffer the
+volumetric clips do not have (they hold scenegen.dataset.VOLUME_BUFFERS: no normals, no diffuse/specular
+split) or more sample layers than they hold (``volumes.spp``). Only the vol_test_* clips are evaluated; the
+vol_train_* clips are for training.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from denoisers.evaluate import Run, volume_method_specs
+from denoisers.training.models import resolve_method_params
+from scenegen.config import VOLUME_PREFIX, volume_scene_ids
+
+VOLUME_TEST_PREFIX = f"{VOLUME_PREFIX}test_"
+
+
+def volume_test_scene_ids(cfg: dict) -> list[str]:
+    """The evaluated volumetric clips: every vol_test_* id of the config, in config order."""
+    return [scene for scene in volume_scene_ids(cfg) if scene.startswith(VOLUME_TEST_PREFIX)]
+
+
+def volume_layers(cfg: dict) -> int:
+    """Sample layers of every buffer of a volumetric clip (volumes.spp, null = render.spp)."""
+    volumes = cfg["volumes"]
+    return int(volumes["spp"] if volumes.get("spp") is not None else cfg["render"]["spp"])
+
+
+def volume_problems(cfg: dict) -> list[str]:
+    """Constraints of ``volumes.rows`` the JSON schema cannot express: unique ids (also against the evaluation rows
+    and the ablation variants' rows), spp within ``volumes.denoise_spp``. Unknown methods are reported when the
+    runs are planned (registry.build names the registered ones); checking here would import every method."""
+    from denoisers.evaluate import method_specs
+
+    volumes = cfg.get("volumes") or {}
+    if not volumes.get("enabled", False):
+        return []
+    problems = []
+    rows = volumes.get("rows", [])
+    ids = [entry["id"] for entry in rows]
+    for row_id in sorted({i for i in ids if ids.count(i) > 1}):
+        problems.append(f"config key 'volumes.rows' has the id {row_id!r} more than once; allowed: unique ids")
+    for row_id in sorted(set(ids) & {spec.id for spec in method_specs(cfg)}):
+        problems.append(f"config key 'volumes.rows' has the id {row_id!r}, which an evaluation row (evaluation.methods "
+                        "or an ablation variant) already has; allowed: ids of their own (e.g. vol_<method>)")
+    denoise_spp = list(volumes.get("denoise_spp", []))
+    for index, entry in enumerate(rows):
+        outside = [spp for spp in entry.get("spp") or [] if spp not in denoise_spp]
+        if outside:
+            problems.append(f"config key 'volumes.rows[{index}].spp' (row {entry['id']!r}) = {entry['spp']!r} has "
+                            f"values {outside} that are not in 'volumes.denoise_spp' = {denoise_spp!r}")
+    return problems
+
+
+def volume_runs(cfg: dict) -> list[Run]:
+    """Every (volume row, spp), runnable or not (Run.not_run names the missing buffer or layers)."""
+    from denoisers import registry
+    from scenegen.dataset import PIXEL_BUFFERS, VOLUME_BUFFERS
+
+    layers = volume_layers(cfg)
+    runs = []
+    for spec in volume_method_specs(cfg):
+        method = registry.build(spec.method, resolve_method_params(cfg, spec.params), row=spec.id)
+        missing = [b for b in method.info.inputs if b not in VOLUME_BUFFERS]
+        missing += [b for b in method.info.pixel_inputs if b not in PIXEL_BUFFERS]
+        for spp in spec.spp:
+            needed = spp * method.samples_factor
+            if missing:
+                reason = (f"not run (reads buffer {missing[0]!r}, which volumetric clips do not have; they hold "
+                          f"{', '.join(VOLUME_BUFFERS)})")
+            elif needed > layers:
+                reason = f"not run (needs {needed} sample layers, the clips have {layers}; raise volumes.spp)"
+            else:
+                reason = ""
+            runs.append(Run(spec, spp, method.samples_factor, reason))
+    return runs
+
+
+def volume_target_problem(scenes: list[str], runs: list[Run], scene: str, method: str, spp: int) -> str:
+    """Why {method}/{scene}/spp{spp} is not a job of the volume evaluation ('' when it is)."""
+    if scene not in scenes:
+        return (f"scene {scene} is not an evaluated volumetric clip of this config; evaluated clips: "
+                f"{', '.join(scenes) or 'none'}")
+    allowed = sorted(run.spp for run in runs if run.spec.id == method and run.runnable)
+    if spp not in allowed:
+        rows = sorted({run.spec.id for run in runs if run.runnable})
+        return (f"row {method} runs on the volumetric clips at spp: {', '.join(map(str, allowed)) or 'none'} "
+                f"(volume rows that run: {', '.join(rows) or 'none'})")
+    return ""
+
+
+def volume_denoised_dir(results: Path | str, method_id: str, scene: str, spp: int) -> Path:
+    return Path(results) / "volumes" / "denoised" / method_id / scene / f"spp{spp}"
+
+
+def volume_metrics_csv(results: Path | str, method_id: str, scene: str, spp: int) -> Path:
+    return Path(results) / "volumes" / "metrics" / method_id / scene / f"spp{spp}.csv"

@@ -1,0 +1,43 @@
+# Helpers of workflow/rules/volumes.smk (input functions); included by the Snakefile after common.smk, whose
+# imports and helpers they use.
+# ---------------------------------------------------------------------------------------------
+# The volumetric clips' evaluation (denoisers.volume_eval): every runnable row of volumes.rows denoises every
+# vol_test_* clip at volumes.denoise_spp (rule denoise_volume) and is scored against the volpath reference
+# (evaluate_volume). Planned (importing torch) only when one of these jobs is part of the DAG.
+# ---------------------------------------------------------------------------------------------
+VOLUME_TEST_SCENES = [scene for scene in VOLUME_SCENES if scene.startswith("vol_test_")]
+_volume_runs = []
+
+
+def volume_run_list() -> list:
+    """Every denoisers.evaluate.Run of the volume rows, runnable or not (volume_eval.volume_runs)."""
+    if VOLUME_TEST_SCENES and not _volume_runs:
+        from denoisers.volume_eval import volume_runs
+
+        _volume_runs.append(volume_runs(config))
+    return _volume_runs[0] if _volume_runs else []
+
+
+def volume_metrics_files(wildcards=None) -> list[str]:
+    """Every metrics CSV of the volume evaluation (stage target `volumes`, build_report)."""
+    return [results_path(f"volumes/metrics/{run.spec.id}/{scene}/spp{run.spp}.csv")
+            for run in volume_run_list() if run.runnable for scene in VOLUME_TEST_SCENES]
+
+
+def volume_denoised_dirs(wildcards=None) -> list[str]:
+    return [results_path(f"volumes/denoised/{run.spec.id}/{scene}/spp{run.spp}")
+            for run in volume_run_list() if run.runnable for scene in VOLUME_TEST_SCENES]
+
+
+def check_volume_target(job_rule: str, pattern: str):
+    """Input function of denoise_volume / evaluate_volume: an evaluated clip, and a row and spp that run on it."""
+    from denoisers.volume_eval import volume_target_problem
+
+    def check(wildcards) -> list:
+        problem = volume_target_problem(VOLUME_TEST_SCENES, volume_run_list(), wildcards.scene, wildcards.method,
+                                        int(wildcards.spp))
+        if problem:
+            raise impossible_target(job_rule, pattern, wildcards, problem)
+        return []
+
+    return check
