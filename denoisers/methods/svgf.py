@@ -218,6 +218,16 @@ class SVGF(Denoiser):
         self._history = None
 
     # ---------------------------------------------------------------------------------------------
+    def _normals(self, frame: Frame, gbuffer_depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """((3, H, W) unit normal of the frame's samples, (3, H, W) unit G-buffer normal for reprojection)."""
+        normal = normalize_vectors(sanitize(frame.mean("normal")))
+        gbuffer_normal = normalize_vectors(sanitize(frame.pixel["gbuffer.normal"]))
+        # Environment pixels (G-buffer miss: depth 0, no normal) get the unit normal +z, so the
+        # reprojection tests keep exactly their environment taps: depth 0 is within the tolerance
+        # (0 x relative) of depth 0 only, and the normals agree.
+        gbuffer_normal[2:3].add_(torch.le(gbuffer_depth, 0.0).float())
+        return normal, gbuffer_normal
+
     def denoise(self, frame: Frame) -> torch.Tensor:
         check_sizes(self.info.name, {**frame.samples, **frame.pixel})
         radiance = sanitize(frame.samples["radiance"])                       # (S, 3, H, W), a fresh copy
@@ -228,14 +238,9 @@ class SVGF(Denoiser):
         sample_luminance = luminance(illumination_samples)                     # (S, 1, H, W)
         first_moment = sample_luminance.mean(dim=0)
         moments = torch.cat([first_moment, sample_luminance.square_().mean(dim=0)])
-        normal = normalize_vectors(sanitize(frame.mean("normal")))
         depth = sanitize(frame.mean("depth")).abs_()
         gbuffer_depth = sanitize(frame.pixel["gbuffer.depth"])
-        gbuffer_normal = normalize_vectors(sanitize(frame.pixel["gbuffer.normal"]))
-        # Environment pixels (G-buffer miss: depth 0, no normal) get the unit normal +z, so the
-        # reprojection tests keep exactly their environment taps: depth 0 is within the tolerance
-        # (0 x relative) of depth 0 only, and the normals agree.
-        gbuffer_normal[2:3].add_(torch.le(gbuffer_depth, 0.0).float())
+        normal, gbuffer_normal = self._normals(frame, gbuffer_depth)
 
         integrated, integrated_moments, length = self._accumulate(frame, illumination, moments, gbuffer_depth,
                                                                   gbuffer_normal)
