@@ -42,12 +42,12 @@ PARTS = {
     "C1.3": [("rae_loss_combined", 1, "rae_loss_spatial", 1, "ssim", "higher")],
     "C1.4": [("rae", 4, "noisy", 4, "rmse", "lower"), ("rae", 4, "noisy", 4, "ssim", "higher")],
     "C1.5": [("rae", 1, "rae_per_frame", 1, "trmae", "lower")],
-    "C4.1": [("wrls", 2, "svgf", 2, "psnr", "higher"), ("wrls", 2, "svgf", 2, "trmae", "lower")],
+    "C4.1s": [("wrls", 2, "svgf", 2, "psnr", "higher"), ("wrls", 2, "svgf", 2, "trmae", "lower")],
 }
 #: C4.4 is a speed part: per-round time ratios wrls / rae of the timing job; d_i > 0 (as claimed) gives a
 #: ratio below 1 in round i.
 SPEED_PARTS = {"C4.4": (("wrls", 2), ("rae", 2))}
-DECIDED = ("C1.1", "C1.2", "C1.3", "C1.4", "C1.5", "C4.1", "C4.2", "C4.3", "C4.4")
+DECIDED = ("C1.1", "C1.2", "C1.3", "C1.4", "C1.5", "C4.1s", "C4.2", "C4.3s", "C4.4")
 
 
 def claims_config(spp: tuple[int, ...] = (1, 2, 4)) -> dict:
@@ -123,7 +123,7 @@ def results_for(claim: str, d: list[float], cfg: dict | None = None, **kwargs) -
             table.shift((a, a_spp), (b, b_spp), metric, claimed, d)
     elif claim == "C4.2":   # spiked PSNR wrls - rls = d; clean PSNR equal, so drop(wrls) - drop(rls) = -d
         spiked = {"wrls": [20.0 + di for di in d], "rls": [20.0] * len(d)}
-    elif claim == "C4.3":   # wrls above noisy by d at every spp; RAE gain at 4 spp smaller than at 1 spp by d
+    elif claim == "C4.3s":   # wrls above noisy by d at every spp; RAE gain at 4 spp smaller than at 1 spp by d
         for s in cfg["evaluation"]["spp"]:
             table.shift(("wrls", s), ("noisy", s), "psnr", "higher", d)
         table.values[("rae", 1)]["psnr"] = [v + 5.0 for v in table.values[("noisy", 1)]["psnr"]]
@@ -151,7 +151,7 @@ def test_spanning_case_is_what_the_rule_calls_inconclusive() -> None:
         assert np.mean(values) > 0 and (low > 0) == excludes
 
 
-@pytest.mark.parametrize("claim", ["C1.1", "C1.4", "C4.1"])
+@pytest.mark.parametrize("claim", ["C1.1", "C1.4", "C4.1s"])
 def test_a_claim_needs_every_part(claim: str) -> None:
     cfg = claims_config()
     (a, a_spp, b, b_spp, m1, c1), (_, _, _, _, m2, c2) = PARTS[claim]
@@ -166,16 +166,16 @@ def test_a_claim_needs_every_part(claim: str) -> None:
 
 def test_c43_needs_both_halves() -> None:
     """wRLS above its input at every spp, but RAE's gain does not shrink: contradicted."""
-    results = results_for("C4.3", CLEAR)
+    results = results_for("C4.3s", CLEAR)
     noisy = results.per_scene[(results.per_scene.method_id == "noisy") & (results.per_scene.spp == 4)]["psnr"]
     mask = (results.per_scene.method_id == "rae") & (results.per_scene.spp == 4)
     results.per_scene.loc[mask, "psnr"] = noisy.to_numpy() + 5.0 + np.array(CLEAR)
-    decision = evaluate_claim(results, CLAIMS["C4.3"])
+    decision = evaluate_claim(results, CLAIMS["C4.3s"])
     assert [p.outcome for p in decision.parts] == [REPRODUCED] * 3 + [CONTRADICTED]
     assert decision.verdict == CONTRADICTED
 
 
-@pytest.mark.parametrize("claim, spp, stated", [("C1.1", (2, 4), 1), ("C1.4", (1, 2), 4), ("C4.1", (1, 4), 2),
+@pytest.mark.parametrize("claim, spp, stated", [("C1.1", (2, 4), 1), ("C1.4", (1, 2), 4), ("C4.1s", (1, 4), 2),
                                                 ("C4.4", (1, 4), 2), ("C1.2", (2, 4), 1)])
 def test_a_claim_at_an_spp_not_evaluated_is_not_run(claim: str, spp: tuple[int, ...], stated: int) -> None:
     cfg = claims_config(spp)
@@ -188,12 +188,12 @@ def test_a_claim_at_an_spp_not_evaluated_is_not_run(claim: str, spp: tuple[int, 
 
 @pytest.mark.parametrize("claim, row, named", [("C1.1", ("eaw", 1), "eaw"), ("C1.5", ("rae_per_frame", 1), "reset"),
                                                ("C1.2", ("rae_inputs_all", 1), "rae_inputs_all"),
-                                               ("C4.1", ("svgf", 2), "svgf"), ("C4.3", ("rae", 2), "rae")])
+                                               ("C4.1s", ("svgf", 2), "svgf"), ("C4.3s", ("rae", 2), "rae")])
 def test_a_missing_row_makes_the_claim_not_run(claim: str, row: tuple[str, int], named: str) -> None:
     cfg = claims_config()
     table = Table(cfg, 4)
     spec = next(s for s in evaluate.method_specs(cfg) if s.id == row[0])
-    whole_row = tuple((spec.id, s) for s in spec.spp) if named != spec.id or claim != "C4.3" else (row,)
+    whole_row = tuple((spec.id, s) for s in spec.spp) if named != spec.id or claim != "C4.3s" else (row,)
     decision = evaluate_claim(build(cfg, table, drop=whole_row), CLAIMS[claim])
     assert decision.verdict == NOT_RUN and named in decision.not_run, decision.not_run
 

@@ -303,11 +303,11 @@ def test_report_has_tables_figures_and_claims(pipeline: PipelineRun) -> None:
     assert list(claims.index) == [claim.id for claim in all_claims()]
     # The smoke config evaluates one test scene and the example XML scene at 1, 2 and 4 spp (most rows at 1
     # and 2 only): every claim whose rows exist is decided from n = 2 paired differences, fewer than the 3 units
-    # a verdict needs (inconclusive); C4.3 needs wRLS at 4 spp, which the smoke config does not run.
+    # a verdict needs (inconclusive); C4.3s needs wRLS at 4 spp, which the smoke config does not run.
     assert evaluated_scene_ids(pipeline.cfg) == ["test_000", "custom_spheres_room"]
     assert pipeline.cfg["evaluation"]["spp"] == [1, 2, 4]
     decided = ("C1.1", "C1.2", "C1.3", "C1.4", "C1.5", "C2.1", "C2.2", "C2.3", "C2.4", "C2.5", "C3.1", "C3.2",
-               "C3.3", "C3.4", "C3.5", "C4.1", "C4.2")
+               "C3.3", "C3.4", "C3.5", "C4.1s", "C4.2")
     for claim in decided:
         assert claims.loc[claim, "verdict"] == INCONCLUSIVE, (claim, claims.loc[claim].to_dict())
         assert claims.loc[claim, "n"] == 2, claim
@@ -318,7 +318,14 @@ def test_report_has_tables_figures_and_claims(pipeline: PipelineRun) -> None:
     ratios = np.divide(job.row("wrls", 2)["pass_ms_per_frame"], job.row("rae", 2)["pass_ms_per_frame"])
     expected = ("reproduced" if (ratios < 1).all() else "contradicted" if (ratios > 1).all() else INCONCLUSIVE)
     assert claims.loc["C4.4", "verdict"] == expected and claims.loc["C4.4", "n"] == len(ratios) == 3
-    assert claims.loc["C4.3", "verdict"] == NOT_RUN and "no results at 4 spp for: wrls" in claims.loc["C4.3", "note"]
+    assert claims.loc["C4.3s", "verdict"] == NOT_RUN and "no results at 4 spp for: wrls" in claims.loc["C4.3s", "note"]
+    # The one volumetric clip of the smoke config: C4.1 is decided on it (n = 1: inconclusive); C4.3 needs two
+    # denoised spp and a volume RAE row.
+    assert claims.loc["C4.1", "verdict"] == INCONCLUSIVE and claims.loc["C4.1", "n"] == 1
+    assert claims.loc["C4.3", "verdict"] == NOT_RUN
+    volumes = pd.read_csv(pipeline.results / "tables" / "iglesias_volumes.csv")
+    assert list(volumes["row"]) == ["vol_noisy", "vol_wrls", "vol_svgf", "vol_oidn_color"]
+    assert volumes["note"].fillna("").eq("").all()
     # The AFN full model stores its lambda maps; the Isik section shows them (Fig. 5 layout).
     with np.load(pipeline.results / "denoised" / "afn" / "test_000" / "spp2" / "maps.npz") as maps:
         assert maps["lambda"].shape[0] == len(maps["frames"]) and (maps["lambda"][0] == 0).all()

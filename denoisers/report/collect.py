@@ -34,6 +34,7 @@ from denoisers.evaluate import (
 )
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
 from denoisers.report.stats import pooled_psnr
+from denoisers.report.volumes import VolumeResults, collect_volumes
 from denoisers.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timed_runs, timing_scene, timing_settings
 from denoisers.training.models import ModelSpec, model_dir, model_specs
 from denoisers.training.speed import TRAINING_SPEED_FILE, read_training_speed, speed_models
@@ -158,6 +159,7 @@ class Results:
     digests: DigestLedger | None = None       # settings digests of the outputs read
     timing: TimingJob | None = None           # the timing job's record (None: disabled or not run)
     training_speed: dict | None = None        # the training-speed job's record (None: disabled or not run)
+    volumes: VolumeResults | None = None      # the volume rows on the vol_test_* clips (None: no such clips)
 
     def __post_init__(self) -> None:
         if self.results_dir is None:
@@ -334,9 +336,10 @@ def collect(cfg: dict, results_dir: Path | None = None) -> Results:
     if speed_models(cfg) and speed_path.is_file():
         training_speed = read_training_speed(speed_path)
         ledger.add(speed_path, training_speed.get(DIGEST_KEY), lineage.training_speed())
+    volumes = collect_volumes(cfg, results_dir, ledger)
     ledger.raise_if_mixed(cfg, results_dir)
     return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir, models,
-                   external_manifests(results_dir, scenes), ledger, timing, training_speed)
+                   external_manifests(results_dir, scenes), ledger, timing, training_speed, volumes)
 
 
 def external_manifests(results_dir: Path, scenes: list[str]) -> dict[str, dict | None]:

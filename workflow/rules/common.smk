@@ -388,7 +388,8 @@ def render_dir(wildcards) -> str:
 def report_input(wildcards) -> dict[str, list[str]]:
     """Named inputs of build_report: every metrics CSV, denoised directory (timing, grid images),
     robustness output, the evaluated scenes' references (grids), the external scenes' manifests
-    (their substitutions) and the records of the timing and training-speed jobs."""
+    (their substitutions), the records of the timing and training-speed jobs, and the volume rows' metrics,
+    denoised clips and references (the Iglesias-Guitian section)."""
     reference = [results_path(f"renders/{scene}/reference/chunk_{c:03d}") for scene in EVALUATED_SCENES
                  for c in range(chunk_count(config, scene))]
     external = [results_path(f"scenes/{scene}") for scene in EVALUATED_SCENES if scene.startswith("custom_")]
@@ -397,7 +398,8 @@ def report_input(wildcards) -> dict[str, list[str]]:
     return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
             "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning,
             "timing": timing_outputs(), "training_speed": training_speed_outputs(),
-            "atlas": ATLAS_OUTPUTS["markdown"]}
+            "atlas": ATLAS_OUTPUTS["markdown"], "volumes": volume_metrics_files() + volume_denoised_dirs(),
+            "volume_references": [results_path(f"renders/{scene}/reference/chunk_000") for scene in VOLUME_TEST_SCENES]}
 
 
 def denoise_digest(wildcards) -> str:
