@@ -1,0 +1,180 @@
+"""The Iglesias-Guitian comparison on the volumetric clips: volume rows and their not-run reasons
+(denoisers.volume_eval), collecting their metrics with digest checks (denoisers.report.volumes), the per-scenario
+table and C4.1 / C4.3 decided over the clips (denoisers.reproductions.iglesias2022)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from denoisers.evaluate import TIMING_FILE, method_spec, volume_method_specs
+from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage, SettingsMismatchError
+from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED
+from denoisers.report.volumes import VolumeResults, collect_volumes
+from denoisers.reproductions import iglesias2022
+from denoisers.volume_eval import (volume_denoised_dir, volume_metrics_csv, volume_problems, volume_runs,
+                                   volume_test_scene_ids)
+from scenegen.config import load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+CLEAR = [1.0, 1.2, 0.9, 1.1]
+AGAINST = [-1.0, -1.2, -0.9, -1.1]
+SPANNING = [1.0, -1.0, 1.5, -0.5]
+
+
+def volume_config(n_test: int = 2, rows: list[dict] | None = None, denoise_spp: list[int] | None = None) -> dict:
+    cfg = load_config(ROOT / "config/smoke.yaml")
+    cfg["volumes"].update(enabled=True, scenarios=["camera", "light"], n_test=n_test, spp=4,
+                          denoise_spp=denoise_spp or [1, 2, 4])
+    cfg["volumes"]["rows"] = rows if rows is not None else [
+        {"id": "vol_noisy", "method": "noisy"}, {"id": "vol_wrls", "method": "wrls"},
+        {"id": "vol_svgf", "method": "svgf_volume"}, {"id": "vol_rae", "method": "rae", "params": {"model": "rae"}}]
+    return cfg
+
+
+def test_volume_rows_are_their_own_and_runs_say_why_not() -> None:
+    cfg = volume_config(rows=[{"id": "vol_noisy", "method": "noisy"}, {"id": "vol_svgf_surface", "method": "svgf"},
+                              {"id": "vol_wrls", "method": "wrls", "spp": [2]}], denoise_spp=[2, 8])
+    assert [spec.id for spec in volume_method_specs(cfg)] == ["vol_noisy", "vol_svgf_surface", "vol_wrls"]
+    assert method_spec(cfg, "vol_wrls").role == "volume" and method_spec(cfg, "vol_wrls").spp == (2,)
+    runs = {(run.spec.id, run.spp): run.not_run for run in volume_runs(cfg)}
+    assert runs[("vol_noisy", 2)] == "" and runs[("vol_wrls", 2)] == ""
+    assert "'normal'" in runs[("vol_svgf_surface", 2)]                   # surface SVGF reads normals
+    assert "needs 8 sample layers, the clips have 4" in runs[("vol_noisy", 8)]
+    assert ("vol_wrls", 8) not in runs
+    assert volume_test_scene_ids(cfg) == ["vol_test_camera_000", "vol_test_camera_001", "vol_test_light_000",
+                                          "vol_test_light_001"]
+
+
+def test_volume_row_ids_must_be_unique_and_their_spp_denoised() -> None:
+    cfg = volume_config(rows=[{"id": "noisy", "method": "noisy"}, {"id": "vol_a", "method": "wrls"},
+                              {"id": "vol_a", "method": "rls", "spp": [3]}])
+    problems = "\n".join(volume_problems(cfg))
+    assert "'noisy', which an evaluation row" in problems
+    assert "'vol_a' more than once" in problems
+    assert "'volumes.rows[2].spp'" in problems and "[3]" in problems
+
+
+# --- decisions over the clips ---------------------------------------------------------------------------------
+
+def synthetic(cfg: dict, diffs: list[float], rows: dict[tuple[str, int], list[float]] | None = None,
+              ran: set[str] | None = None) -> SimpleNamespace:
+    """Results with volumes whose per-clip PSNR of wrls is noisy's + 3 + diffs, svgf's = wrls's - diffs, and TRMAE
+    of wrls = svgf's - diffs (so every C4.1 part has the paired differences ``diffs`` on the claimed side)."""
+    scenes = [f"vol_test_s_{i:03d}" for i in range(len(diffs))]
+    base = np.linspace(20.0, 26.0, len(diffs))
+    per_scene = []
+    values = rows or {}
+    for spp in cfg["volumes"]["denoise_spp"]:
+        table = {"vol_noisy": base + spp, "vol_wrls": base + spp + 3.0 + np.array(diffs)}
+        table["vol_svgf"] = table["vol_wrls"] - np.array(diffs)
+        for (row, s), v in values.items():
+            if s == spp:
+                table[row] = np.asarray(v)
+        for row, psnr in table.items():
+            trmae = 1.0 - (np.array(diffs) if row == "vol_wrls" else 0.0)
+            for scene, p, t in zip(scenes, psnr, np.broadcast_to(trmae, psnr.shape)):
+                per_scene.append({"method_id": row, "spp": spp, "scene": scene, "scenario": "camera", "psnr": p,
+                                  "trmae": t})
+    specs = volume_method_specs(cfg)
+    ran = ran if ran is not None else {spec.id for spec in specs}
+    runs = [{"id": spec.id, "method": spec.method, "spp": spp, "status": "ran" if spec.id in ran else "not run",
+             "reason": "" if spec.id in ran else "not run (removed by the test)"}
+            for spec in specs for spp in spec.spp]
+    volumes = VolumeResults(specs, scenes, {scene: "camera" for scene in scenes}, runs, pd.DataFrame(),
+                            pd.DataFrame(per_scene))
+    return SimpleNamespace(cfg=cfg, volumes=volumes)
+
+
+@pytest.mark.parametrize("diffs, expected", [(CLEAR, REPRODUCED), (AGAINST, CONTRADICTED), (SPANNING, INCONCLUSIVE),
+                                             (CLEAR[:2], INCONCLUSIVE)])
+def test_c41_is_decided_over_the_volumetric_clips(diffs, expected) -> None:
+    decision = iglesias2022.decide_c41_volumes(synthetic(volume_config(), diffs))
+    assert decision.verdict == expected
+    assert [part.quantity for part in decision.parts] == ["psnr", "trmae"]
+    assert all(part.n == len(diffs) for part in decision.parts)
+    np.testing.assert_allclose(decision.parts[0].diffs, diffs)
+    np.testing.assert_allclose(decision.parts[1].diffs, -np.array(diffs))
+    assert "volumetric clips" in decision.note
+
+
+def test_c41_without_a_volume_svgf_row_or_without_volumes_is_not_run() -> None:
+    cfg = volume_config()
+    decision = iglesias2022.decide_c41_volumes(synthetic(cfg, CLEAR, ran={"vol_noisy", "vol_wrls", "vol_rae"}))
+    assert decision.verdict == NOT_RUN and "svgf_volume" in decision.not_run and "removed by the test" in decision.not_run
+    decision = iglesias2022.decide_c41_volumes(SimpleNamespace(cfg=cfg, volumes=None))
+    assert decision.verdict == NOT_RUN and "no volumetric clips" in decision.not_run
+
+
+def test_c43_needs_a_volume_rae_and_then_both_halves() -> None:
+    cfg = volume_config()
+    noisy = {s: np.linspace(20.0, 26.0, 4) + s for s in (1, 2, 4)}
+    # RAE 5 dB above the input at 1 spp, 5 - d at 4 spp: its gain shrinks by d.
+    rae = {("vol_rae", 1): noisy[1] + 5.0, ("vol_rae", 2): noisy[2] + 5.0,
+           ("vol_rae", 4): noisy[4] + 5.0 - np.array(CLEAR)}
+    decision = iglesias2022.decide_c43_volumes(synthetic(cfg, CLEAR, rae))
+    assert decision.verdict == REPRODUCED and len(decision.parts) == 4
+    growing = {key: noisy[key[1]] + (5.0 if key[1] != 4 else 6.0) for key in rae}
+    assert iglesias2022.decide_c43_volumes(synthetic(cfg, CLEAR, growing)).verdict == CONTRADICTED
+    no_rae = volume_config(rows=[{"id": "vol_noisy", "method": "noisy"}, {"id": "vol_wrls", "method": "wrls"}])
+    decision = iglesias2022.decide_c43_volumes(synthetic(no_rae, CLEAR))
+    assert decision.verdict == NOT_RUN and "colour-only" in decision.not_run
+
+
+def test_scenario_table_lists_rows_that_did_not_run_with_the_reason() -> None:
+    res = synthetic(volume_config(), CLEAR, ran={"vol_noisy", "vol_wrls", "vol_svgf"})
+    for column in ("ssim", "flip", "tpsnr"):
+        res.volumes.per_scene[column] = 0.5
+    table = iglesias2022.volume_scenario_table(res).set_index("row")
+    assert table.loc["vol_rae", "note"] == "not run (removed by the test)"
+    assert table.loc["vol_wrls", "camera: PSNR (dB, frame mean)"] != ""
+    assert table.loc["vol_wrls", "note"] == ""
+
+
+# --- collecting from files -----------------------------------------------------------------------------------
+
+def _write_outputs(cfg: dict, root: Path, digest_of=None) -> None:
+    lineage = Lineage(cfg)
+    for run in volume_runs(cfg):
+        if not run.runnable:
+            continue
+        for scene in volume_test_scene_ids(cfg):
+            csv = volume_metrics_csv(root, run.spec.id, scene, run.spp)
+            csv.parent.mkdir(parents=True, exist_ok=True)
+            pd.DataFrame({"frame": [0, 1], "psnr": [20.0 + run.spp, 22.0], "ssim": 0.5, "rmse": 0.1, "relmse": 0.1,
+                          "smape": 0.1, "flip": 0.1, "tpsnr": [np.nan, 20.0], "trmae": [np.nan, 1.0],
+                          "camera_cut": False, "nonfinite_output": 0, "reference_psnr_halves": 40.0}).to_csv(csv, index=False)
+            metrics = lineage.metrics(run.spec, scene, run.spp)
+            csv.with_suffix(".json").write_text(json.dumps({DIGEST_KEY: digest_of(metrics) if digest_of else metrics}))
+            denoised = volume_denoised_dir(root, run.spec.id, scene, run.spp)
+            denoised.mkdir(parents=True, exist_ok=True)
+            (denoised / TIMING_FILE).write_text(json.dumps({DIGEST_KEY: lineage.denoised(run.spec, scene, run.spp)}))
+
+
+def test_collect_reads_every_clip_and_refuses_other_settings(tmp_path) -> None:
+    cfg = volume_config(n_test=1, rows=[{"id": "vol_noisy", "method": "noisy"}, {"id": "vol_wrls", "method": "wrls"}],
+                        denoise_spp=[2])
+    _write_outputs(cfg, tmp_path)
+    ledger = DigestLedger()
+    volumes = collect_volumes(cfg, tmp_path, ledger)
+    ledger.raise_if_mixed(cfg, tmp_path)
+    assert volumes.scenes == ["vol_test_camera_000", "vol_test_light_000"]
+    assert volumes.ran("vol_wrls", 2) and volumes.row_of("wrls") == "vol_wrls"
+    assert set(volumes.per_scene.scenario) == {"camera", "light"}
+    assert volumes.scene_values("vol_noisy", 2, "psnr").tolist() == [22.0, 22.0]     # frames 22 and 22
+    # A missing clip: the row is not run, naming it.
+    volume_metrics_csv(tmp_path, "vol_wrls", "vol_test_light_000", 2).unlink()
+    volumes = collect_volumes(cfg, tmp_path, DigestLedger())
+    assert not volumes.ran("vol_wrls", 2) and "vol_test_light_000" in volumes.reason("vol_wrls", 2)
+    # Outputs of other settings are never combined.
+    _write_outputs(cfg, tmp_path, digest_of=lambda digest: "0" * len(digest))
+    ledger = DigestLedger()
+    collect_volumes(cfg, tmp_path, ledger)
+    with pytest.raises(SettingsMismatchError):
+        ledger.raise_if_mixed(cfg, tmp_path)
+    cfg["volumes"]["enabled"] = False
+    assert collect_volumes(cfg, tmp_path, DigestLedger()) is None
