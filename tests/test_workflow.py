@@ -23,14 +23,14 @@ from denoisers.evaluate import ABLATION_ROLE, method_specs, plan_runs, robustnes
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.training.models import method_model, model_specs, training_split
-from scenegen.config import chunk_count, load_config, scene_ids, stability_scene_ids
+from scenegen.config import chunk_count, load_config, scene_ids, stability_scene_ids, volume_scene_ids
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
              "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods", "time_training",
-             "derive_masks", "denoise_scenario", "score_scenario", "build_atlas")
-STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report", "stability")
+             "derive_masks", "denoise_scenario", "score_scenario", "build_atlas", "denoise_volume", "evaluate_volume")
+STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report", "stability", "volumes")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
 JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
@@ -145,8 +145,17 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     stability = {**renders(stab + stab_train, stab + stab_train), "derive_masks": len(stab),
                  "denoise_scenario": len(stab) * len(stab_runs), "score_scenario": len(stab) * len(stab_runs),
                  "build_atlas": 1 if stab else 0, "train_denoiser": stab_models, "tune_method": len(stab_tuned)}
+    # The volumetric clips (target `volumes`, also part of `report` and `all`): their scenes and chunks (one per
+    # clip), and every runnable (volume row, spp) denoised and scored on every vol_test_* clip.
+    from denoisers.volume_eval import volume_runs, volume_test_scene_ids
+
+    vol, vol_test = volume_scene_ids(cfg), volume_test_scene_ids(cfg)
+    vol_runs = sum(run.runnable for run in volume_runs(cfg)) if vol_test else 0
+    volumes = {**renders(vol, vol), "denoise_volume": len(vol_test) * vol_runs,
+               "evaluate_volume": len(vol_test) * vol_runs}
     jobs = {
         "scenes": {"generate_scene": len(scenes)},
+        "volumes": volumes,
         "stability": stability,
         "renders": renders(scenes, scenes),
         "train": {**renders(train_scenes if all_models else [], train_scenes if all_models else []),
@@ -168,6 +177,8 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
                 **renders(list({*base, *stab, *stab_train}), list({*base, *stab, *stab_train})),
                 "train_denoiser": max(jobs.get("train_denoiser", 0), stab_models),
                 "tune_method": len(evaluated_tuned | stab_tuned)}
+        # The volume jobs: their own scenes (no models, tuning or shared scenes).
+        jobs = {rule: jobs.get(rule, 0) + volumes.get(rule, 0) for rule in {**jobs, **volumes}}
     return {rule: count for rule, count in {**jobs, target: 1}.items() if count}
 
 
@@ -394,7 +405,11 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     assert resolved["evaluation"] == cfg["evaluation"]
     assert any("render-noisy" in command and "--chunk 1 " in command for command in scenegen)
 
-    denoise = [line for line in denoisers if "python -m denoisers denoise " in line and "/stability/" not in line]
+    volume = [line for line in denoisers if "python -m denoisers denoise " in line and "/volumes/denoised/" in line]
+    assert len(volume) == jobs["denoise_volume"]
+    assert all(re.search(r"--scene vol_test_[a-z_]+_\d{3} ", command) for command in volume)
+    denoise = [line for line in denoisers if "python -m denoisers denoise " in line and "/stability/" not in line
+               and "/volumes/" not in line]
     planned = {(run.spec.id, run.spp) for run in plan_runs(cfg) if run.runnable}
     ran = {(re.search(r"--method-id (\S+)", c).group(1), int(re.search(r"--spp (\d+)", c).group(1))) for c in denoise}
     assert ran == planned
@@ -591,7 +606,8 @@ def test_slurm_profile_sets_resources_for_every_rule() -> None:
     assert {"slurm_partition", "slurm_account"} <= set(profile["default-resources"])
     assert set(profile["set-resources"]) == rule_names() == set(JOB_RULES)
     config_threads = config_threaded_rules()
-    assert config_threads == {"denoise_clip", "denoise_scenario", "robustness_clip", "train_denoiser", "tune_method"}
+    assert config_threads == {"denoise_clip", "denoise_scenario", "denoise_volume", "robustness_clip", "train_denoiser",
+                              "tune_method"}
     for rule, resources in profile["set-resources"].items():
         assert "mem_mb" in resources, rule
         # train_denoiser's runtime comes from the model's budget (the rule), every other rule's from here.
