@@ -71,7 +71,8 @@ def train_digest(cfg: dict, model_id: str) -> str:
     """Rule train_denoiser: the model's settings and what its training data depend on."""
     from denoisers.training.job import data_settings
 
-    return settings_digest(model_spec(cfg, model_id), data_settings(cfg))
+    spec = model_spec(cfg, model_id)
+    return settings_digest(spec, data_settings(cfg, spec))
 
 
 def tuning_digest(cfg: dict, method: str) -> str:

@@ -329,6 +329,19 @@ def volume_clip_spec(cfg: dict[str, Any], scene_id: str) -> tuple[str, str, int]
     return split, scenario, int(index)
 
 
+def volume_training_split(cfg: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """(clips that train, validation clips) of the volumetric training clips: vol_train_* ordered index-major
+    (index 0 of every scenario, then index 1, ...), the last ``training.validation_scenes`` (default 2) held out,
+    so the held-out clips cover the scenarios."""
+    volumes = cfg.get("volumes") or {}
+    if not volumes.get("enabled", False):
+        return [], []
+    ids = [f"{VOLUME_PREFIX}train_{scenario}_{index:03d}" for index in range(int(volumes.get("n_train", 0)))
+           for scenario in volumes.get("scenarios", [])]
+    held_out = min(int((cfg.get("training") or {}).get("validation_scenes", 2)), len(ids))
+    return ids[:len(ids) - held_out], ids[len(ids) - held_out:]
+
+
 def scene_render_config(cfg: dict[str, Any], scene_id: str) -> dict[str, Any]:
     """The ``render`` settings a scene is rendered with: ``render`` itself, except for the stability scenes,
     whose width, height, spp and reference_spp come from the ``stability`` section (spp null = render.spp),

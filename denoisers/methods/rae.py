@@ -7,7 +7,8 @@ from pathlib import Path
 import torch
 
 from denoisers.filters import check_sizes
-from denoisers.nets.rae import INPUT_BUFFERS, RecurrentAutoencoder, State, decode_color, prepare_inputs, world_to_view
+from denoisers.nets.rae import (COLOR_INPUT_BUFFERS, INPUT_BUFFERS, RecurrentAutoencoder, State, buffer_means,
+                                check_color_only, decode_color, prepare_inputs, world_to_view)
 from denoisers.registry import Denoiser, Frame, register
 
 
@@ -72,6 +73,8 @@ class RecurrentAutoencoderDenoiser(Denoiser):
             model = load_model(self.checkpoint)
             if not isinstance(model, RecurrentAutoencoder):
                 raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not an RAE")
+            if self.info.inputs != INPUT_BUFFERS:
+                check_color_only(model.config, f"method {self.info.name!r} ({self.checkpoint})")
             self._model = _for_inference(model)
         return self._model
 
@@ -87,9 +90,16 @@ class RecurrentAutoencoderDenoiser(Denoiser):
         model = self.model
         if self.reset_state_every_frame or frame.camera_cut:
             self._state = None
-        means = {buffer: frame.mean(buffer) for buffer in INPUT_BUFFERS}
+        means = buffer_means(frame.samples, self.info.inputs, sample_dim=0)
         x, divisor = prepare_inputs(model.config, means["radiance"], means["albedo"], means["normal"],
                                     means["depth"], means["roughness"], world_to_view(camera["to_world"]))
         out, self._state = model.inference_step(x[None], self._state)
         return torch.nan_to_num(decode_color(out[0], divisor, model.config.exponent), nan=0.0, posinf=0.0,
                                 neginf=0.0)
+
+
+@register("rae_color", inputs=COLOR_INPUT_BUFFERS, trainable=True, temporal=True,
+          description="the RAE on colour alone (trained colour-only, e.g. on volumetric clips; Iglesias-Guitian 2022)")
+class ColorRecurrentAutoencoderDenoiser(RecurrentAutoencoderDenoiser):
+    """The RAE reading the noisy colour alone: its model must be colour-only (net demodulate false, features []),
+    as Iglesias-Guitian et al. 2022 retrain it for volumes, whose clips have no normals. Parameters as ``rae``."""

@@ -337,6 +337,29 @@ def prepare_inputs(config: RAEConfig, radiance: torch.Tensor, albedo: torch.Tens
 # ----------------------------------------------------------------------------------- training task
 #: Per-sample buffers the RAE reads.
 INPUT_BUFFERS: tuple[str, ...] = ("radiance", "albedo", "normal", "depth", "roughness")
+#: Per-sample buffers of the colour-only RAE (``rae_color``; Iglesias-Guitian et al. 2022 train it on volumes).
+COLOR_INPUT_BUFFERS: tuple[str, ...] = ("radiance",)
+_ZERO_CHANNELS = {"albedo": 3, "normal": 3, "depth": 1, "roughness": 1}
+
+
+def check_color_only(config: RAEConfig, where: str) -> None:
+    """ValueError unless ``config`` reads colour alone (no demodulation, no auxiliary features)."""
+    if config.demodulate or config.features:
+        raise ValueError(f"{where}: a colour-only RAE needs net {{demodulate: false, features: []}}, got demodulate "
+                         f"{config.demodulate}, features {list(config.features)}")
+
+
+def buffer_means(samples: Mapping[str, torch.Tensor], buffers: tuple[str, ...], sample_dim: int
+                 ) -> dict[str, torch.Tensor]:
+    """Per-pixel means over ``sample_dim`` of every RAE input buffer; buffers outside ``buffers`` (the colour-only
+    RAE's) are zeros of their channel count, which a colour-only config never reads."""
+    means = {b: samples[b].mean(dim=sample_dim) for b in buffers}
+    radiance = means["radiance"]
+    for name, channels in _ZERO_CHANNELS.items():
+        if name not in means:
+            shape = (*radiance.shape[:-3], channels, *radiance.shape[-2:])
+            means[name] = torch.zeros(shape, dtype=radiance.dtype)
+    return means
 
 
 @dataclass
@@ -353,6 +376,11 @@ class RAETask:
     loss_weights: dict[str, float] = field(default_factory=lambda: dict(RAE_LOSS_WEIGHTS))
 
     name: str = "rae"
+    buffers: tuple[str, ...] = INPUT_BUFFERS        # COLOR_INPUT_BUFFERS for the colour-only RAE
+
+    def __post_init__(self) -> None:
+        if self.buffers != INPUT_BUFFERS:
+            check_color_only(self.config, self.name)
 
     def build_model(self) -> RecurrentAutoencoder:
         return RecurrentAutoencoder(self.config)
@@ -366,7 +394,7 @@ class RAETask:
 
     def inputs(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """(x (N, T, in_channels, H, W), divisor (N, T, 3, H, W)) of a batch."""
-        means = {b: batch[b].mean(dim=2) for b in INPUT_BUFFERS}
+        means = buffer_means(batch, self.buffers, sample_dim=2)
         return prepare_inputs(self.config, means["radiance"], means["albedo"], means["normal"], means["depth"],
                               means["roughness"], batch["world_to_view"])
 

@@ -35,11 +35,11 @@ log = logging.getLogger(__name__)
 WORK_DIR_NAME = ".work"
 
 
-def data_settings(cfg: dict) -> dict[str, Any]:
-    """Config values the rendered training data depend on (changing them invalidates checkpoints): the
-    settings digests of the training and validation scenes' renders, not the whole scenes/render sections,
-    so that adding a test scene (scenes.n_test) or an external scene retrains nothing."""
-    split = training_split(cfg)
+def data_settings(cfg: dict, spec: ModelSpec | None = None) -> dict[str, Any]:
+    """Config values the rendered training data of model ``spec`` depend on (changing them invalidates
+    checkpoints): the settings digests of its training and validation scenes' renders, not the whole
+    scenes/render sections, so that adding a test scene (scenes.n_test) or an external scene retrains nothing."""
+    split = training_split(cfg, spec)
     renders = {scene: [render_digest(cfg, scene, kind) for kind in ("noisy", "reference")] for scene in sum(split, [])}
     return {"renders": renders, "split": split, "validation_sequences": cfg["training"]["validation_sequences"],
             "validate_every": cfg["training"]["validate_every"],
@@ -54,7 +54,8 @@ def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
     from denoisers.training.precision import resolve_compute
 
     unbudgeted = ModelSpec(**{**spec.__dict__, "budget": {}})
-    digest = settings_digest(unbudgeted, {**data_settings(cfg), "compute": resolve_compute(spec.compute).fingerprint()})
+    digest = settings_digest(unbudgeted, {**data_settings(cfg, spec),
+                                          "compute": resolve_compute(spec.compute).fingerprint()})
     return Path(models_root) / WORK_DIR_NAME / f"{spec.id}-{digest[:12]}"
 
 
@@ -110,7 +111,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
     spec = model_spec(cfg, model_id)
     builder = task_builder(spec.method)
     task = builder.build(spec)
-    train_scenes, validation_scenes = training_split(cfg)
+    train_scenes, validation_scenes = training_split(cfg, spec)
     if not train_scenes or not validation_scenes:
         raise ValueError(f"model {model_id!r}: need training and validation scenes, got {train_scenes} / "
                          f"{validation_scenes}")
@@ -142,7 +143,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
                  spec.budget["max_steps"])
         shutil.rmtree(work_dir)
     trainer = Trainer(task, dataset, validation, config, work_dir,
-                      fingerprint_extra={"model": spec.settings() | {"budget": None}, "data": data_settings(cfg)})
+                      fingerprint_extra={"model": spec.settings() | {"budget": None}, "data": data_settings(cfg, spec)})
     result = trainer.run()
 
     # Per-sequence validation metrics of the selected model (paired comparisons between models).
@@ -161,7 +162,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
                     "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
                     "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1),
                     # = denoisers.experiment.Lineage(cfg).model(model_id) (that module imports this one).
-                    "settings_digest": short_digest(settings_digest(spec, data_settings(cfg))),
+                    "settings_digest": short_digest(settings_digest(spec, data_settings(cfg, spec))),
                     "provenance": provenance({"training": int(threads)})})
     if hasattr(task, "config") and hasattr(task.config, "width"):
         from denoisers.nets import build_net, count_parameters

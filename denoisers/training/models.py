@@ -28,7 +28,7 @@ from typing import Any
 
 from denoisers.training.spec import ModelSpec
 from denoisers.training.tasks import task_builder, task_problems
-from scenegen.config import SCENE_SPLITS, load_schema, output_root, training_scene_split
+from scenegen.config import SCENE_SPLITS, load_schema, output_root, training_scene_split, volume_training_split
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
 #: Files a finished model directory holds (the rule's output directory).
@@ -123,8 +123,20 @@ def capacity_model_ids(cfg: dict) -> set[str]:
     return {spec.id for spec in model_specs(cfg) if spec.ablation in kinds}
 
 
-def training_split(cfg: dict) -> tuple[list[str], list[str]]:
-    """(training scenes, validation scenes): the train_* ids, the last ``validation_scenes`` held out."""
+#: ``data.scenes`` values: what a model trains on (absent = surfaces).
+SURFACE_DATA, VOLUME_DATA = "surfaces", "volumes"
+
+
+def trains_on_volumes(spec: ModelSpec | None) -> bool:
+    return spec is not None and spec.data.get("scenes", SURFACE_DATA) == VOLUME_DATA
+
+
+def training_split(cfg: dict, spec: ModelSpec | None = None) -> tuple[list[str], list[str]]:
+    """(training scenes, validation scenes) of model ``spec`` (None: the surface models'): the train_* ids with
+    the last ``validation_scenes`` held out, or, for a model with ``data.scenes: volumes``, the vol_train_* clips
+    (scenegen.config.volume_training_split)."""
+    if trains_on_volumes(spec):
+        return volume_training_split(cfg)
     return training_scene_split(cfg)
 
 
@@ -220,14 +232,19 @@ def training_problems(cfg: dict) -> list[str]:
                             f"training does not define; allowed: {ids or 'none (training.models is empty)'}")
     if not specs:
         return problems
-    train, validation = training_split(cfg)
-    if not train or not validation:
-        problems.append(f"training needs at least one training and one validation scene: scenes.n_train = "
-                        f"{cfg['scenes']['n_train']}, training.validation_scenes = {training['validation_scenes']}; "
-                        f"allowed: n_train > validation_scenes")
-    size = min(cfg["render"]["width"], cfg["render"]["height"])
+    if any(not trains_on_volumes(spec) for spec in specs):
+        train, validation = training_split(cfg)
+        if not train or not validation:
+            problems.append(f"training needs at least one training and one validation scene: scenes.n_train = "
+                            f"{cfg['scenes']['n_train']}, training.validation_scenes = "
+                            f"{training['validation_scenes']}; allowed: n_train > validation_scenes")
     for spec in specs:
         where = f"training model {spec.id!r}"
+        if trains_on_volumes(spec):
+            problems += [f"{where}: {problem}" for problem in _volume_data_problems(cfg, spec)]
+            problems += [f"{where}: {problem}" for problem in task_problems(spec)]
+            continue
+        size = min(cfg["render"]["width"], cfg["render"]["height"])
         if spec.data["crop"] > size:
             problems.append(f"{where}: data.crop = {spec.data['crop']} exceeds the frame size {size}")
         frames = cfg["scenes"].get("train_frames") or cfg["scenes"]["frames"]
@@ -241,4 +258,31 @@ def training_problems(cfg: dict) -> list[str]:
             what = "render.spp + render.extra_radiance_spp" if radiance_only else "render.spp"
             problems.append(f"{where}: data.spp = {spec.data['spp']} exceeds {what} = {stored}")
         problems += [f"{where}: {problem}" for problem in task_problems(spec)]
+    return problems
+
+
+def _volume_data_problems(cfg: dict, spec: ModelSpec) -> list[str]:
+    """Why a model with ``data.scenes: volumes`` cannot train on this config's volumetric training clips."""
+    volumes = cfg.get("volumes") or {}
+    train, validation = volume_training_split(cfg)
+    if not train or not validation:
+        return [f"data.scenes = volumes needs volumetric training and validation clips: volumes.enabled = "
+                f"{volumes.get('enabled', False)}, volumes.n_train = {volumes.get('n_train', 0)} per scenario, "
+                f"training.validation_scenes = {cfg['training'].get('validation_scenes', 2)}; allowed: more "
+                "vol_train_* clips than validation_scenes"]
+    problems = []
+    size = min(volumes["width"], volumes["height"])
+    if spec.data["crop"] > size:
+        problems.append(f"data.crop = {spec.data['crop']} exceeds the volumetric clips' frame size {size}")
+    if spec.data["length"] > volumes["frames"]:
+        problems.append(f"data.length = {spec.data['length']} exceeds volumes.frames = {volumes['frames']}")
+    stored = volumes["spp"] if volumes.get("spp") is not None else cfg["render"]["spp"]
+    if spec.data["spp"] > stored:
+        problems.append(f"data.spp = {spec.data['spp']} exceeds volumes.spp = {stored}")
+    from scenegen.dataset import VOLUME_BUFFERS
+
+    missing = [buffer for buffer in _sample_buffers(spec) if buffer not in VOLUME_BUFFERS]
+    if missing:
+        problems.append(f"method {spec.method!r} reads {', '.join(missing)}, which volumetric clips do not have "
+                        f"(they hold {', '.join(VOLUME_BUFFERS)}); e.g. method rae_color trains on volumes")
     return problems

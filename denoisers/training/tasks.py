@@ -84,6 +84,16 @@ def _rae_task(spec: ModelSpec) -> Any:
     return RAETask(config=RAEConfig.from_dict(spec.net), loss_weights=weights)
 
 
+@register_task("rae_color", sample_buffers=("radiance",))
+def _rae_color_task(spec: ModelSpec) -> Any:
+    """The colour-only RAE (Iglesias-Guitian et al. 2022 retrain the RAE on colour alone for volumes): the RAE's
+    keys, with net demodulate false and features [] required."""
+    from denoisers.nets.rae import COLOR_INPUT_BUFFERS, RAETask
+
+    task = _rae_task(spec)
+    return RAETask(config=task.config, loss_weights=task.loss_weights, name="rae_color", buffers=COLOR_INPUT_BUFFERS)
+
+
 # ------------------------------------------------------------------------------------------- NTASD
 #: Registry method -> (net.variant, net.sampling) of the Hasselgren et al. 2020 rows (Fig. 7, Table 1).
 NTASD_VARIANTS: dict[str, tuple[str, str]] = {

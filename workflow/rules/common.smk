@@ -30,8 +30,8 @@ from denoisers.timing import timed_runs, timing_scene, timing_settings
 from denoisers.training.speed import TRAINING_SPEED_FILE, speed_models, speed_settings
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
-from denoisers.training.models import (method_model, model_dir, model_specs, training_problems, training_runtime_minutes,
-                                       training_split)
+from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, training_problems,
+                                       training_runtime_minutes, training_split)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -350,10 +350,14 @@ def model_dirs(wildcards=None) -> list[str]:
 
 
 def training_chunk_dirs(kind: str):
-    """Input function: noisy or reference chunks of the training and validation scenes."""
+    """Input function: noisy or reference chunks of the training and validation scenes (of the job's model when it
+    has one: a model with data.scenes volumes trains on the vol_train_* clips; tuning: the surface scenes)."""
 
     def chunk_dirs_of_training(wildcards) -> list[str]:
-        return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for scene in TRAIN_SCENES + VALIDATION_SCENES
+        scenes = TRAIN_SCENES + VALIDATION_SCENES
+        if "model" in wildcards.keys():
+            scenes = sum(training_split(config, model_spec(config, wildcards.model)), [])
+        return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for scene in scenes
                 for chunk in range(chunk_count(config, scene))]
 
     return chunk_dirs_of_training
