@@ -18,14 +18,14 @@ from pathlib import Path
 
 from denoisers.evaluate import Run, volume_method_specs
 from denoisers.training.models import resolve_method_params
-from scenegen.config import VOLUME_PREFIX, volume_scene_ids
+from scenegen.config import VOLUME_CUSTOM_PREFIX, VOLUME_PREFIX, volume_scene_ids
 
 VOLUME_TEST_PREFIX = f"{VOLUME_PREFIX}test_"
 
 
 def volume_test_scene_ids(cfg: dict) -> list[str]:
-    """The evaluated volumetric clips: every vol_test_* id of the config, in config order."""
-    return [scene for scene in volume_scene_ids(cfg) if scene.startswith(VOLUME_TEST_PREFIX)]
+    """The evaluated volumetric clips: every vol_test_* id of the config, then the bring-your-own vol_custom_*."""
+    return [scene for scene in volume_scene_ids(cfg) if scene.startswith((VOLUME_TEST_PREFIX, VOLUME_CUSTOM_PREFIX))]
 
 
 def volume_layers(cfg: dict) -> int:

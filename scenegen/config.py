@@ -35,6 +35,8 @@ STABILITY_PREFIX = "stab_"
 #: vol_{split}_{scenario}_{index:03d}, split "test" or "train". Rendered with the volumetric integrators only.
 VOLUME_PREFIX = "vol_"
 VOLUME_SPLITS = ("test", "train")
+#: Bring-your-own volumes (``volumes.extra``): vol_custom_{name}, evaluated like the vol_test_* clips.
+VOLUME_CUSTOM_PREFIX = f"{VOLUME_PREFIX}custom_"
 #: Scenes whose references render.train_reference_spp applies to (the training and validation scenes).
 TRAIN_PREFIX = "train_"
 
@@ -187,6 +189,9 @@ def _cross_key_problems(cfg: dict[str, Any]) -> Iterator[str]:
     names = [entry["name"] for entry in cfg["extra_scenes"]]
     for name in sorted({name for name in names if names.count(name) > 1}):
         yield f"config key 'extra_scenes' has the name {name!r} more than once; allowed: unique names"
+    extra_names = [entry["name"] for entry in (cfg.get("volumes") or {}).get("extra", [])]
+    for name in sorted({name for name in extra_names if extra_names.count(name) > 1}):
+        yield f"config key 'volumes.extra' has the name {name!r} more than once; allowed: unique names"
     yield from _output_dir_problems(cfg.get("output_dir", "results"))
 
 
@@ -316,14 +321,27 @@ def volume_scene_ids(cfg: dict[str, Any]) -> list[str]:
     if not volumes.get("enabled", False):
         return []
     return [f"{VOLUME_PREFIX}{split}_{scenario}_{index:03d}" for split in VOLUME_SPLITS
-            for scenario in volumes.get("scenarios", []) for index in range(int(volumes.get(f"n_{split}", 0)))]
+            for scenario in volumes.get("scenarios", []) for index in range(int(volumes.get(f"n_{split}", 0)))] + [
+        f"{VOLUME_CUSTOM_PREFIX}{entry['name']}" for entry in volumes.get("extra", [])]
+
+
+def volume_extra(cfg: dict[str, Any], scene_id: str) -> dict[str, Any]:
+    """The ``volumes.extra`` entry of a vol_custom_{name} scene id; KeyError otherwise."""
+    name = scene_id[len(VOLUME_CUSTOM_PREFIX):]
+    for entry in (cfg.get("volumes") or {}).get("extra", []):
+        if entry["name"] == name:
+            return entry
+    raise KeyError(f"no volumes.extra entry named {name!r} (scene id {scene_id!r})")
 
 
 def volume_clip_spec(cfg: dict[str, Any], scene_id: str) -> tuple[str, str, int]:
-    """(split, scenario, index) of a vol_* scene id; KeyError if the config does not have it."""
+    """(split, scenario, index) of a vol_* scene id (a vol_custom_* clip: ('custom', its scenario, 0)); KeyError if
+    the config does not have it."""
     if scene_id not in volume_scene_ids(cfg):
         raise KeyError(f"{scene_id!r} is not a volumetric clip of this config (volumes.enabled, volumes.scenarios, "
-                       f"volumes.n_test, volumes.n_train: {', '.join(volume_scene_ids(cfg)) or 'none'})")
+                       f"volumes.n_test, volumes.n_train, volumes.extra: {', '.join(volume_scene_ids(cfg)) or 'none'})")
+    if scene_id.startswith(VOLUME_CUSTOM_PREFIX):
+        return "custom", volume_extra(cfg, scene_id).get("scenario", "camera"), 0
     split, rest = scene_id[len(VOLUME_PREFIX):].split("_", 1)
     scenario, index = rest.rsplit("_", 1)
     return split, scenario, int(index)

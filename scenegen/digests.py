@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from scenegen.config import (STABILITY_PREFIX, VOLUME_PREFIX, config_digest, extra_scene, scene_frame_count,
-                             scene_frames_per_chunk, scene_reference_spp, scene_render_config, stability_scenario,
-                             volume_clip_spec)
+from scenegen.config import (STABILITY_PREFIX, VOLUME_CUSTOM_PREFIX, VOLUME_PREFIX, config_digest, extra_scene,
+                             scene_frame_count, scene_frames_per_chunk, scene_reference_spp, scene_render_config,
+                             stability_scenario, volume_clip_spec, volume_extra)
 
 #: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
 SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
@@ -38,8 +38,9 @@ def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
         # A clip depends on its scenario (its seed derives from the scene id), length, size, field and depth.
         volumes = cfg["volumes"]
         shared = [f"render.{key}" for key in ("variant", "rr_depth") if key in cfg["render"]]
+        own = volume_extra(cfg, scene) if scene.startswith(VOLUME_CUSTOM_PREFIX) else None
         return {"seed": cfg["seed"], "volumes": {
-                    "scenario": volume_clip_spec(cfg, scene)[1],
+                    "scenario": volume_clip_spec(cfg, scene)[1], **({"extra": own} if own else {}),
                     **{key: volumes[key] for key in ("frames", "width", "height", "resolution", "max_depth")}},
                 "render_shared": config_digest(cfg, *shared)}
     if scene.startswith("custom_"):

@@ -26,7 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen.atomic import atomic_directory, write_text_atomic
-from scenegen.config import volume_clip_spec
+from scenegen.config import volume_clip_spec, volume_extra
 from scenegen.mitsuba_env import init_mitsuba, is_jit_variant
 from scenegen.render import (NonFiniteCounter, RenderSettings, frame_meta, noisy_frame_seed, psnr_between_halves,
                              reference_batch_seeds, render_reference_frame, render_spp, sample_wavefront,
@@ -45,9 +45,11 @@ def generate_volume_scene(cfg: dict, scene_id: str, out_dir: Path) -> dict:
     from scenegen.volume_scenes import generate_volume_clip
 
     volumes = cfg["volumes"]
-    _, scenario, _ = volume_clip_spec(cfg, scene_id)
+    split, scenario, _ = volume_clip_spec(cfg, scene_id)
+    own = volume_extra(cfg, scene_id) if split == "custom" else {}
     clip = generate_volume_clip(scene_seed(cfg["seed"], scene_id), scenario, int(volumes["frames"]),
-                                resolution=int(volumes["resolution"]))
+                                resolution=int(volumes["resolution"]), field_npy=own.get("npy"),
+                                transfer_function=own.get("transfer_function"))
     clip = dataclasses.replace(clip, max_depth=int(volumes["max_depth"]))
     manifest = {**clip.manifest(), "scene": scene_id, "n_frames": clip.frames}
     with atomic_directory(out_dir) as tmp_dir:

@@ -28,8 +28,10 @@ Mitsuba functions need a variant set (``scenegen.mitsuba_env.init_mitsuba()``).
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -86,8 +88,56 @@ def _shell_mesh(params: dict) -> Any:
     return mesh
 
 
+NPY_KIND = "npy"
+
+
+def _npy_values(path: Path) -> np.ndarray:
+    """The (D, H, W) real, finite array of a .npy file; ValueError naming the file otherwise."""
+    if not path.is_file():
+        raise FileNotFoundError(f"volume field {path}: no such file")
+    try:
+        values = np.load(path, allow_pickle=False)
+    except ValueError as error:
+        raise ValueError(f"volume field {path}: not a readable .npy array ({error})") from error
+    if values.ndim != 3 or min(values.shape) < 2:
+        raise ValueError(f"volume field {path}: needs a 3-D (D, H, W) array with every side >= 2, got shape "
+                         f"{values.shape}")
+    if values.dtype.kind not in "fiu":
+        raise ValueError(f"volume field {path}: needs real numbers, got dtype {values.dtype}")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"volume field {path}: {int((~np.isfinite(values)).sum())} non-finite values")
+    if values.max() <= values.min():
+        raise ValueError(f"volume field {path}: constant ({values.min()}); a transfer function needs a range")
+    return values
+
+
+def npy_field_description(path: str | Path) -> dict:
+    """Manifest 'field' entry of a user's .npy scalar field: its path, SHA-256, shape, dtype and value range; the
+    field is its values mapped linearly from [min, max] to [0, 1] (float32). The voxels stay in the file; the
+    digest makes a later render refuse a changed file."""
+    path = Path(path)
+    values = _npy_values(path)
+    return {"kind": NPY_KIND, "path": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+            "shape": [int(n) for n in values.shape], "dtype": str(values.dtype),
+            "value_range": [float(values.min()), float(values.max())], "resolution": int(max(values.shape))}
+
+
+def _npy_field(description: dict) -> np.ndarray:
+    path = Path(description["path"])
+    digest = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+    if digest != description["sha256"]:
+        raise ValueError(f"volume field {path}: its contents changed since the scene was generated (SHA-256 "
+                         f"{digest} != {description['sha256']}); regenerate the scene")
+    values = _npy_values(path).astype(np.float64)
+    low, high = description["value_range"]
+    return np.clip((values - low) / (high - low), 0.0, 1.0).astype(np.float32)
+
+
 def field_from_description(description: dict) -> np.ndarray:
-    """(D, H, W) float32 field in [0, 1] from a manifest 'field' entry (kind, resolution, seed, params)."""
+    """(D, H, W) float32 field in [0, 1] from a manifest 'field' entry (kind, resolution, seed, params; or a
+    user's .npy file, kind 'npy')."""
+    if description["kind"] == NPY_KIND:
+        return _npy_field(description)
     kind, resolution, params = description["kind"], int(description["resolution"]), description["params"]
     if kind == "noise_cloud":
         return noise_cloud(np.random.default_rng(int(description["seed"])), resolution, **params)
@@ -302,8 +352,14 @@ def _environment_dict(env: dict, mi: Any) -> dict:
 
 def generate_volume_clip(seed: int, scenario: str, frames: int, field_kind: str | None = None, *,
                          resolution: int = 24, setting: str | None = None, light_kind: str | None = None,
-                         tf_edit: str | None = None, environment: str | None = None) -> VolumeClip:
+                         tf_edit: str | None = None, environment: str | None = None, field_npy: str | None = None,
+                         transfer_function: dict | None = None) -> VolumeClip:
     """Draw a volumetric clip of ``frames`` frames for ``scenario`` (one of SCENARIOS) from ``seed``.
+
+    Bring your own volume: ``field_npy`` names a ``.npy`` scalar field (D, H, W) indexed [z, y, x] that replaces
+    the drawn field (see :func:`npy_field_description`; the box takes the array's aspect ratio), and
+    ``transfer_function`` ({'extinction': ..., 'albedo': ...}, TransferFunction.from_dict) replaces the drawn
+    one (None: drawn as for a cloud). Everything else is drawn from the seed as for a generated clip.
 
     None for ``field_kind`` / ``setting`` / ``light_kind`` / ``tf_edit`` / ``environment`` draws it from
     the seed (FIELD_KINDS, SETTINGS, LIGHT_KINDS, TF_EDITS -- the latter for 'transfer_function' only --
@@ -324,15 +380,23 @@ def generate_volume_clip(seed: int, scenario: str, frames: int, field_kind: str 
         return value or drawn
 
     kind = pick(field_kind, FIELD_KINDS, rng_field, "field kind")
-    field_desc = _draw_field(rng_field, kind, seed, resolution)
-    tf0 = _draw_transfer_function(rng_tf, field_desc)
+    if field_npy is not None:
+        field_desc = npy_field_description(field_npy)
+        drawn = _draw_transfer_function(rng_tf, {"kind": "noise_cloud"})
+        tf0 = _rounded(TransferFunction.from_dict(transfer_function)) if transfer_function is not None else drawn
+    else:
+        field_desc = _draw_field(rng_field, kind, seed, resolution)
+        tf0 = _draw_transfer_function(rng_tf, field_desc)
     edit, tfs = _tf_frames(rng_edit, tf0, scenario, frames, tf_edit)
 
     setting_ = pick(setting, SETTINGS, rng_place, "setting")
     size = _r4(rng_place.uniform(0.9, 1.5))
     lift = _r4(rng_place.uniform(0.05, 0.4)) if setting_ == "open" else _r4(rng_place.uniform(0.4, 1.0))
     centre = np.array([0.0, lift + size / 2, 0.0])
-    box_min, box_max = (centre - size / 2).tolist(), (centre + size / 2).tolist()
+    # A user's field keeps its aspect ratio: the box's longest side is ``size`` (array axes [z, y, x]).
+    aspect = (np.asarray(field_desc["shape"][::-1], dtype=np.float64) / max(field_desc["shape"])
+              if field_desc["kind"] == NPY_KIND else np.ones(3))
+    box_min, box_max = (centre - size * aspect / 2).tolist(), (centre + size * aspect / 2).tolist()
     env_kind = pick(environment, ENVIRONMENTS, rng_place, "environment")
     if env_kind == "constant":
         env = {"kind": "constant", "radiance": _rgb(rng_place, [0.08, 0.08, 0.1], [0.3, 0.3, 0.4])}

@@ -200,3 +200,48 @@ def test_same_config_same_clip_bytes(rendered, tmp_path) -> None:
     reference_b, _ = load_reference_frame(again / "reference/chunk_000/frame_0002.exr")
     np.testing.assert_array_equal(reference_a["radiance"], reference_b["radiance"])
     shutil.rmtree(tmp_path / "scenes")
+
+
+# --- bring your own volume -------------------------------------------------------------------------------------
+
+def test_a_users_npy_field_renders_as_its_own_evaluated_clip(tmp_path) -> None:
+    """volumes.extra: the .npy values are mapped linearly from [min, max] to [0, 1] and through the given transfer
+    function (checked voxel by voxel by hand), the box takes the array's aspect, the clip is evaluated, and a changed
+    file is refused by name."""
+    from denoisers.volume_eval import volume_test_scene_ids
+    from scenegen.volume_scenes import VolumeClip
+
+    field = np.zeros((4, 6, 8), np.int16)                      # [z, y, x]: x is the longest axis
+    field[1:3, 2:4, 3:6] = 300
+    field[2, 3, 4] = 1000
+    path = tmp_path / "field.npy"
+    np.save(path, field)
+    tf = {"extinction": [[0.0, 0.0], [0.5, 2.0], [1.0, 10.0]], "albedo": [[0.0, 0.9, 0.9, 0.9], [1.0, 0.5, 0.6, 0.7]]}
+    cfg = _config(scenarios=["light"], n_test=0)
+    cfg["volumes"]["extra"] = [{"name": "user_field", "npy": str(path), "scenario": "camera", "transfer_function": tf}]
+    assert volume_scene_ids(cfg) == volume_test_scene_ids(cfg) == ["vol_custom_user_field"]
+    assert volume_clip_spec(cfg, "vol_custom_user_field") == ("custom", "camera", 0)
+    render_dir = _render(cfg, "vol_custom_user_field", tmp_path)
+    manifest = json.loads((tmp_path / "scenes/vol_custom_user_field/manifest.json").read_text())
+    assert manifest["field"]["kind"] == "npy" and manifest["field"]["shape"] == [4, 6, 8]
+    assert manifest["transfer_function"]["frames"][0] == tf
+    clip = VolumeClip.from_manifest(manifest)
+    sigma_t, albedo = clip.medium_grids(0)
+    # Hand-computed voxels: 0 -> s 0 -> sigma 0; 300 -> s 0.3 -> sigma 0.3 / 0.5 x 2 = 1.2; 1000 -> s 1 -> 10.
+    assert sigma_t[0, 0, 0] == 0.0 and sigma_t[2, 3, 4] == pytest.approx(10.0)
+    assert sigma_t[1, 2, 3] == pytest.approx(1.2, rel=1e-6)
+    np.testing.assert_allclose(albedo[1, 2, 3], [0.9 - 0.3 * 0.4, 0.9 - 0.3 * 0.3, 0.9 - 0.3 * 0.2], rtol=1e-6)
+    extent = np.asarray(manifest["box"]["max"]) - np.asarray(manifest["box"]["min"])    # world (x, y, z)
+    np.testing.assert_allclose(extent / extent.max(), [1.0, 6 / 8, 4 / 8], rtol=1e-6)
+    assert load_clip(render_dir, buffers=("radiance", "medium")).samples["medium"].any()
+    # The file changes after the scene was generated: rendering refuses it, naming the file.
+    np.save(path, field * 2)
+    with pytest.raises(ValueError, match="field.npy: its contents changed"):
+        VolumeClip.from_manifest(manifest)
+    # Bad arrays are named too.
+    np.save(path, np.zeros((4, 4), np.float32))
+    with pytest.raises(ValueError, match="3-D"):
+        jobs.run_generate(cfg, "vol_custom_user_field", tmp_path / "again")
+    np.save(path, np.full((3, 3, 3), np.nan, np.float32))
+    with pytest.raises(ValueError, match="non-finite"):
+        jobs.run_generate(cfg, "vol_custom_user_field", tmp_path / "again")

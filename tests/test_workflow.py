@@ -22,8 +22,9 @@ import yaml
 from denoisers.evaluate import ABLATION_ROLE, method_specs, plan_runs, robustness_runs
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
-from denoisers.training.models import method_model, model_specs, training_split
-from scenegen.config import chunk_count, load_config, scene_ids, stability_scene_ids, volume_scene_ids
+from denoisers.training.models import method_model, model_specs, training_split, trains_on_volumes
+from scenegen.config import (chunk_count, load_config, scene_ids, stability_scene_ids, volume_scene_ids,
+                             volume_training_split)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
@@ -150,15 +151,18 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     from denoisers.volume_eval import volume_runs, volume_test_scene_ids
 
     vol, vol_test = volume_scene_ids(cfg), volume_test_scene_ids(cfg)
-    vol_runs = sum(run.runnable for run in volume_runs(cfg)) if vol_test else 0
-    volumes = {**renders(vol, vol), "denoise_volume": len(vol_test) * vol_runs,
-               "evaluate_volume": len(vol_test) * vol_runs}
+    runnable_volume = [run for run in volume_runs(cfg) if run.runnable] if vol_test else []
+    vol_models = len({method_model(run.spec.params) for run in runnable_volume} - {None})
+    volumes = {**renders(vol, vol), "denoise_volume": len(vol_test) * len(runnable_volume),
+               "evaluate_volume": len(vol_test) * len(runnable_volume), "train_denoiser": vol_models}
+    # Models with data.scenes volumes train on the vol_train_* clips (their renders join the `train` target's).
+    vol_train = sum(volume_training_split(cfg), []) if any(trains_on_volumes(m) for m in model_specs(cfg)) else []
     jobs = {
         "scenes": {"generate_scene": len(scenes)},
         "volumes": volumes,
         "stability": stability,
         "renders": renders(scenes, scenes),
-        "train": {**renders(train_scenes if all_models else [], train_scenes if all_models else []),
+        "train": {**renders(trained := (train_scenes if all_models else []) + vol_train, trained),
                   "train_denoiser": all_models},
         "denoise": {**renders(test_scenes + used_inputs, used_inputs), "denoise_clip": evaluated,
                     "train_denoiser": used_models, "tune_method": tuned},
@@ -177,8 +181,9 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
                 **renders(list({*base, *stab, *stab_train}), list({*base, *stab, *stab_train})),
                 "train_denoiser": max(jobs.get("train_denoiser", 0), stab_models),
                 "tune_method": len(evaluated_tuned | stab_tuned)}
-        # The volume jobs: their own scenes (no models, tuning or shared scenes).
+        # The volume jobs: their own scenes; their models (if any) are among every configured model already.
         jobs = {rule: jobs.get(rule, 0) + volumes.get(rule, 0) for rule in {**jobs, **volumes}}
+        jobs["train_denoiser"] = all_models
     return {rule: count for rule, count in {**jobs, target: 1}.items() if count}
 
 

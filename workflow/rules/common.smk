@@ -16,6 +16,7 @@ from scenegen.config import (
     output_root,
     scene_ids,
     stability_scene_ids,
+    volume_extra,
     volume_scene_ids,
 )
 from scenegen.digests import masks_digest as scene_masks_digest
@@ -55,7 +56,7 @@ if config_errors:
 
 
 wildcard_constraints:
-    scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+|stab_[a-z0-9_]+|vol_(?:test|train)_[a-z_]+_\d{3}",
+    scene=r"(?:train|test)_\d{3}|custom_[a-z0-9_]+|stab_[a-z0-9_]+|vol_(?:test|train)_[a-z_]+_\d{3}|vol_custom_[a-z0-9_]+",
     chunk=r"\d{3}",
     method=r"[a-z0-9_]+",
     model=r"[a-z][a-z0-9_]*",
@@ -254,10 +255,13 @@ def resolved_config_file(wildcards, output) -> str:
 
 
 def generate_scene_input(wildcards) -> dict[str, str]:
-    """Named inputs of generate_scene: the XML file of a custom scene, nothing for procedural ones."""
+    """Named inputs of generate_scene: the XML file of a custom scene, the .npy field of a bring-your-own volume,
+    nothing for procedural ones."""
     check_scene_target(wildcards)
     if wildcards.scene.startswith("custom_"):
         return {"xml": extra_scene(config, wildcards.scene)["xml"]}
+    if wildcards.scene.startswith("vol_custom_"):
+        return {"npy": volume_extra(config, wildcards.scene)["npy"]}
     return {}
 
 

@@ -5,7 +5,10 @@
 # vol_test_* clip at volumes.denoise_spp (rule denoise_volume) and is scored against the volpath reference
 # (evaluate_volume). Planned (importing torch) only when one of these jobs is part of the DAG.
 # ---------------------------------------------------------------------------------------------
-VOLUME_TEST_SCENES = [scene for scene in VOLUME_SCENES if scene.startswith("vol_test_")]
+from denoisers.volume_eval import volume_test_scene_ids
+
+# The evaluated clips: vol_test_* and the bring-your-own vol_custom_*.
+VOLUME_TEST_SCENES = volume_test_scene_ids(config)
 _volume_runs = []
 
 
