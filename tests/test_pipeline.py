@@ -324,7 +324,7 @@ def test_report_has_tables_figures_and_claims(pipeline: PipelineRun) -> None:
     assert claims.loc["C4.1", "verdict"] == INCONCLUSIVE and claims.loc["C4.1", "n"] == 1
     assert claims.loc["C4.3", "verdict"] == NOT_RUN
     volumes = pd.read_csv(pipeline.results / "tables" / "iglesias_volumes.csv")
-    assert list(volumes["row"]) == ["vol_noisy", "vol_wrls", "vol_svgf", "vol_oidn_color"]
+    assert list(volumes["row"]) == ["vol_noisy", "vol_wrls", "vol_svgf", "vol_oidn_color", "vol_rae"]
     assert volumes["note"].fillna("").eq("").all()
     # The AFN full model stores its lambda maps; the Isik section shows them (Fig. 5 layout).
     with np.load(pipeline.results / "denoised" / "afn" / "test_000" / "spp2" / "maps.npz") as maps:
