@@ -97,6 +97,7 @@ rule volumes:
     input:
         volume_outputs(),
         volume_metrics_files,
+        volume_robustness_dirs,
 
 
 # Everything implemented so far; the default target.

@@ -4,7 +4,9 @@ and where their outputs go.
 * rule denoise_volume: ``python -m denoisers denoise`` (denoisers.denoise_job.denoise_clip, unchanged) on a
   vol_test_* clip -> <out>/volumes/denoised/{method}/{scene}/spp{spp}/ (frames, timing.json, like denoise_clip);
 * rule evaluate_volume: ``python -m denoisers evaluate`` (per-frame metrics against the volpath reference)
-  -> <out>/volumes/metrics/{method}/{scene}/spp{spp}.csv + .json.
+  -> <out>/volumes/metrics/{method}/{scene}/spp{spp}.csv + .json;
+* rule robustness_volume: ``python -m denoisers robustness`` (the spike/NaN scenario of evaluation.robustness)
+  for the rows with ``robustness: true`` -> <out>/volumes/robustness/{method}/{scene}/spp{spp}/.
 
 The rows are ``volumes.rows`` (denoisers.evaluate.volume_method_specs), each at ``volumes.denoise_spp``
 (narrowed by its own ``spp``). A run is not run, with the reason, when its method reads a buffer the
@@ -51,8 +53,15 @@ def volume_problems(cfg: dict) -> list[str]:
     for row_id in sorted(set(ids) & {spec.id for spec in method_specs(cfg)}):
         problems.append(f"config key 'volumes.rows' has the id {row_id!r}, which an evaluation row (evaluation.methods "
                         "or an ablation variant) already has; allowed: ids of their own (e.g. vol_<method>)")
+    from denoisers.training.models import method_model, model_specs
+
+    models = [spec.id for spec in model_specs(cfg)]
     denoise_spp = list(volumes.get("denoise_spp", []))
     for index, entry in enumerate(rows):
+        model = method_model(entry.get("params") or {})
+        if model is not None and model not in models:
+            problems.append(f"config key 'volumes.rows' row {entry['id']!r} uses model {model!r}, which training does "
+                            f"not define; allowed: {', '.join(models) or 'none (training.models is empty)'}")
         outside = [spp for spp in entry.get("spp") or [] if spp not in denoise_spp]
         if outside:
             problems.append(f"config key 'volumes.rows[{index}].spp' (row {entry['id']!r}) = {entry['spp']!r} has "
@@ -84,6 +93,17 @@ def volume_runs(cfg: dict) -> list[Run]:
     return runs
 
 
+def volume_robustness_runs(cfg: dict) -> list[Run]:
+    """The runs of the spike/NaN scenario on the evaluated clips: every runnable volume row with ``robustness: true``
+    at ``evaluation.robustness.spp`` (when that scenario is enabled and the row denoises at that spp)."""
+    robustness = cfg["evaluation"]["robustness"]
+    if not robustness["enabled"]:
+        return []
+    wanted = {entry["id"] for entry in (cfg.get("volumes") or {}).get("rows", []) if entry.get("robustness")}
+    return [run for run in volume_runs(cfg)
+            if run.runnable and run.spec.id in wanted and run.spp == int(robustness["spp"])]
+
+
 def volume_target_problem(scenes: list[str], runs: list[Run], scene: str, method: str, spp: int) -> str:
     """Why {method}/{scene}/spp{spp} is not a job of the volume evaluation ('' when it is)."""
     if scene not in scenes:
@@ -103,3 +123,7 @@ def volume_denoised_dir(results: Path | str, method_id: str, scene: str, spp: in
 
 def volume_metrics_csv(results: Path | str, method_id: str, scene: str, spp: int) -> Path:
     return Path(results) / "volumes" / "metrics" / method_id / scene / f"spp{spp}.csv"
+
+
+def volume_robustness_dir(results: Path | str, method_id: str, scene: str, spp: int) -> Path:
+    return Path(results) / "volumes" / "robustness" / method_id / scene / f"spp{spp}"

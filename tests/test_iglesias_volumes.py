@@ -57,6 +57,8 @@ def test_volume_row_ids_must_be_unique_and_their_spp_denoised() -> None:
     assert "'noisy', which an evaluation row" in problems
     assert "'vol_a' more than once" in problems
     assert "'volumes.rows[2].spp'" in problems and "[3]" in problems
+    cfg = volume_config(rows=[{"id": "vol_rae", "method": "rae_color", "params": {"model": "no_such_model"}}])
+    assert "row 'vol_rae' uses model 'no_such_model', which training does not define" in "\n".join(volume_problems(cfg))
 
 
 # --- decisions over the clips ---------------------------------------------------------------------------------
@@ -178,3 +180,28 @@ def test_collect_reads_every_clip_and_refuses_other_settings(tmp_path) -> None:
         ledger.raise_if_mixed(cfg, tmp_path)
     cfg["volumes"]["enabled"] = False
     assert collect_volumes(cfg, tmp_path, DigestLedger()) is None
+
+
+def test_c42_is_decided_on_the_spike_scenario_over_the_clips() -> None:
+    rows = [{"id": "vol_noisy", "method": "noisy"}, {"id": "vol_wrls", "method": "wrls", "robustness": True},
+            {"id": "vol_rls", "method": "rls", "robustness": True}]
+    cfg = volume_config(rows=rows, denoise_spp=[2])
+    from denoisers.volume_eval import volume_robustness_runs
+
+    assert [(run.spec.id, run.spp) for run in volume_robustness_runs(cfg)] == [("vol_wrls", 2), ("vol_rls", 2)]
+    res = synthetic(cfg, CLEAR, {("vol_rls", 2): np.linspace(20.0, 26.0, 4) + 2.0})
+    scenes = res.volumes.scenes
+    decision = iglesias2022.decide_c42_volumes(res)
+    assert decision.verdict == NOT_RUN and "robustness: true" in decision.not_run
+    # Spiked PSNR of wRLS above RLS's by CLEAR; its clean PSNR (base + 5 + CLEAR) is 3 + CLEAR above RLS's (base + 2),
+    # so its drop is 3 dB larger: the robustness part holds, the drop part is contradicted.
+    clean_wrls = res.volumes.scene_values("vol_wrls", 2, "psnr")
+    res.volumes.robustness = pd.DataFrame(
+        [{"method_id": "vol_wrls", "scene": s, "spp": 2, "psnr_spiked": 15.0 + d} for s, d in zip(scenes, CLEAR)]
+        + [{"method_id": "vol_rls", "scene": s, "spp": 2, "psnr_spiked": 15.0} for s in scenes])
+    decision = iglesias2022.decide_c42_volumes(res)
+    np.testing.assert_allclose(decision.parts[0].diffs, CLEAR)
+    np.testing.assert_allclose(decision.parts[1].diffs, 3.0)
+    assert decision.parts[0].outcome == REPRODUCED and decision.parts[1].outcome == CONTRADICTED
+    assert decision.verdict == CONTRADICTED
+    assert (clean_wrls.index == pd.Index(scenes)).all()

@@ -30,7 +30,8 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
              "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods", "time_training",
-             "derive_masks", "denoise_scenario", "score_scenario", "build_atlas", "denoise_volume", "evaluate_volume")
+             "derive_masks", "denoise_scenario", "score_scenario", "build_atlas", "denoise_volume", "evaluate_volume",
+             "robustness_volume")
 STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report", "stability", "volumes")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
@@ -148,13 +149,14 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
                  "build_atlas": 1 if stab else 0, "train_denoiser": stab_models, "tune_method": len(stab_tuned)}
     # The volumetric clips (target `volumes`, also part of `report` and `all`): their scenes and chunks (one per
     # clip), and every runnable (volume row, spp) denoised and scored on every vol_test_* clip.
-    from denoisers.volume_eval import volume_runs, volume_test_scene_ids
+    from denoisers.volume_eval import volume_robustness_runs, volume_runs, volume_test_scene_ids
 
     vol, vol_test = volume_scene_ids(cfg), volume_test_scene_ids(cfg)
     runnable_volume = [run for run in volume_runs(cfg) if run.runnable] if vol_test else []
     vol_models = len({method_model(run.spec.params) for run in runnable_volume} - {None})
     volumes = {**renders(vol, vol), "denoise_volume": len(vol_test) * len(runnable_volume),
-               "evaluate_volume": len(vol_test) * len(runnable_volume), "train_denoiser": vol_models}
+               "evaluate_volume": len(vol_test) * len(runnable_volume), "train_denoiser": vol_models,
+               "robustness_volume": len(vol_test) * len(volume_robustness_runs(cfg))}
     # Models with data.scenes volumes train on the vol_train_* clips (their renders join the `train` target's).
     vol_train = sum(volume_training_split(cfg), []) if any(trains_on_volumes(m) for m in model_specs(cfg)) else []
     jobs = {
@@ -232,7 +234,7 @@ def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_cop
     cfg["scenes"]["n_test"] = 2
     cfg["render"].update(spp=4, extra_radiance_spp=0)
     # Without extra layers the NTASD models (8 radiance layers) cannot train; only the RAE's models stay.
-    cfg["training"]["models"] = [m for m in cfg["training"]["models"] if m["method"] == "rae"]
+    cfg["training"]["models"] = [m for m in cfg["training"]["models"] if m["method"] in ("rae", "rae_color")]
     # ablation_spp []: only the rows below (the ablation rows: test_ablation_variants_are_evaluated_...).
     cfg["evaluation"].update(spp=[1, 2, 4], ablation_spp=[], methods=[
         {"id": "noisy", "method": "noisy"},
@@ -611,8 +613,8 @@ def test_slurm_profile_sets_resources_for_every_rule() -> None:
     assert {"slurm_partition", "slurm_account"} <= set(profile["default-resources"])
     assert set(profile["set-resources"]) == rule_names() == set(JOB_RULES)
     config_threads = config_threaded_rules()
-    assert config_threads == {"denoise_clip", "denoise_scenario", "denoise_volume", "robustness_clip", "train_denoiser",
-                              "tune_method"}
+    assert config_threads == {"denoise_clip", "denoise_scenario", "denoise_volume", "robustness_clip",
+                              "robustness_volume", "train_denoiser", "tune_method"}
     for rule, resources in profile["set-resources"].items():
         assert "mem_mb" in resources, rule
         # train_denoiser's runtime comes from the model's budget (the rule), every other rule's from here.

@@ -8,10 +8,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from denoisers.evaluate import ALL_METRICS, TIMING_FILE, MethodSpec, metrics_sidecar, volume_method_specs
+from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_CSV, ROBUSTNESS_SUMMARY, TIMING_FILE, MethodSpec, metrics_sidecar,
+                                volume_method_specs)
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
 from denoisers.report.stats import pooled_psnr
-from denoisers.volume_eval import volume_denoised_dir, volume_metrics_csv, volume_runs, volume_test_scene_ids
+from denoisers.volume_eval import (volume_denoised_dir, volume_metrics_csv, volume_robustness_dir, volume_robustness_runs,
+                                   volume_runs, volume_test_scene_ids)
 from scenegen.config import volume_clip_spec
 
 if TYPE_CHECKING:
@@ -30,6 +32,7 @@ class VolumeResults:
     runs: list[dict]
     frames: pd.DataFrame
     per_scene: pd.DataFrame
+    robustness: pd.DataFrame | None = None   # spike scenario: method_id, scene, spp, {metric}_spiked (None: none ran)
 
     def ran(self, method_id: str | None, spp: int) -> bool:
         return method_id is not None and any(
@@ -100,4 +103,26 @@ def collect_volumes(cfg: dict, results_dir: Path, ledger: DigestLedger) -> Volum
     else:
         frames = pd.DataFrame(columns=["method_id", "spp", "scene", "scenario", "frame", *columns])
         per_scene = pd.DataFrame(columns=["method_id", "spp", "scene", "scenario", *columns, "video_psnr"])
-    return VolumeResults(volume_method_specs(cfg), scenes, scenarios, runs, frames, per_scene)
+    return VolumeResults(volume_method_specs(cfg), scenes, scenarios, runs, frames, per_scene,
+                         _collect_robustness(cfg, results_dir, scenes, ledger, lineage))
+
+
+def _collect_robustness(cfg: dict, results_dir: Path, scenes: list[str], ledger: DigestLedger,
+                        lineage: Lineage) -> pd.DataFrame | None:
+    """Frame means of the spike scenario's metrics per (row, clip) for every volume robustness run whose every clip
+    has its outputs (None when no row has them)."""
+    import pandas as pd
+
+    rows = []
+    for run in volume_robustness_runs(cfg):
+        folders = {scene: volume_robustness_dir(results_dir, run.spec.id, scene, run.spp) for scene in scenes}
+        if not all((folder / ROBUSTNESS_CSV).is_file() and (folder / ROBUSTNESS_SUMMARY).is_file()
+                   for folder in folders.values()):
+            continue
+        for scene, folder in folders.items():
+            summary = json.loads((folder / ROBUSTNESS_SUMMARY).read_text())
+            ledger.add(folder / ROBUSTNESS_SUMMARY, summary.get(DIGEST_KEY), lineage.robustness(run.spec, scene, run.spp))
+            table = pd.read_csv(folder / ROBUSTNESS_CSV)
+            rows.append({"method_id": run.spec.id, "scene": scene, "spp": run.spp,
+                         **{f"{metric}_spiked": table[metric].mean() for metric in ALL_METRICS}})
+    return pd.DataFrame(rows) if rows else None

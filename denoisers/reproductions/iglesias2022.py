@@ -1,13 +1,12 @@
 """Iglesias-Guitian et al. 2022, wRLS for volumetric path tracing (../shared/papers/iglesias-guitian2022-wrls-
 volumetric.txt): the paper's comparison on the volumetric clips (config section ``volumes``: a table per
-scenario, per-frame PSNR curves like Figs. 10-12, image grids) with claims C4.1 and C4.3 decided on those clips,
-plus the same comparison on the evaluated surface scenes, labelled as such (C4.1s, C4.3s), C4.2 (the spike
-scenario, surfaces only) and C4.4 (speed). FLIP and SSIM stand in for LPIPS (no network weights can be
-downloaded here).
+scenario, per-frame PSNR curves like Figs. 10-12, image grids) with claims C4.1-C4.3 decided on those clips; the
+same comparison on the evaluated surface scenes, labelled as such (C4.1s, C4.2s, C4.3s); and C4.4 (speed). FLIP
+and SSIM stand in for LPIPS (no network weights can be downloaded here).
 
-On the volumes, SVGF is ``svgf_volume`` (no normals; the clips' reprojection, as the paper did) and the RAE
-must be a volume row trained colour-only on volumetric clips (the paper's protocol): until one is configured,
-the RAE part of C4.3 is not run.
+On the volumes, SVGF is ``svgf_volume`` (no normals; the clips' reprojection, as the paper did) and the RAE is a
+volume row of ``rae_color``, trained colour-only on volumetric clips (the paper's protocol); without one, the
+RAE part of C4.3 is not run.
 """
 from __future__ import annotations
 
@@ -139,6 +138,28 @@ def decide_c41_volumes(res: Results) -> Decision:
                     note=f"{PAPER_SPP} spp, {VOLUMES}; SVGF without normals, with the clips' reprojection")
 
 
+def decide_c42_volumes(res: Results) -> Decision:
+    (wrls, rls), problem = _volume_rows(res, ("wrls", {"prefilter": None}), ("rls", {}))
+    if problem:
+        return not_run(problem)
+    vol, spp = res.volumes, int(res.cfg["evaluation"]["robustness"]["spp"])
+    if not res.cfg["evaluation"]["robustness"]["enabled"]:
+        return not_run("spike scenario disabled (evaluation.robustness.enabled)")
+    have = set() if vol.robustness is None else set(vol.robustness.method_id)
+    missing = [row for row in (wrls, rls) if row not in have or not vol.ran(row, spp)]
+    if missing:
+        return not_run(f"no spike-scenario results on the clips at {spp} spp for {', '.join(missing)} (volumes.rows "
+                       "entries with robustness: true)")
+    spiked = {row: vol.robustness[vol.robustness.method_id == row].set_index("scene")["psnr_spiked"]
+              for row in (wrls, rls)}
+    drop = {row: vol.scene_values(row, spp, "psnr") - spiked[row] for row in (wrls, rls)}
+    return Decision([Part.paired(spiked[wrls], spiked[rls], "psnr", f"{wrls} spiked @ {spp} spp",
+                                 f"{rls} spiked @ {spp} spp", "higher"),
+                     Part.paired(drop[wrls], drop[rls], "psnr_drop", f"{wrls} drop", f"{rls} drop", "lower")],
+                    note=f"{VOLUMES}: spikes and NaN/Inf injected into the noisy samples (evaluation.robustness); needs "
+                         "higher PSNR and a smaller PSNR drop than RLS")
+
+
 def decide_c43_volumes(res: Results) -> Decision:
     (wrls, noisy), problem = _volume_rows(res, ("wrls", {"prefilter": None}), ("noisy", {}))
     if problem:
@@ -168,7 +189,9 @@ CLAIMS = (
     Claim("C4.1", PAPER, "wRLS beats SVGF in PSNR and flickers less (TRMAE) on volumetric sequences", (),
           decide_c41_volumes),
     Claim("C4.1s", PAPER, "(surfaces) wRLS beats SVGF in PSNR and flickers less (TRMAE)", (WRLS, SVGF), decide_c41),
-    Claim("C4.2", PAPER, "wRLS is more robust to spike noise than plain RLS", (WRLS, RLS), decide_c42),
+    Claim("C4.2", PAPER, "wRLS is more robust to spike noise than plain RLS on volumetric sequences", (),
+          decide_c42_volumes),
+    Claim("C4.2s", PAPER, "(surfaces) wRLS is more robust to spike noise than plain RLS", (WRLS, RLS), decide_c42),
     Claim("C4.3", PAPER, "wRLS improves on its input at every spp on volumes, while RAE's gain shrinks as spp grows",
           (), decide_c43_volumes),
     Claim("C4.3s", PAPER, "(surfaces) wRLS improves on its input at every spp, while RAE's gain shrinks as spp grows",

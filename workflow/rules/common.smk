@@ -406,7 +406,8 @@ def report_input(wildcards) -> dict[str, list[str]]:
     return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
             "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning,
             "timing": timing_outputs(), "training_speed": training_speed_outputs(),
-            "atlas": ATLAS_OUTPUTS["markdown"], "volumes": volume_metrics_files() + volume_denoised_dirs(),
+            "atlas": ATLAS_OUTPUTS["markdown"],
+            "volumes": volume_metrics_files() + volume_denoised_dirs() + volume_robustness_dirs(),
             "volume_references": [results_path(f"renders/{scene}/reference/chunk_000") for scene in VOLUME_TEST_SCENES]}
 
 

@@ -21,6 +21,23 @@ def volume_run_list() -> list:
     return _volume_runs[0] if _volume_runs else []
 
 
+_volume_robustness_runs = []
+
+
+def volume_robustness_run_list() -> list:
+    """The volume rows' runs of the spike/NaN scenario (volume_eval.volume_robustness_runs)."""
+    if VOLUME_TEST_SCENES and not _volume_robustness_runs:
+        from denoisers.volume_eval import volume_robustness_runs
+
+        _volume_robustness_runs.append(volume_robustness_runs(config))
+    return _volume_robustness_runs[0] if _volume_robustness_runs else []
+
+
+def volume_robustness_dirs(wildcards=None) -> list[str]:
+    return [results_path(f"volumes/robustness/{run.spec.id}/{scene}/spp{run.spp}")
+            for run in volume_robustness_run_list() for scene in VOLUME_TEST_SCENES]
+
+
 def volume_metrics_files(wildcards=None) -> list[str]:
     """Every metrics CSV of the volume evaluation (stage target `volumes`, build_report)."""
     return [results_path(f"volumes/metrics/{run.spec.id}/{scene}/spp{run.spp}.csv")
@@ -32,12 +49,14 @@ def volume_denoised_dirs(wildcards=None) -> list[str]:
             for run in volume_run_list() if run.runnable for scene in VOLUME_TEST_SCENES]
 
 
-def check_volume_target(job_rule: str, pattern: str):
-    """Input function of denoise_volume / evaluate_volume: an evaluated clip, and a row and spp that run on it."""
+def check_volume_target(job_rule: str, pattern: str, kind: str = "evaluation"):
+    """Input function of denoise_volume / evaluate_volume (robustness_volume: kind 'robustness'): an evaluated clip,
+    and a row and spp that run on it."""
     from denoisers.volume_eval import volume_target_problem
 
     def check(wildcards) -> list:
-        problem = volume_target_problem(VOLUME_TEST_SCENES, volume_run_list(), wildcards.scene, wildcards.method,
+        runs = volume_run_list() if kind == "evaluation" else volume_robustness_run_list()
+        problem = volume_target_problem(VOLUME_TEST_SCENES, runs, wildcards.scene, wildcards.method,
                                         int(wildcards.spp))
         if problem:
             raise impossible_target(job_rule, pattern, wildcards, problem)

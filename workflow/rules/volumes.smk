@@ -3,6 +3,8 @@
 # integrators); every runnable row of volumes.rows then runs on every vol_test_* clip at volumes.denoise_spp:
 #   denoise_volume:  <output_dir>/volumes/denoised/{method}/{scene}/spp{spp}/ (as denoise_clip's outputs)
 #   evaluate_volume: <output_dir>/volumes/metrics/{method}/{scene}/spp{spp}.csv + .json (per-frame metrics)
+#   robustness_volume: <output_dir>/volumes/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected;
+#                    rows with robustness: true, at evaluation.robustness.spp)
 # build_report reads them for the Iglesias-Guitian section (denoisers.reproductions.iglesias2022).
 
 
@@ -60,3 +62,33 @@ rule evaluate_volume:
     shell:
         "OMP_NUM_THREADS={threads} python -m denoisers evaluate --config {params.config_file}"
         " --denoised {input.denoised} --render-dir {params.render_dir} --out {output.csv} > {log} 2>&1"
+
+
+rule robustness_volume:
+    input:
+        valid=check_volume_target("robustness_volume", "volumes/robustness/{method}/{scene}/spp{spp}", "robustness"),
+        noisy=scene_chunk_dirs("noisy"),
+        model=method_model_dir,
+        tuning=method_tuning_file,
+        reference=scene_chunk_dirs("reference"),
+    output:
+        out_dir=directory(results_path("volumes/robustness/{method}/{scene}/spp{spp}")),
+    params:
+        config_file=resolved_config_file,
+        config_digest=robustness_digest,
+        render_dir=render_dir,
+        results=results_root,
+    log:
+        results_path("logs/robustness_volume/{method}/{scene}/spp{spp}.log"),
+    benchmark:
+        results_path("benchmarks/robustness_volume/{method}/{scene}/spp{spp}.tsv")
+    conda:
+        "../envs/harness.yaml"
+    threads: config["evaluation"]["threads"]
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    shell:
+        "python -m denoisers robustness --config {params.config_file} --method-id {wildcards.method}"
+        " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
+        " --results {params.results} --out {output.out_dir} --threads {threads} > {log} 2>&1"
