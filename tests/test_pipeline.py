@@ -38,8 +38,8 @@ from denoisers.report.claims import INCONCLUSIVE, NOT_RUN
 from denoisers.reproductions import all_claims
 from denoisers.training.models import MODEL_FILES, capacity_model_ids, model_dir, model_specs
 from scenegen.config import (CUSTOM_PREFIX, chunk_count, chunk_frames, load_config, scene_frame_count, scene_ids,
-                             scene_reference_spp)
-from scenegen.dataset import REFERENCE_BUFFERS, REQUIRED_REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
+                             scene_reference_spp, volume_scene_ids)
+from scenegen.dataset import ALL, REFERENCE_BUFFERS, REQUIRED_REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 # Every test here shares one smoke DAG run (minutes): excluded by `-m "not slow"`.
@@ -55,7 +55,10 @@ SEED7_CONFIG, SEED7_OUT = "seed7.yaml", "results/seed7"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference")
 # results/benchmarks/{folder}/{method}/{scene}/spp{spp}.tsv of the evaluation rules: folder -> which runs.
 EVALUATION_BENCHMARKS = {"denoise": "evaluation", "evaluate": "evaluation", "robustness": "robustness"}
-MAX_RESULTS_BYTES = 50 * 1024**2
+# A guard against runaway outputs (e.g. a full-resolution dump per job), not a tuned number: the 183-job smoke tree
+# holds about 53 MB (2026-12-01; 21 of them MB of resumable training checkpoints in models/.work, 3.4 MB for the
+# volumetric clips added that day), so 60 MB leaves room for a few rows more.
+MAX_RESULTS_BYTES = 60 * 1024**2
 # Snakemake marks every directory() output with this file; it is not part of the data.
 SNAKEMAKE_MARKER = ".snakemake_timestamp"
 # Generous: the machine may be shared; a hung job should fail the test rather than block forever.
@@ -148,11 +151,14 @@ def test_full_run_reuses_the_scenes(pipeline: PipelineRun) -> None:
     scene_files = {path: mtime for path, mtime in _tree(pipeline.results).items() if path.startswith("scenes/")}
     before = {path: mtime for path, mtime in pipeline.after_scenes.items() if path.startswith("scenes/")}
     # The stage target `scenes` builds the procedural and external scenes; the full run adds the stability
-    # scenarios (stab_*, target `stability`) and must leave every scene that existed untouched.
+    # scenarios (stab_*, target `stability`) and the volumetric clips (vol_*, target `volumes`) and must leave
+    # every scene that existed untouched.
     assert {path: scene_files.get(path) for path in before} == before, \
         "the full run regenerated scenes that were already up to date"
     added = {path.split("/")[1] for path in set(scene_files) - set(before)}
-    assert added == {f"stab_{name}" for name in pipeline.cfg["stability"]["scenarios"]}, added
+    assert added == ({f"stab_{name}" for name in pipeline.cfg["stability"]["scenarios"]}
+                     | set(volume_scene_ids(pipeline.cfg))), added
+    assert volume_scene_ids(pipeline.cfg) == ["vol_test_camera_000", "vol_train_camera_000", "vol_train_camera_001"]
 
 
 def test_every_scene_has_manifest_and_all_chunks(pipeline: PipelineRun) -> None:
@@ -187,7 +193,7 @@ def test_clips_load_with_configured_shapes_and_sane_metadata(pipeline: PipelineR
         clip = load_clip(pipeline.results / "renders" / scene)  # also rejects non-finite values
         assert clip.scene == scene
         assert clip.frames == list(range(n_frames))
-        assert set(clip.samples) == set(SAMPLE_BUFFERS)
+        assert set(clip.samples) == set(ALL)         # a surface scene's buffers (the volume ones are vol_* only)
         for buffer, array in clip.samples.items():
             layers = spp + render["extra_radiance_spp"] if buffer == "radiance" else spp
             assert array.shape == (n_frames, layers, len(SAMPLE_BUFFERS[buffer]), height, width), buffer
@@ -426,6 +432,23 @@ def test_every_output_records_the_settings_digest_of_this_config(pipeline: Pipel
             summary = json.loads((robustness_dir(pipeline.results, run.spec.id, scene, run.spp)
                                   / ROBUSTNESS_SUMMARY).read_text())
             assert summary[DIGEST_KEY] == lineage.robustness(method_spec(cfg, run.spec.id), scene, run.spp)
+            checked += 1
+    # The volume rows on the evaluated volumetric clips: metrics, denoised clip, spike scenario.
+    from denoisers.volume_eval import (volume_denoised_dir, volume_metrics_csv, volume_robustness_dir,
+                                       volume_robustness_runs, volume_runs, volume_test_scene_ids)
+
+    for scene in volume_test_scene_ids(cfg):
+        for run in (run for run in volume_runs(cfg) if run.runnable):
+            sidecar = metrics_sidecar(volume_metrics_csv(pipeline.results, run.spec.id, scene, run.spp))
+            assert json.loads(sidecar.read_text())[DIGEST_KEY] == lineage.metrics(run.spec, scene, run.spp), sidecar
+            timing = json.loads((volume_denoised_dir(pipeline.results, run.spec.id, scene, run.spp)
+                                 / TIMING_FILE).read_text())
+            assert timing[DIGEST_KEY] == lineage.denoised(run.spec, scene, run.spp)
+            checked += 2
+        for run in volume_robustness_runs(cfg):
+            summary = json.loads((volume_robustness_dir(pipeline.results, run.spec.id, scene, run.spp)
+                                  / ROBUSTNESS_SUMMARY).read_text())
+            assert summary[DIGEST_KEY] == lineage.robustness(run.spec, scene, run.spp)
             checked += 1
     for spec in model_specs(cfg):
         summary = json.loads((model_dir(pipeline.results, spec.id) / "summary.json").read_text())
