@@ -205,3 +205,35 @@ def test_c42_is_decided_on_the_spike_scenario_over_the_clips() -> None:
     assert decision.parts[0].outcome == REPRODUCED and decision.parts[1].outcome == CONTRADICTED
     assert decision.verdict == CONTRADICTED
     assert (clean_wrls.index == pd.Index(scenes)).all()
+
+
+def test_dark_half_brightness_is_output_over_reference_where_the_reference_is_dark(tmp_path) -> None:
+    """A row that doubles every dark pixel and keeps the bright ones reads 2; one that returns the reference, 1."""
+    from denoisers.evaluate import write_radiance_exr
+    from scenegen.dataset import reference_channels
+    from scenegen.exr import write_exr
+
+    cfg = volume_config(n_test=1, rows=[{"id": "vol_same", "method": "noisy"}, {"id": "vol_double", "method": "noisy"}],
+                        denoise_spp=[2])
+    res = synthetic(cfg, [1.0, 1.0])
+    res.volumes.scenes = volume_test_scene_ids(cfg)
+    res.results_dir = tmp_path
+    rng = np.random.default_rng(0)
+    for scene in res.volumes.scenes:
+        for t in range(2):
+            reference = rng.uniform(0.1, 1.0, (3, 6, 5)).astype(np.float32)
+            reference[:, :3] *= 10.0                                     # the top rows are the bright half
+            folder = tmp_path / "renders" / scene / "reference" / "chunk_000"
+            folder.mkdir(parents=True, exist_ok=True)
+            write_exr(folder / f"frame_{t:04d}.exr", reference_channels(
+                {"radiance": reference, "radiance_half0": reference, "radiance_half1": reference}),
+                attributes={"mcdn_meta": json.dumps({"scene": scene, "frame": t})})
+            doubled = reference.copy()
+            doubled[:, 3:] *= 2.0
+            for row, image in (("vol_same", reference), ("vol_double", doubled)):
+                out = tmp_path / "volumes" / "denoised" / row / scene / "spp2"
+                out.mkdir(parents=True, exist_ok=True)
+                write_radiance_exr(out / f"frame_{t:04d}.exr", image)
+    table = iglesias2022.volume_brightness_table(res).set_index("row")
+    assert float(table.loc["vol_same", "dark half: output / reference @ 2 spp"]) == pytest.approx(1.0)
+    assert float(table.loc["vol_double", "dark half: output / reference @ 2 spp"]) == pytest.approx(2.0, abs=1e-3)

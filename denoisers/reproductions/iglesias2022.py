@@ -263,10 +263,53 @@ def volume_spp_table(res: Results) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def volume_brightness_table(res: Results) -> pd.DataFrame:
+    """Bias in the dark half of every frame: the sum of the output over the sum of the reference radiance over the
+    pixels whose reference luminance is below the frame's median (all frames of a clip, then the mean over the
+    clips), per volume row and spp; 1 is unbiased, and the MC input's value shows the noise of the measure. wRLS
+    brightens dark, sparse regions at 1-2 spp (denoisers/methods/rls.py); the row with the paper's Gaussian
+    prefilter shows whether that step prevents it."""
+    import numpy as np
+    import pandas as pd
+
+    from denoisers.evaluate import read_frame_files, read_radiance_exr
+    from denoisers.filters import REC709_LUMINANCE
+    from denoisers.volume_eval import volume_denoised_dir
+    from scenegen.dataset import find_frames, load_reference_frame
+
+    vol = res.volumes
+    dark = {}          # (scene, frame) -> (reference (3, H, W), dark mask (H, W))
+    for scene in vol.scenes:
+        for t, path in find_frames(res.results_dir / "renders" / scene / "reference").items():
+            reference = load_reference_frame(path, ["radiance"])[0]["radiance"]
+            lum = np.tensordot(np.asarray(REC709_LUMINANCE), reference, axes=1)          # (H, W)
+            dark[scene, t] = reference, lum < np.median(lum)
+    rows = []
+    for spec in vol.specs:
+        row: dict[str, Any] = {"row": spec.id}
+        for spp in res.cfg["volumes"]["denoise_spp"]:
+            column = f"dark half: output / reference @ {spp} spp"
+            if not vol.ran(spec.id, spp):
+                row[column] = "not run"
+                continue
+            ratios = []
+            for scene in vol.scenes:
+                out_sum = ref_sum = 0.0
+                for t, path in read_frame_files(volume_denoised_dir(res.results_dir, spec.id, scene, spp)).items():
+                    reference, mask = dark[scene, t]
+                    out_sum += float(read_radiance_exr(path)[:, mask].sum())
+                    ref_sum += float(reference[:, mask].sum())
+                ratios.append(out_sum / max(ref_sum, 1e-12))
+            row[column] = f"{np.mean(ratios):.3f}"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def _tables(cfg: dict) -> list[str]:
     volumes = cfg.get("volumes") or {}
     have = volumes.get("enabled", False) and int(volumes.get("n_test", 0)) > 0
-    return ["iglesias_comparison"] + (["iglesias_volumes", "iglesias_volumes_spp"] if have else [])
+    return ["iglesias_comparison"] + (["iglesias_volumes", "iglesias_volumes_spp", "iglesias_volumes_brightness"]
+                                      if have else [])
 
 
 def _figures(cfg: dict) -> list[str]:
@@ -288,6 +331,8 @@ def write(res: Results, tables: Path, figures: Path) -> str:
         by_spp = volume_spp_table(res)
         write_table(per_scenario, tables, "iglesias_volumes", frame_to_markdown(per_scenario))
         write_table(by_spp, tables, "iglesias_volumes_spp", frame_to_markdown(by_spp))
+        brightness = volume_brightness_table(res)
+        write_table(brightness, tables, "iglesias_volumes_brightness", frame_to_markdown(brightness))
         curves = plot_curves(vol, PAPER_SPP, figures / "iglesias_volume_curves.png")
         grid = plot_grid(vol, res.results_dir, PAPER_SPP, figures / "iglesias_volume_grid.png")
         counts = ", ".join(f"{sum(1 for k in vol.scenarios.values() if k == scenario)} {scenario}"
@@ -297,6 +342,10 @@ def write(res: Results, tables: Path, figures: Path) -> str:
                   "its clips; all clips: mean and 95 % interval). FLIP and SSIM stand in for LPIPS.", "",
                   frame_to_markdown(per_scenario), "", "PSNR at every denoised spp (the paper's Figs. 16-17):", "",
                   frame_to_markdown(by_spp), "",
+                  "Bias in the dark half of each frame (pixels below the reference's median luminance): output over "
+                  "reference radiance, 1 = unbiased; the MC input shows the measure's noise. wRLS is known to "
+                  "brighten dark, sparse regions at 1-2 spp; the paper's Gaussian prefilter is its remedy:", "",
+                  frame_to_markdown(brightness), "",
                   f"Per-frame PSNR per scenario: `figures/iglesias_volume_curves.png`{' (' + curves + ')' if curves else ''}; "
                   f"last frames: `figures/iglesias_volume_grid.png`{' (' + grid + ')' if grid else ''}.", ""]
     table = comparison_table(res)
