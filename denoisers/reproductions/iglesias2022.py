@@ -114,9 +114,10 @@ def _volume_rows(res: Results, *needs: tuple[str, dict]) -> tuple[list[str | Non
     rows = [vol.row_of(method, **params) for method, params in needs]
     missing = [method for (method, _), row in zip(needs, rows) if row is None]
     if missing:
-        return rows, (f"no volume row of {', '.join(missing)} ran on the clips (volumes.rows; "
-                      + "; ".join(f"{r['id']} @ {r['spp']} spp: {r['reason']}" for r in vol.runs
-                                  if r["method"] in missing and r["status"] != "ran") + ")")
+        reasons = [f"{r['id']} @ {r['spp']} spp: {r['reason']}" for r in vol.runs
+                   if r["method"] in missing and r["status"] != "ran"]
+        return rows, (f"no volume row of method {', '.join(missing)} ran on the clips ("
+                      + ("; ".join(reasons) if reasons else "none in volumes.rows") + ")")
     return rows, ""
 
 
