@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from scenegen.atomic import atomic_directory, write_text_atomic
+from scenegen.atomic import atomic_directory
 from scenegen.config import (CUSTOM_PREFIX, STABILITY_PREFIX, VOLUME_PREFIX, extra_scene, scene_frame_count,
                              scene_frames_per_chunk, scene_reference_spp, scene_render_config)
 from scenegen.mitsuba_env import init_mitsuba
@@ -79,8 +79,7 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
 
 def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
     """Render the per-sample noisy frames of one chunk, with motion vectors and G-buffers."""
-    from scenegen.dataset import noisy_channels, pixel_channels
-    from scenegen.exr import write_exr
+    from scenegen.dataset import noisy_channels, pixel_channels, write_frame
     from scenegen.motion import motion_vectors
 
     settings = RenderSettings.from_config(scene_render_config(cfg, scene_id))
@@ -124,9 +123,7 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
             channels, half = noisy_channels(samples)
             pixel, pixel_half = pixel_channels(motion, valid, gbuffer)
             channels.update(pixel)
-            write_exr(tmp_dir / f"frame_{frame:04d}.exr", channels, half=half | pixel_half,
-                      attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
-            write_text_atomic(tmp_dir / f"frame_{frame:04d}.json", json.dumps(meta, indent=1, sort_keys=True))
+            write_frame(tmp_dir / f"frame_{frame:04d}.exr", channels, meta, half=half | pixel_half)
             bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")
             gbuffer_prev = gbuffer
             rates.append(meta["samples_per_s"])
@@ -138,8 +135,7 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
     (render.train_reference_spp for train_* scenes when set, else render.reference_spp); the sidecars record it.
     ``render.reference_integrator``: "path" renders radiance with Mitsuba's ``path`` integrator (the buffers the
     evaluation and training use); "features" renders with the feature integrator and adds the feature means."""
-    from scenegen.dataset import reference_channels
-    from scenegen.exr import write_exr
+    from scenegen.dataset import reference_channels, write_frame
 
     settings = dataclasses.replace(RenderSettings.from_config(scene_render_config(cfg, scene_id)),
                                    reference_spp=scene_reference_spp(cfg, scene_id))
@@ -177,9 +173,7 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
                 "timing_s": seconds,
                 "samples_per_s": 2 * half_spp * settings.width * settings.height / seconds,
             })
-            write_exr(tmp_dir / f"frame_{frame:04d}.exr", reference_channels(reference),
-                      attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
-            write_text_atomic(tmp_dir / f"frame_{frame:04d}.json", json.dumps(meta, indent=1, sort_keys=True))
+            write_frame(tmp_dir / f"frame_{frame:04d}.exr", reference_channels(reference), meta, half=set())
             bar.set_postfix(samples_per_s=f"{meta['samples_per_s']:.3g}")
             rates.append(meta["samples_per_s"])
     log.info("reference %s chunk %d: %d frames at %d spp, mean %.3g samples/s", scene_id, chunk, len(frames),

@@ -83,6 +83,28 @@ def bilinear_taps(pixel_prev: np.ndarray, width: int,
     return taps
 
 
+def reproject(points_prev: np.ndarray, hit: np.ndarray, manifest: dict, frame: int, width: int,
+              height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the pixels of ``frame`` were in frame - 1: (N, 2) previous pixel coordinates, motion (2, H, W) in pixels
+    (0 where the target is behind the previous camera) and (N,) bool on screen and in front. ``points_prev`` (N, 3):
+    each pixel's world point at frame - 1 (row-major, N = H W); pixels with ``hit`` false see the environment and
+    are projected as points at infinity along their ray."""
+    from scenegen.mitsuba_scene import project_to_pixels
+
+    surface_prev, surface_in_front = project_to_pixels(points_prev, manifest, frame - 1, width, height)
+    sky_prev, sky_in_front = project_directions(pixel_ray_directions(manifest, frame, width, height),
+                                                manifest, frame - 1, width, height)
+    pixel_prev = np.where(hit[:, None], surface_prev, sky_prev)
+    in_front = np.where(hit, surface_in_front, sky_in_front)
+    jj, ii = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    centre = np.stack([ii.reshape(-1) + 0.5, jj.reshape(-1) + 0.5], axis=1)
+    motion = np.where(in_front[:, None], pixel_prev - centre, 0.0).T.reshape(2, height, width).astype(np.float32)
+    on_screen = (in_front & np.all(np.isfinite(pixel_prev), axis=1)
+                 & (pixel_prev[:, 0] >= 0) & (pixel_prev[:, 0] < width)
+                 & (pixel_prev[:, 1] >= 0) & (pixel_prev[:, 1] < height))
+    return pixel_prev, motion, on_screen
+
+
 def motion_vectors(gbuffer: dict[str, np.ndarray], gbuffer_prev: dict[str, np.ndarray] | None,
                    manifest: dict, frame: int, width: int, height: int, *,
                    camera_cut: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -91,7 +113,7 @@ def motion_vectors(gbuffer: dict[str, np.ndarray], gbuffer_prev: dict[str, np.nd
     ``gbuffer`` / ``gbuffer_prev``: {"position": (3,H,W), "normal": (3,H,W), "depth": (1,H,W),
     "object": (1,H,W)} of frames ``frame`` and ``frame - 1`` (``None`` for frame 0).
     """
-    from scenegen.mitsuba_scene import camera_matrices, object_to_world, project_to_pixels
+    from scenegen.mitsuba_scene import camera_matrices, object_to_world
 
     motion = np.zeros((2, height, width), np.float32)
     valid = np.zeros((1, height, width), bool)
@@ -112,21 +134,10 @@ def motion_vectors(gbuffer: dict[str, np.ndarray], gbuffer_prev: dict[str, np.nd
     position_prev = _apply(per_pixel, position, w=1.0)
     normal_prev = _apply(per_pixel, normal, w=0.0)
 
-    surface_prev, surface_in_front = project_to_pixels(position_prev, manifest, frame - 1, width, height)
-    sky_prev, sky_in_front = project_directions(pixel_ray_directions(manifest, frame, width, height),
-                                                 manifest, frame - 1, width, height)
-    pixel_prev = np.where(hit[:, None], surface_prev, sky_prev)
-    in_front = np.where(hit, surface_in_front, sky_in_front)
-    jj, ii = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
-    centre = np.stack([ii.reshape(-1) + 0.5, jj.reshape(-1) + 0.5], axis=1)
-    flow = pixel_prev - centre
-    motion = np.where(in_front[:, None], flow, 0.0).T.reshape(2, height, width).astype(np.float32)
+    pixel_prev, motion, on_screen = reproject(position_prev, hit, manifest, frame, width, height)
     if camera_cut:
         return motion, valid
 
-    on_screen = (in_front & np.all(np.isfinite(pixel_prev), axis=1)
-                 & (pixel_prev[:, 0] >= 0) & (pixel_prev[:, 0] < width)
-                 & (pixel_prev[:, 1] >= 0) & (pixel_prev[:, 1] < height))
     camera_prev = camera_matrices(manifest, frame - 1, width, height)
     # Pixel footprint (metres) at q's distance from the previous camera (image-centre pixel size).
     footprint = (np.linalg.norm(position_prev - camera_prev["origin"], axis=1)

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scenegen.motion import MIN_TAP_WEIGHT, PLANE_FOOTPRINTS, bilinear_taps, pixel_ray_directions, project_directions
+from scenegen.motion import MIN_TAP_WEIGHT, PLANE_FOOTPRINTS, bilinear_taps, reproject
 
 DEPTH_TOLERANCE = 0.1
 #: gbuffer ``object`` codes of a volumetric clip.
@@ -64,7 +64,7 @@ def volume_motion_vectors(gbuffer: dict[str, np.ndarray], gbuffer_prev: dict[str
                           manifest: dict, frame: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Motion vectors (2, H, W) in pixels (previous position = pixel centre + motion) and validity (1, H, W) bool
     of ``frame`` of a volumetric clip, from the closest-collision G-buffers of ``frame`` and ``frame - 1``."""
-    from scenegen.mitsuba_scene import camera_matrices, project_to_pixels
+    from scenegen.mitsuba_scene import camera_matrices
 
     motion = np.zeros((2, height, width), np.float32)
     if gbuffer_prev is None or frame == 0:
@@ -72,20 +72,10 @@ def volume_motion_vectors(gbuffer: dict[str, np.ndarray], gbuffer_prev: dict[str
     if not camera_moved(manifest, frame):
         return motion, np.ones((1, height, width), bool)
 
+    # The scene is static: a collision's previous position is the point itself.
     position = gbuffer["position"].reshape(3, -1).T.astype(np.float64)
     hit = gbuffer["object"].reshape(-1) > OBJECT_ENVIRONMENT
-    point_prev, point_in_front = project_to_pixels(position, manifest, frame - 1, width, height)
-    sky_prev, sky_in_front = project_directions(pixel_ray_directions(manifest, frame, width, height),
-                                                manifest, frame - 1, width, height)
-    pixel_prev = np.where(hit[:, None], point_prev, sky_prev)
-    in_front = np.where(hit, point_in_front, sky_in_front)
-    jj, ii = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
-    centre = np.stack([ii.reshape(-1) + 0.5, jj.reshape(-1) + 0.5], axis=1)
-    motion = np.where(in_front[:, None], pixel_prev - centre, 0.0).T.reshape(2, height, width).astype(np.float32)
-
-    ok = (in_front & np.all(np.isfinite(pixel_prev), axis=1)
-          & (pixel_prev[:, 0] >= 0) & (pixel_prev[:, 0] < width)
-          & (pixel_prev[:, 1] >= 0) & (pixel_prev[:, 1] < height))
+    pixel_prev, motion, ok = reproject(position, hit, manifest, frame, width, height)
     camera_prev = camera_matrices(manifest, frame - 1, width, height)
     distance = np.linalg.norm(position - camera_prev["origin"], axis=1)
     tolerance = DEPTH_TOLERANCE * distance + PLANE_FOOTPRINTS * distance / abs(camera_prev["intrinsics"][0, 0])

@@ -96,8 +96,7 @@ def _sample_layers(scene, n_layers: int, seed: int, counter: NonFiniteCounter) -
 def run_render_volume_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path,
                             settings: RenderSettings) -> None:
     """Render the noisy frames of a volumetric clip (one chunk: the whole clip)."""
-    from scenegen.dataset import noisy_channels, pixel_channels
-    from scenegen.exr import write_exr
+    from scenegen.dataset import noisy_channels, pixel_channels, write_frame
     from scenegen.volume_motion import closest_collision_gbuffer, volume_motion_vectors
     from scenegen.volume_scenes import frame_updates
 
@@ -137,9 +136,7 @@ def run_render_volume_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Pat
             channels, half = noisy_channels(samples)
             pixel, pixel_half = pixel_channels(motion, valid, gbuffer)
             channels.update(pixel)
-            write_exr(tmp_dir / f"frame_{frame:04d}.exr", channels, half=half | pixel_half,
-                      attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
-            write_text_atomic(tmp_dir / f"frame_{frame:04d}.json", json.dumps(meta, indent=1, sort_keys=True))
+            write_frame(tmp_dir / f"frame_{frame:04d}.exr", channels, meta, half=half | pixel_half)
             gbuffer_prev = gbuffer
     log.info("noisy %s: %d frames", scene_id, clip.frames)
 
@@ -147,8 +144,7 @@ def run_render_volume_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Pat
 def run_render_volume_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path,
                                 settings: RenderSettings) -> None:
     """Render the references of a volumetric clip with Mitsuba's volpath: two independent halves per frame."""
-    from scenegen.dataset import reference_channels
-    from scenegen.exr import write_exr
+    from scenegen.dataset import reference_channels, write_frame
     from scenegen.volume_scenes import frame_updates
 
     if chunk != 0:
@@ -177,7 +173,5 @@ def run_render_volume_reference(cfg: dict, scene_id: str, chunk: int, scene_dir:
                 "nonfinite": counter.counts, "nonfinite_total": int(sum(counter.counts.values())),
                 "timing_s": seconds, "samples_per_s": 2 * half_spp * settings.width * settings.height / seconds,
             })
-            write_exr(tmp_dir / f"frame_{frame:04d}.exr", reference_channels(reference),
-                      attributes={"mcdn_meta": json.dumps(meta, sort_keys=True)})
-            write_text_atomic(tmp_dir / f"frame_{frame:04d}.json", json.dumps(meta, indent=1, sort_keys=True))
+            write_frame(tmp_dir / f"frame_{frame:04d}.exr", reference_channels(reference), meta, half=set())
     log.info("reference %s: %d frames at %d spp", scene_id, clip.frames, 2 * half_spp)

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import scenegen.dataset
 import scenegen.exr
 import scenegen.mitsuba_scene
 from scenegen import jobs
@@ -179,6 +180,7 @@ def _crash_on_second_write(monkeypatch) -> list[set[str]]:
 
     monkeypatch.setattr(scenegen.exr, "write_exr", flaky_write)
     monkeypatch.setattr(jobs, "write_exr", flaky_write, raising=False)  # in case jobs imports it at top level
+    monkeypatch.setattr(scenegen.dataset, "write_exr", flaky_write)      # the frame writer (dataset.write_frame)
     return seen_at_crash
 
 
