@@ -71,9 +71,21 @@ def _load_clip(scene_dir: Path) -> tuple[dict, Any]:
     return manifest, VolumeClip.from_manifest(manifest)
 
 
+def _open_clip(scene_id: str, chunk: int, scene_dir: Path, settings: RenderSettings,
+               integrator: str) -> tuple[str, dict, Any, Any]:
+    """(Mitsuba variant, manifest, VolumeClip, frame 0's scene with ``integrator``) of a clip's only chunk."""
+    if chunk != 0:
+        raise ValueError(f"volumetric clip {scene_id} is rendered as one chunk (chunk 0), got chunk {chunk}")
+    variant = init_mitsuba(settings.variant)
+    manifest, clip = _load_clip(scene_dir)
+    return variant, manifest, clip, _load_scene(clip, settings, integrator)
+
+
 def _load_scene(clip: Any, settings: RenderSettings, integrator: str):
     """Frame 0's Mitsuba scene with ``integrator`` ('features': mcdn_volpath_features, 'volpath')."""
     import mitsuba as mi
+
+    import scenegen.volume_integrator  # noqa: F401 -- registers mcdn_volpath_features
 
     scene = clip.scene_dict(0, width=settings.width, height=settings.height, spp=1)
     kind = "mcdn_volpath_features" if integrator == "features" else "volpath"
@@ -100,13 +112,7 @@ def run_render_volume_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Pat
     from scenegen.volume_motion import closest_collision_gbuffer, volume_motion_vectors
     from scenegen.volume_scenes import frame_updates
 
-    if chunk != 0:
-        raise ValueError(f"volumetric clip {scene_id} is rendered as one chunk (chunk 0), got chunk {chunk}")
-    variant = init_mitsuba(settings.variant)
-    import scenegen.volume_integrator  # noqa: F401 -- registers mcdn_volpath_features
-
-    manifest, clip = _load_clip(scene_dir)
-    scene = _load_scene(clip, settings, "features")
+    variant, manifest, clip, scene = _open_clip(scene_id, chunk, scene_dir, settings, "features")
     samples_per_frame = settings.spp * settings.width * settings.height
     gbuffer_prev = None
     with atomic_directory(out_dir) as tmp_dir, \
@@ -147,11 +153,7 @@ def run_render_volume_reference(cfg: dict, scene_id: str, chunk: int, scene_dir:
     from scenegen.dataset import reference_channels, write_frame
     from scenegen.volume_scenes import frame_updates
 
-    if chunk != 0:
-        raise ValueError(f"volumetric clip {scene_id} is rendered as one chunk (chunk 0), got chunk {chunk}")
-    variant = init_mitsuba(settings.variant)
-    manifest, clip = _load_clip(scene_dir)
-    scene = _load_scene(clip, settings, "volpath")
+    variant, manifest, clip, scene = _open_clip(scene_id, chunk, scene_dir, settings, "volpath")
     half_spp = settings.reference_spp // 2
     n_batches = math.ceil(half_spp / settings.reference_batch_spp)
     with atomic_directory(out_dir) as tmp_dir, \
