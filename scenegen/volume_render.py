@@ -49,7 +49,8 @@ def generate_volume_scene(cfg: dict, scene_id: str, out_dir: Path) -> dict:
     own = volume_extra(cfg, scene_id) if split == "custom" else {}
     clip = generate_volume_clip(scene_seed(cfg["seed"], scene_id), scenario, int(volumes["frames"]),
                                 resolution=int(volumes["resolution"]), field_npy=own.get("npy"),
-                                transfer_function=own.get("transfer_function"))
+                                transfer_function=own.get("transfer_function"),
+                                frame_aspect=int(volumes["height"]) / int(volumes["width"]))
     clip = dataclasses.replace(clip, max_depth=int(volumes["max_depth"]))
     manifest = {**clip.manifest(), "scene": scene_id, "n_frames": clip.frames}
     with atomic_directory(out_dir) as tmp_dir:

@@ -118,3 +118,58 @@ def test_frame_updates_match_a_fresh_load(scenario, light):
     fresh = _render(clip.scene_dict(FRAMES - 1))
     assert np.all(np.isfinite(edited)) and edited.tobytes() != first.tobytes()
     assert edited.tobytes() == fresh.tobytes()
+
+
+def test_occupied_bounds_are_the_voxels_a_transfer_function_makes_visible():
+    """Hand-placed voxels in a (D, H, W) = [z, y, x] field inside a box from (0, 0, 0) to (4, 2, 8): the bounds
+    cover exactly the voxels whose extinction passes the visibility threshold in any frame."""
+    from scenegen.volume_scenes import VISIBLE_OPTICAL_DEPTH, occupied_bounds
+    from scenegen.volumes import TransferFunction
+
+    field = np.zeros((8, 4, 4), np.float32)          # voxels of 1 x 0.5 x 1 scene units (x, y, z)
+    field[2:5, 1, 3] = 0.5                           # z 2..4, y 1, x 3: visible only in the second frame
+    field[6, 3, 0] = 1.0                             # z 6, y 3, x 0: visible in both
+    field[0, 0, 0] = 0.1                             # below the threshold in both frames
+    threshold = VISIBLE_OPTICAL_DEPTH / 8.0
+    dense = TransferFunction(extinction=((0.0, 0.0), (1.0, 4 * threshold)), albedo=((0.0, 1, 1, 1),))
+    low = TransferFunction(extinction=((0.0, 0.0), (0.9, 0.0), (1.0, 1.0)), albedo=((0.0, 1, 1, 1),))
+    box = ([0.0, 0.0, 0.0], [4.0, 2.0, 8.0])
+    lower, upper = occupied_bounds(field, [low], *box)
+    np.testing.assert_allclose(lower, [0.0, 1.5, 6.0])
+    np.testing.assert_allclose(upper, [1.0, 2.0, 7.0])
+    lower, upper = occupied_bounds(field, [low, dense], *box)
+    np.testing.assert_allclose(lower, [0.0, 0.5, 2.0])
+    np.testing.assert_allclose(upper, [4.0, 2.0, 7.0])
+    empty = TransferFunction(extinction=((0.0, 0.0),), albedo=((0.0, 1, 1, 1),))
+    lower, upper = occupied_bounds(field, [empty], *box)
+    np.testing.assert_allclose(lower, box[0])
+    np.testing.assert_allclose(upper, box[1])
+
+
+@pytest.mark.parametrize("seed, scenario, aspect", [(0, "camera", 1.0), (4, "camera", 0.75), (2, "light", 1.0),
+                                                    (5, "transfer_function", 0.5)])
+def test_the_camera_frames_the_visible_volume(seed, scenario, aspect):
+    """Mitsuba's own sensor (sensor.sample_direction) projects the visible part's corners inside the frame
+    from every camera of the clip, and some corner reaches near the frame's edge (FRAME_FILL); inside a room
+    whose walls hold the camera back, the view widens instead."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from scenegen.volume_scenes import FRAME_FILL, occupied_bounds
+
+    width = 64
+    height = int(round(width * aspect))
+    clip = generate_volume_clip(seed, scenario, 4, frame_aspect=height / width)
+    lower, upper = occupied_bounds(clip.field, clip.transfer_functions, clip.box_min, clip.box_max)
+    corners = np.array(np.meshgrid(*zip(lower, upper), indexing="ij")).reshape(3, -1).T
+    reach = []
+    for frame in range(clip.frames):
+        sensor = mi.load_dict(clip.scene_dict(frame, width=width, height=height, spp=1)["sensor"])
+        interaction = dr.zeros(mi.Interaction3f, len(corners))
+        interaction.p = mi.Point3f(*(corners[:, axis] for axis in range(3)))
+        sample, _ = sensor.sample_direction(interaction, mi.Point2f(0.5, 0.5))
+        uv = np.array(sample.uv, dtype=np.float64).reshape(2, -1).T           # (8, 2) film pixels
+        half = np.array([width, height]) / 2
+        reach.append(np.abs(uv - half) / half)                              # 1 at the frame's edge
+    reach = np.concatenate(reach)
+    assert FRAME_FILL - 0.05 <= reach.max() <= FRAME_FILL + 1e-3
