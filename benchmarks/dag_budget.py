@@ -2,14 +2,15 @@
 
 Nothing is rendered or trained; every figure is a measured rate times the work the config asks for:
 
-* render_reference: the config's reference samples per chunk (every scene, stability clips included, at
-  its own reference spp and size) divided by the reference samples/s recorded in the frame sidecars of a
-  finished render folder (``--renders``; median, and the 25-75 % range over its frames, since the rate
-  differs by scene several-fold), per reference integrator (``render.reference_integrator``; the
-  stability clips always use the feature integrator). Sidecars of the other integrator are scaled by
-  ``benchmarks/reference_speed.py``'s measured rate ratio (``--reference-speed``);
-* render_noisy: seconds per pixel-layer of the noisy sidecars of that folder, times the config's
-  pixel-layers (spp + extra radiance layers) per chunk;
+* render_reference: the config's reference samples per chunk (every scene, stability and volumetric clips
+  included, each at its own reference spp and size) divided by the reference samples/s recorded in the frame
+  sidecars of finished render folders (``--renders``, pooled; median, and the 25-75 % range over their frames,
+  since the rate differs by scene several-fold), per reference integrator (``render.reference_integrator``;
+  the stability clips always use the feature integrator, volumetric clips ``volpath``). Sidecars of the other
+  surface integrator are scaled by ``benchmarks/reference_speed.py``'s measured rate ratio
+  (``--reference-speed``);
+* render_noisy: seconds per pixel-layer of the noisy sidecars (per integrator: surface features or the
+  volumetric one), times the config's pixel-layers (spp + extra radiance layers) per chunk;
 * train_denoiser: every model's steps (``budget.max_steps``) times its s/step from a training-speed record
   (``--train-speed``: ``benchmarks/train_speed.py --json`` or a run's ``timing/training.json``, the
   configured variant). Ablation and capacity variants, which the record does not time, take their base
@@ -21,7 +22,7 @@ Nothing is rendered or trained; every figure is a measured rate times the work t
 Render, training and timing jobs take every core (one at a time); the others run ``cores / threads`` at a
 time (evaluation.threads), so their wall time is their summed time divided by that.
 
-Usage: python benchmarks/dag_budget.py [--config config/config.yaml] --renders RESULTS/renders
+Usage: python benchmarks/dag_budget.py [--config config/config.yaml] --renders RESULTS/renders [...]
            --train-speed training.json [--run RESULTS [RESULTS ...]] [--cores 2] [--reference-speed reference_speed.json]
 """
 from __future__ import annotations
@@ -50,23 +51,32 @@ BENCHMARK_FOLDERS = {"denoise": "denoise_clip", "evaluate": "evaluate_clip", "ro
 
 #: Sidecar ``integrator`` of reference frames rendered before the key was recorded.
 DEFAULT_REFERENCE_INTEGRATOR = "mcdn_features"
+#: Sidecar ``integrator`` of surface noisy frames (they do not record it); volumetric clips record theirs.
+DEFAULT_NOISY_INTEGRATOR = "mcdn_features"
+#: Integrators of a volumetric clip's references and noisy layers (scenegen.volume_render).
+VOLUME_REFERENCE_INTEGRATOR, VOLUME_NOISY_INTEGRATOR = "volpath", "mcdn_volpath_features"
 
 
-def sidecar_rates(renders: Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """({reference integrator: samples/s per frame}, noisy seconds per pixel-layer per frame) from a render folder."""
+def sidecar_rates(*folders: Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """({reference integrator: samples/s per frame}, {noisy integrator: seconds per pixel-layer per frame})
+    from the frame sidecars of one or more render folders."""
     reference: dict[str, list[float]] = {}
-    noisy = []
-    for path in renders.glob("*/reference/chunk_*/frame_*.json"):
-        meta = json.loads(path.read_text())
-        integrator = meta.get("integrator", DEFAULT_REFERENCE_INTEGRATOR)
-        reference.setdefault(integrator, []).append(float(meta["samples_per_s"]))
-    for path in renders.glob("*/noisy/chunk_*/frame_*.json"):
-        meta = json.loads(path.read_text())
-        layers = int(meta["spp"]) + int(meta.get("extra_radiance_spp", 0))
-        noisy.append(float(meta["timing_s"]) / (int(meta["width"]) * int(meta["height"]) * layers))
+    noisy: dict[str, list[float]] = {}
+    for renders in folders:
+        for path in renders.glob("*/reference/chunk_*/frame_*.json"):
+            meta = json.loads(path.read_text())
+            integrator = meta.get("integrator", DEFAULT_REFERENCE_INTEGRATOR)
+            reference.setdefault(integrator, []).append(float(meta["samples_per_s"]))
+        for path in renders.glob("*/noisy/chunk_*/frame_*.json"):
+            meta = json.loads(path.read_text())
+            layers = int(meta["spp"]) + int(meta.get("extra_radiance_spp", 0))
+            noisy.setdefault(meta.get("integrator", DEFAULT_NOISY_INTEGRATOR), []).append(
+                float(meta["timing_s"]) / (int(meta["width"]) * int(meta["height"]) * layers))
     if not reference or not noisy:
-        sys.exit(f"{renders}: no reference or noisy frame sidecars (*/{{reference,noisy}}/chunk_*/frame_*.json)")
-    return {name: np.asarray(rates) for name, rates in reference.items()}, np.asarray(noisy)
+        sys.exit(f"{', '.join(map(str, folders))}: no reference or noisy frame sidecars "
+                 "(*/{reference,noisy}/chunk_*/frame_*.json)")
+    return ({name: np.asarray(rates) for name, rates in reference.items()},
+            {name: np.asarray(costs) for name, costs in noisy.items()})
 
 
 def reference_rates(sidecars: dict[str, np.ndarray], needed: set[str], speed: dict | None) -> dict[str, tuple[np.ndarray, str]]:
@@ -78,6 +88,9 @@ def reference_rates(sidecars: dict[str, np.ndarray], needed: set[str], speed: di
         if name in sidecars:
             out[name] = (sidecars[name], "sidecars")
             continue
+        if name == VOLUME_REFERENCE_INTEGRATOR:
+            sys.exit(f"no volumetric reference sidecars ({name!r}) in --renders (have: {', '.join(sidecars)}); "
+                     "add a render folder that holds volumetric clips (e.g. a smoke run's renders)")
         other = "mcdn_features" if name == "path" else "path"
         if other not in sidecars or speed is None:
             sys.exit(f"no reference sidecars rendered with {name!r} in --renders (have: {', '.join(sidecars)}); "
@@ -89,9 +102,10 @@ def reference_rates(sidecars: dict[str, np.ndarray], needed: set[str], speed: di
 
 
 def render_work(cfg: dict) -> pd.DataFrame:
-    """One row per (scene, chunk): reference samples and noisy pixel-layers the config asks for."""
+    """One row per (scene, chunk): reference samples and noisy pixel-layers the config asks for, and the
+    integrators that render them (volumetric clips: one chunk each, at the ``volumes`` section's settings)."""
     from scenegen.config import (chunk_count, chunk_frames, scene_ids, scene_reference_spp, scene_render_config,
-                                 stability_scene_ids)
+                                 stability_scene_ids, volume_scene_ids)
 
     scenes = scene_ids(cfg) + (stability_scene_ids(cfg) if cfg.get("stability", {}).get("enabled") else [])
     rows = []
@@ -103,8 +117,16 @@ def render_work(cfg: dict) -> pd.DataFrame:
             frames = len(chunk_frames(cfg, scene, chunk))
             integrator = "path" if render.get("reference_integrator", "path") == "path" else "mcdn_features"
             rows.append({"scene": scene, "chunk": chunk, "frames": frames, "reference_integrator": integrator,
+                         "noisy_integrator": DEFAULT_NOISY_INTEGRATOR,
                          "reference_samples": frames * pixels * scene_reference_spp(cfg, scene),
                          "noisy_pixel_layers": frames * pixels * layers})
+    volumes = cfg.get("volumes") or {}
+    for scene in volume_scene_ids(cfg):
+        frames, pixels = int(volumes["frames"]), int(volumes["width"]) * int(volumes["height"])
+        rows.append({"scene": scene, "chunk": 0, "frames": frames, "reference_integrator": VOLUME_REFERENCE_INTEGRATOR,
+                     "noisy_integrator": VOLUME_NOISY_INTEGRATOR,
+                     "reference_samples": frames * pixels * int(volumes["reference_spp"]),
+                     "noisy_pixel_layers": frames * pixels * int(volumes["spp"])})
     return pd.DataFrame(rows)
 
 
@@ -173,7 +195,8 @@ def per_job_seconds(run: Path) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", type=Path, default=Path("config/config.yaml"))
-    parser.add_argument("--renders", type=Path, required=True, help="a finished render folder (frame sidecars)")
+    parser.add_argument("--renders", type=Path, nargs="+", required=True,
+                        help="finished render folders (frame sidecars; their rates are pooled per integrator)")
     parser.add_argument("--train-speed", type=Path, required=True, help="training-speed record (JSON)")
     parser.add_argument("--run", type=Path, nargs="+", default=None,
                         help="finished runs' folders (their benchmarks/); a rule's median comes from the first run "
@@ -187,7 +210,7 @@ def main() -> None:
     from scenegen.config import load_config
 
     cfg = load_config(args.config)
-    sidecars, noisy_cost = sidecar_rates(args.renders)
+    sidecars, noisy_cost = sidecar_rates(*args.renders)
     work = render_work(cfg)
     speed = json.loads(args.reference_speed.read_text()) if args.reference_speed else None
     rates = reference_rates(sidecars, set(work["reference_integrator"]), speed)
@@ -199,11 +222,17 @@ def main() -> None:
         samples = float(group["reference_samples"].sum())
         reference_seconds += samples / np.array([q75, q50, q25])
         print(f"reference ({integrator}): {samples / 1e9:.2f} G samples at a median {q50 / 1e6:.2f} M samples/s "
-              f"(25-75 %: {q25 / 1e6:.2f}-{q75 / 1e6:.2f}; {len(rate)} frames of {args.renders}, {source})")
-    noisy_seconds = float(work["noisy_pixel_layers"].sum()) * float(np.median(noisy_cost))
+              f"(25-75 %: {q25 / 1e6:.2f}-{q75 / 1e6:.2f}; {len(rate)} frames, {source})")
+    noisy_seconds, noisy_how = 0.0, []
+    for integrator, group in work.groupby("noisy_integrator"):
+        if integrator not in noisy_cost:
+            sys.exit(f"no noisy sidecars rendered with {integrator!r} in --renders (have: {', '.join(noisy_cost)})")
+        cost = float(np.median(noisy_cost[integrator]))
+        noisy_seconds += float(group["noisy_pixel_layers"].sum()) * cost
+        noisy_how.append(f"{integrator} {cost * 1e9:.0f} ns per pixel-layer")
     fast, typical, slow = reference_seconds
     stages = [("render_reference", len(work), typical, f"{fast / 60:.0f}-{slow / 60:.0f} min"),
-              ("render_noisy", len(work), noisy_seconds, f"{np.median(noisy_cost) * 1e9:.0f} ns per pixel-layer")]
+              ("render_noisy", len(work), noisy_seconds, "; ".join(noisy_how))]
     training = training_work(cfg, json.loads(args.train_speed.read_text()))
     print(training.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
     stages.append(("train_denoiser", len(training), float(training["seconds"].sum()),

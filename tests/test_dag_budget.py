@@ -40,7 +40,16 @@ def test_render_work_counts_every_chunk_at_its_own_reference_spp_and_layers() ->
     # The configured reference integrator, except for the stability clips (their masks need the feature means).
     assert work.loc[("test_000", 0), "reference_integrator"] == "path"
     assert work.loc[(first, 0), "reference_integrator"] == "mcdn_features"
-    assert work.index.get_level_values("scene").nunique() == scenes["n_train"] + scenes["n_test"] + len(stab["scenarios"])
+    # Volumetric clips: one chunk each, at the volumes section's size, spp and reference spp, with their integrators.
+    vol = cfg["volumes"]
+    clip = work.loc[(f"vol_test_{vol['scenarios'][0]}_000", 0)]
+    assert clip["reference_samples"] == vol["frames"] * vol["width"] * vol["height"] * vol["reference_spp"]
+    assert clip["noisy_pixel_layers"] == vol["frames"] * vol["width"] * vol["height"] * vol["spp"]
+    assert (clip["reference_integrator"], clip["noisy_integrator"]) == ("volpath", "mcdn_volpath_features")
+    assert work.loc[("test_000", 0), "noisy_integrator"] == "mcdn_features"
+    n_volume = len(vol["scenarios"]) * (vol["n_test"] + vol["n_train"])
+    assert work.index.get_level_values("scene").nunique() == (scenes["n_train"] + scenes["n_test"]
+                                                              + len(stab["scenarios"]) + n_volume)
 
 
 def test_rates_come_from_the_sidecars_and_benchmark_folders_map_to_rules(tmp_path: Path) -> None:
@@ -50,9 +59,19 @@ def test_rates_come_from_the_sidecars_and_benchmark_folders_map_to_rules(tmp_pat
         chunk = renders / kind / "chunk_000"
         chunk.mkdir(parents=True)
         (chunk / "frame_0000.json").write_text(json.dumps(meta))
-    reference, noisy = dag_budget.sidecar_rates(tmp_path / "renders")
+    volume = tmp_path / "more" / "vol_test_camera_000"
+    for kind, meta in (("reference", {"samples_per_s": 5.0e5, "integrator": "volpath"}),
+                       ("noisy", {"timing_s": 1.0, "width": 10, "height": 10, "spp": 2,
+                                  "integrator": "mcdn_volpath_features"})):
+        chunk = volume / kind / "chunk_000"
+        chunk.mkdir(parents=True)
+        (chunk / "frame_0000.json").write_text(json.dumps(meta))
+    reference, noisy = dag_budget.sidecar_rates(tmp_path / "renders", tmp_path / "more")
     # A sidecar without the integrator key was rendered by the feature integrator (before the key existed).
-    assert list(reference["mcdn_features"]) == [2.0e6] and noisy[0] == pytest.approx(4.0 / (10 * 20 * 4))
+    assert list(reference["mcdn_features"]) == [2.0e6] and noisy["mcdn_features"][0] == pytest.approx(4.0 / (10 * 20 * 4))
+    assert list(reference["volpath"]) == [5.0e5] and noisy["mcdn_volpath_features"][0] == pytest.approx(1.0 / 200)
+    with pytest.raises(SystemExit, match="volumetric reference sidecars"):
+        dag_budget.reference_rates({"path": reference["mcdn_features"]}, {"volpath"}, None)
     rates = dag_budget.reference_rates(reference, {"path", "mcdn_features"}, {"median_path_rate_ratio": 1.5})
     assert list(rates["path"][0]) == [3.0e6] and list(rates["mcdn_features"][0]) == [2.0e6]
     with pytest.raises(SystemExit, match="--reference-speed"):
