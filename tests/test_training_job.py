@@ -61,7 +61,8 @@ def test_ablation_variants_inherit_the_base_model_and_share_the_ablation_budget(
     color = specs["rae_inputs_color"]
     assert color.net == {"width": 0.5, "demodulate": False, "features": []}
     assert color.loss == base.loss and color.data == base.data and color.optimizer == base.optimizer
-    assert color.seed == base.seed and color.budget == {"max_steps": 400, "max_seconds": 900}
+    inputs = next(entry for entry in cfg["training"]["ablations"] if entry["id"] == "rae_inputs")
+    assert color.seed == base.seed and color.budget == inputs["budget"] == {"max_steps": 2000, "max_seconds": 3600}
     assert specs["rae_loss_spatial"].loss == {"spatial": 1.0, "gradient": 0.0, "temporal": 0.0}
     assert (color.ablation, color.variant) == ("rae_inputs", "color")
     # Every input set of Fig. 3 and both losses of §4.4 are configured.
