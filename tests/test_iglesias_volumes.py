@@ -32,7 +32,8 @@ def volume_config(n_test: int = 2, rows: list[dict] | None = None, denoise_spp: 
                           denoise_spp=denoise_spp or [1, 2, 4])
     cfg["volumes"]["rows"] = rows if rows is not None else [
         {"id": "vol_noisy", "method": "noisy"}, {"id": "vol_wrls", "method": "wrls"},
-        {"id": "vol_svgf", "method": "svgf_volume"}, {"id": "vol_rae", "method": "rae", "params": {"model": "rae"}}]
+        {"id": "vol_svgf", "method": "svgf_volume"},
+        {"id": "vol_rae", "method": "rae_color", "params": {"model": "rae_volume"}}]
     return cfg
 
 
@@ -122,6 +123,10 @@ def test_c43_needs_a_volume_rae_and_then_both_halves() -> None:
     assert decision.verdict == REPRODUCED and len(decision.parts) == 4
     growing = {key: noisy[key[1]] + (5.0 if key[1] != 4 else 6.0) for key in rae}
     assert iglesias2022.decide_c43_volumes(synthetic(cfg, CLEAR, growing)).verdict == CONTRADICTED
+    # The colour-only RAE row (method rae_color, as the default config has it) is the RAE of C4.3; one that did
+    # not run is named.
+    decision = iglesias2022.decide_c43_volumes(synthetic(cfg, CLEAR, rae, ran={"vol_noisy", "vol_wrls", "vol_svgf"}))
+    assert decision.verdict == NOT_RUN and "vol_rae @ 1 spp" in decision.not_run
     no_rae = volume_config(rows=[{"id": "vol_noisy", "method": "noisy"}, {"id": "vol_wrls", "method": "wrls"}])
     decision = iglesias2022.decide_c43_volumes(synthetic(no_rae, CLEAR))
     assert decision.verdict == NOT_RUN and "colour-only" in decision.not_run

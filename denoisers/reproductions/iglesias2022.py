@@ -24,6 +24,8 @@ if TYPE_CHECKING:
 
 PAPER = "Iglesias-Guitian 2022"
 PAPER_SPP = 2
+#: Registry methods of an RAE row on the volumetric clips, preferred first.
+RAE_VOLUME_METHODS = ("rae_color", "rae")
 SURFACES = "on our evaluated surface scenes, not volumes (the paper's setting; see C4.1 / C4.3 for the volumes)"
 VOLUMES = "on the volumetric clips (units: the vol_test_* clips)"
 WRLS, RLS, SVGF, NOISY = (RowNeed("wrls", "wRLS"), RowNeed("rls", "RLS"), RowNeed("svgf", "SVGF"),
@@ -171,12 +173,18 @@ def decide_c43_volumes(res: Results) -> Decision:
         return not_run("not run: " + ", ".join(missing))
     if len(spps) < 2:
         return not_run("needs two or more volumes.denoise_spp (RAE's gain at the lowest versus the highest)")
-    rae = res.volumes.row_of("rae")
-    if rae is None:
-        return not_run("no RAE row on the volumetric clips: the paper's RAE is retrained colour-only on volumetric "
-                       "clips, which the harness does not do yet (volumes.n_train, a volume row of method rae)")
-    parts = [_volume_part(res, wrls, noisy, "psnr", s, "higher") for s in spps]
+    # The paper's RAE is retrained on colour alone on volumetric clips (rae_color); a surface RAE row would
+    # need normals the clips lack and never runs there.
     vol = res.volumes
+    configured = [spec.id for method in RAE_VOLUME_METHODS for spec in vol.specs if spec.method == method]
+    if not configured:
+        return not_run("no RAE row on the volumetric clips: the paper's RAE is retrained colour-only on volumetric "
+                       "clips (a volumes.rows entry of method rae_color whose model trains on them)")
+    rae = next((row for row in configured if all(vol.ran(row, s) for s in (spps[0], spps[-1]))), configured[0])
+    missing = [f"{rae} @ {s} spp {vol.reason(rae, s)}" for s in (spps[0], spps[-1]) if not vol.ran(rae, s)]
+    if missing:
+        return not_run("; ".join(missing))
+    parts = [_volume_part(res, wrls, noisy, "psnr", s, "higher") for s in spps]
     gain = {s: vol.scene_values(rae, s, "psnr") - vol.scene_values(noisy, s, "psnr") for s in (spps[0], spps[-1])}
     parts.append(Part.paired(gain[spps[-1]], gain[spps[0]], "psnr", f"RAE gain over input @ {spps[-1]} spp",
                              f"RAE gain @ {spps[0]} spp", "lower"))
