@@ -10,8 +10,10 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from denoisers.evaluate import TIMING_FILE, method_spec, volume_method_specs
+from denoisers.registry import Frame
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage, SettingsMismatchError
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED
 from denoisers.report.volumes import VolumeResults, collect_volumes
@@ -242,3 +244,41 @@ def test_dark_half_brightness_is_output_over_reference_where_the_reference_is_da
     table = iglesias2022.volume_brightness_table(res).set_index("row")
     assert float(table.loc["vol_same", "dark half: output / reference @ 2 spp"]) == pytest.approx(1.0)
     assert float(table.loc["vol_double", "dark half: output / reference @ 2 spp"]) == pytest.approx(2.0, abs=1e-3)
+
+
+# --- SVGF on volumes ------------------------------------------------------------------------------------------
+def _volume_frame(seed: int, gbuffer_depth: torch.Tensor, albedo: float = 0.5) -> Frame:
+    """A 2-spp 24x24 volumetric frame: radiance 1 on the left half and 1.6 on the right with per-sample noise
+    (std 0.5, so luminance alone cannot tell the halves apart), per-sample depths of random scatter events,
+    a per-sample albedo, zero motion and full validity."""
+    generator = torch.Generator().manual_seed(seed)
+    mean = torch.ones(1, 3, 24, 24)
+    mean[..., 12:] = 1.6
+    radiance = (mean + 0.5 * torch.randn(2, 3, 24, 24, generator=generator)).clamp_min(0.0)
+    return Frame(samples={"radiance": radiance, "albedo": torch.full((2, 3, 24, 24), albedo),
+                          "depth": 10.0 * torch.rand(2, 1, 24, 24, generator=generator)},
+                 pixel={"motion": torch.zeros(2, 24, 24), "valid": torch.ones(1, 24, 24),
+                        "gbuffer.depth": gbuffer_depth.clone()}, index=seed)
+
+
+def test_svgf_volume_stops_at_the_reprojection_depth_and_does_not_demodulate() -> None:
+    """The halves lie at reprojection depths 1 and 5: SVGF on volumes keeps them apart at the boundary (each
+    half's known mean), while with one depth for both it blurs across; the albedo buffer changes nothing."""
+    from denoisers import registry
+
+    step = torch.ones(1, 24, 24)
+    step[..., 12:] = 5.0
+    flat = torch.ones(1, 24, 24)
+
+    def boundary_error(gbuffer_depth: torch.Tensor, albedo: float = 0.5) -> tuple[float, torch.Tensor]:
+        method = registry.build("svgf_volume")
+        method.reset()
+        outputs = [method.denoise(_volume_frame(t, gbuffer_depth, albedo)) for t in range(8)]
+        last = outputs[-1][:, 2:-2]                     # (3, 20, 24), away from the top and bottom borders
+        left, right = last[..., 10:12].mean(), last[..., 12:14].mean()   # the two columns each side of the edge
+        return float(abs(left - 1.0) + abs(right - 1.6)), outputs[-1]
+
+    with_edge, output = boundary_error(step)
+    without_edge, _ = boundary_error(flat)
+    assert with_edge < 0.12 < without_edge
+    assert torch.equal(boundary_error(step, albedo=0.05)[1], output)

@@ -218,6 +218,14 @@ class SVGF(Denoiser):
         self._history = None
 
     # ---------------------------------------------------------------------------------------------
+    def _albedo(self, frame: Frame) -> torch.Tensor:
+        """(3, H, W) albedo the illumination is demodulated by (floored at ``albedo_epsilon``)."""
+        return sanitize(frame.mean("albedo")).clamp_min_(self.albedo_epsilon)
+
+    def _edge_depth(self, frame: Frame, gbuffer_depth: torch.Tensor) -> torch.Tensor:
+        """(1, H, W) depth of the edge-stopping weights: the mean of the frame's samples."""
+        return sanitize(frame.mean("depth")).abs_()
+
     def _normals(self, frame: Frame, gbuffer_depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """((3, H, W) unit normal of the frame's samples, (3, H, W) unit G-buffer normal for reprojection)."""
         normal = normalize_vectors(sanitize(frame.mean("normal")))
@@ -232,14 +240,14 @@ class SVGF(Denoiser):
         check_sizes(self.info.name, {**frame.samples, **frame.pixel})
         radiance = sanitize(frame.samples["radiance"])                       # (S, 3, H, W), a fresh copy
         spp = radiance.shape[0]
-        albedo = sanitize(frame.mean("albedo")).clamp_min_(self.albedo_epsilon)
+        albedo = self._albedo(frame)
         illumination_samples = radiance.div_(albedo)
         illumination = illumination_samples.mean(dim=0)
         sample_luminance = luminance(illumination_samples)                     # (S, 1, H, W)
         first_moment = sample_luminance.mean(dim=0)
         moments = torch.cat([first_moment, sample_luminance.square_().mean(dim=0)])
-        depth = sanitize(frame.mean("depth")).abs_()
         gbuffer_depth = sanitize(frame.pixel["gbuffer.depth"])
+        depth = self._edge_depth(frame, gbuffer_depth)
         normal, gbuffer_normal = self._normals(frame, gbuffer_depth)
 
         integrated, integrated_moments, length = self._accumulate(frame, illumination, moments, gbuffer_depth,
