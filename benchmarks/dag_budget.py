@@ -11,11 +11,13 @@ Nothing is rendered or trained; every figure is a measured rate times the work t
   (``--reference-speed``);
 * render_noisy: seconds per pixel-layer of the noisy sidecars (per integrator: surface features or the
   volumetric one), times the config's pixel-layers (spp + extra radiance layers) per chunk;
-* train_denoiser: every model's steps (``budget.max_steps``) times its s/step from a training-speed record
-  (``--train-speed``: ``benchmarks/train_speed.py --json`` or a run's ``timing/training.json``, the
-  configured variant). Ablation and capacity variants, which the record does not time, take their base
-  model's s/step scaled by their FLOPs per step (counted on one synthetic step each). Validation passes
-  are not counted, so this part is a lower bound;
+* train_denoiser: every model's steps (``budget.max_steps``) times its s/step: the elapsed seconds per step of
+  the same model in a finished run (``--run``: ``models/*/summary.json``, validation and data preparation
+  included; a model that shared the cores there is slower than it will be), else the step time of a
+  training-speed record (``--train-speed``: ``benchmarks/train_speed.py --json`` or a run's
+  ``timing/training.json``, the configured variant; the optimiser step alone, a lower bound). Ablation and
+  capacity variants neither times take their base model's s/step scaled by their FLOPs per step (counted on
+  one synthetic step each);
 * every other rule: the job count of ``snakemake -n --forceall`` times the median seconds per job of that
   rule in a finished run's ``benchmarks/`` (``--run``); rules the run never ran are listed as unmeasured.
 
@@ -130,8 +132,23 @@ def render_work(cfg: dict) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def training_work(cfg: dict, speed: dict) -> pd.DataFrame:
-    """One row per model: steps, s/step (measured, or the base's scaled by FLOPs) and seconds."""
+def observed_step_seconds(runs: list[Path]) -> dict[str, float]:
+    """{model id: elapsed seconds per step} of every trained model (``models/*/summary.json``) of finished runs,
+    the first run that has it; validation and data preparation included, unlike ``time_training``."""
+    observed: dict[str, float] = {}
+    for run in runs:
+        for path in sorted((run / "models").glob("*/summary.json")):
+            summary = json.loads(path.read_text())
+            steps, seconds = int(summary.get("steps") or 0), float(summary.get("elapsed_seconds") or 0.0)
+            if steps > 0 and seconds > 0:
+                observed.setdefault(path.parent.name, seconds / steps)
+    return observed
+
+
+def training_work(cfg: dict, speed: dict, observed: dict[str, float] | None = None) -> pd.DataFrame:
+    """One row per model: steps, s/step and seconds. The s/step is the model's own in a finished run
+    (``observed``: elapsed per step, validation included), else the training-speed record's step time, else its
+    base model's scaled by their FLOPs per step."""
     import torch
 
     from denoisers.training.models import model_specs
@@ -153,6 +170,10 @@ def training_work(cfg: dict, speed: dict) -> pd.DataFrame:
     with tempfile.TemporaryDirectory(prefix="dag_budget-") as work:
         for spec in specs:
             steps = int(spec.budget.get("max_steps") or 0)
+            if observed and spec.id in observed:
+                rows.append({"model": spec.id, "steps": steps, "s_per_step": observed[spec.id],
+                             "seconds": steps * observed[spec.id], "how": "observed in --run"})
+                continue
             if spec.id in measured:
                 seconds_per_step, how = measured[spec.id][0], "measured"
             else:
@@ -201,6 +222,8 @@ def main() -> None:
     parser.add_argument("--run", type=Path, nargs="+", default=None,
                         help="finished runs' folders (their benchmarks/); a rule's median comes from the first run "
                              "that has it (e.g. the default run, then the smoke run for rules the first lacks)")
+    parser.add_argument("--step-only", action="store_true",
+                        help="ignore the trained models' observed s/step in --run (use the training-speed record)")
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--reference-speed", type=Path, default=None,
                         help="benchmarks/reference_speed.py --json output: scales the sidecars' reference rates "
@@ -233,10 +256,11 @@ def main() -> None:
     fast, typical, slow = reference_seconds
     stages = [("render_reference", len(work), typical, f"{fast / 60:.0f}-{slow / 60:.0f} min"),
               ("render_noisy", len(work), noisy_seconds, "; ".join(noisy_how))]
-    training = training_work(cfg, json.loads(args.train_speed.read_text()))
+    observed = observed_step_seconds(args.run) if args.run and not args.step_only else {}
+    training = training_work(cfg, json.loads(args.train_speed.read_text()), observed)
     print(training.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
     stages.append(("train_denoiser", len(training), float(training["seconds"].sum()),
-                   "steps x s/step, validation not counted"))
+                   "steps x s/step (observed: validation included; step records: not)"))
     unmeasured = []
     if args.run is not None:
         counts, medians, source = dry_run_counts(args.config), {}, {}

@@ -84,3 +84,24 @@ def test_rates_come_from_the_sidecars_and_benchmark_folders_map_to_rules(tmp_pat
     assert dag_budget.per_job_seconds(tmp_path / "run") == {"denoise_clip": 4.0, "tune_method": 7.0, "build_report": 9.0}
     with pytest.raises(SystemExit, match="no reference or noisy frame sidecars"):
         dag_budget.sidecar_rates(tmp_path / "empty")
+
+
+def test_training_uses_a_runs_observed_seconds_per_step_first(tmp_path: Path) -> None:
+    """A model trained in a finished run is estimated at that run's elapsed seconds per step (validation
+    included), at the config's budget; models the run lacks fall back to the training-speed record."""
+    for model, steps, seconds in (("rae", 2000, 640.0), ("ntasd", 0, 0.0)):
+        (tmp_path / "models" / model).mkdir(parents=True)
+        (tmp_path / "models" / model / "summary.json").write_text(json.dumps({"steps": steps, "elapsed_seconds": seconds}))
+    observed = dag_budget.observed_step_seconds([tmp_path, tmp_path / "other"])
+    assert observed == {"rae": pytest.approx(0.32)}          # a model without steps is not a rate
+    cfg = smoke()
+    first = cfg["training"]["models"][0]
+    speed = {"models": [{"model": first["id"], "configured_variant": "bf16", "flops_per_step": 1.0,
+                         "variants": [{"variant": "bf16", "status": "timed", "ms_per_step_median": 100.0}]}]}
+    work = dag_budget.training_work(cfg, speed, {first["id"]: 0.5}).set_index("model")
+    steps = first["budget"]["max_steps"]
+    assert work.loc[first["id"], "how"] == "observed in --run"
+    assert work.loc[first["id"], "seconds"] == pytest.approx(0.5 * steps)
+    work = dag_budget.training_work(cfg, speed).set_index("model")
+    assert work.loc[first["id"], "how"] == "measured"
+    assert work.loc[first["id"], "seconds"] == pytest.approx(0.1 * steps)
