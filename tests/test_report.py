@@ -311,3 +311,34 @@ def test_metric_directions_agree_with_the_metrics_module() -> None:
 
     for name in evaluate.ALL_METRICS:
         assert HIGHER_IS_BETTER[name] == metrics.METRICS[name].higher_is_better, name
+
+
+def test_color_balance_measures_a_channel_cast(tmp_path: Path) -> None:
+    """One row's outputs are the reference with its channels scaled by (1.2, 1.0, 0.8): ratios 1.2 / 1.0 / 0.8,
+    brightness 1 and cast 0.2 exactly; rows that keep the reference's colour have no cast."""
+    from denoisers.report.color_balance import color_balance_table
+    from scenegen.dataset import find_frames, load_reference_frame
+
+    cfg = report_config()
+    write_results(tmp_path, cfg)
+    method = cfg["evaluation"]["methods"][1]["id"]
+    for scene in SCENE_OFFSET:
+        folder = evaluate.denoised_dir(tmp_path, method, scene, 1)
+        for t, path in find_frames(tmp_path / "renders" / scene / "reference").items():
+            reference = load_reference_frame(path, ["radiance"])[0]["radiance"]
+            evaluate.write_radiance_exr(folder / f"frame_{t:04d}.exr",
+                                        reference * np.array([1.2, 1.0, 0.8], np.float32)[:, None, None])
+    table = color_balance_table(collect(cfg, tmp_path)).set_index(["method_id", "spp"])
+    row = table.loc[(method, 1)]
+    np.testing.assert_allclose(row[["ratio_r", "ratio_g", "ratio_b", "brightness", "cast", "cast_max"]].astype(float),
+                               [1.2, 1.0, 0.8, 1.0, 0.2, 0.2], rtol=1e-4)
+    assert row["scenes"] == len(SCENE_OFFSET)
+    others = table.drop(index=(method, 1))
+    assert len(others) and (others["cast"] < 1e-3).all()
+
+
+def test_report_shows_the_color_balance(built: tuple[Path, dict]) -> None:
+    root, _ = built
+    table = pd.read_csv(root / "tables" / "color_balance.csv")
+    assert len(table) and (table["cast"] < 1e-3).all()
+    assert "### Colour balance" in (root / "REPORT.md").read_text()

@@ -14,6 +14,7 @@ from denoisers.report.atlas import report_section as atlas_section
 from denoisers.report.capacity import capacity_section
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, MIN_UNITS, NOT_RUN, REPRODUCED, claims_table
 from denoisers.report.collect import MIN_TRAINING_STEPS, Results, collect
+from denoisers.report.color_balance import color_balance_section
 from denoisers.report.outputs import report_outputs
 from denoisers.report.stats import LABELS, formatted, frame_to_markdown, markdown_table, with_ci_columns
 from denoisers.reproductions import all_claims, all_reproductions
@@ -279,7 +280,8 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
              "Full tables: [summary (CSV)](tables/summary.csv), [summary (Markdown)](tables/summary.md), "
              "[per scene](tables/per_scene.csv), [timing, memory and output checks](tables/timing.md).", "",
              "![Quality versus speed](figures/quality_vs_speed.png)", "",
-             "[Quality vs speed (SVG)](figures/quality_vs_speed.svg)", "", *_external_section(res, tables),
+             "[Quality vs speed (SVG)](figures/quality_vs_speed.svg)", "", *color_balance_section(res, tables),
+             *_external_section(res, tables),
              *_tuning_section(res, tables), *_claims_section(claims)]
     for reproduction in all_reproductions():
         section = reproduction.write(res, tables, figures)
