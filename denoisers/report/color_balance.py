@@ -23,8 +23,8 @@ CAST_NOTE_THRESHOLD = 0.1
 
 def channel_means(frames: list[np.ndarray]) -> np.ndarray:
     """(3,) mean linear radiance per channel of (3, H, W) frames, non-finite values ignored."""
-    stacked = np.stack([np.asarray(frame, dtype=np.float64).reshape(3, -1) for frame in frames], axis=1)
-    return np.array([np.nanmean(np.where(np.isfinite(c), c, np.nan)) for c in stacked])
+    stacked = np.concatenate([np.asarray(frame, dtype=np.float64).reshape(3, -1) for frame in frames], axis=1)
+    return np.nanmean(np.where(np.isfinite(stacked), stacked, np.nan), axis=1)
 
 
 def cast_of(ratios: np.ndarray) -> float:
@@ -34,10 +34,9 @@ def cast_of(ratios: np.ndarray) -> float:
 
 
 def _reference_means(render_dir: Path, frames: list[int]) -> np.ndarray:
-    from scenegen.dataset import find_frames, load_reference_frame
+    from denoisers.report.figures import reference_radiance
 
-    found = find_frames(render_dir / "reference")
-    return channel_means([load_reference_frame(found[t], ["radiance"])[0]["radiance"] for t in frames])
+    return channel_means([reference_radiance(render_dir, t) for t in frames])
 
 
 def color_balance_table(res: Results) -> pd.DataFrame:

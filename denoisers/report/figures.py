@@ -290,12 +290,13 @@ def placeholder(path: Path, text: str) -> None:
     plt.close(fig)
 
 
-def _reference_frame(render_dir: Path, frame: int) -> np.ndarray:
+def reference_radiance(render_dir: Path, frame: int) -> np.ndarray:
+    """(3, H, W) reference radiance of ``frame`` below ``render_dir``; EvaluationError naming a missing frame."""
     from scenegen.dataset import find_frames, load_reference_frame
 
     found = find_frames(Path(render_dir) / "reference")
     if frame not in found:
-        raise EvaluationError(f"{render_dir}/reference: frame {frame} missing (needed for the image grid)")
+        raise EvaluationError(f"{render_dir}/reference: frame {frame} missing (needed for the report)")
     return load_reference_frame(found[frame], ["radiance"])[0]["radiance"]
 
 
@@ -312,7 +313,7 @@ def plot_grids(res: Results, figures: Path) -> list[Path]:
             columns.append((spec.id, read_radiance_exr(files[frame])))
         frame = frame if frame is not None else 0
         path = figures / f"grid_{scene}_spp{spp}.png"
-        reference = _reference_frame(res.results_dir / "renders" / scene, frame)
+        reference = reference_radiance(res.results_dir / "renders" / scene, frame)
         image_grid(columns, reference, path, f"{scene}, frame {frame}, {spp} spp")
         written.append(path)
     robustness = res.cfg["evaluation"]["robustness"]
@@ -329,7 +330,7 @@ def plot_grids(res: Results, figures: Path) -> list[Path]:
         from scenegen.dataset import find_frames
 
         last = max(find_frames(res.results_dir / "renders" / scene / "reference"), default=0)
-        image_grid(columns, _reference_frame(res.results_dir / "renders" / scene, last), path,
+        image_grid(columns, reference_radiance(res.results_dir / "renders" / scene, last), path,
                    f"{scene}, frame {last}, {robustness['spp']} spp, spikes + NaN/Inf injected")
         written.append(path)
     return written

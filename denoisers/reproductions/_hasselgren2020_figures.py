@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from denoisers.evaluate import EvaluationError, denoised_dir, preview_rgb8
-from denoisers.report.figures import _grid_frame, _reference_frame, placeholder, pyplot
+from denoisers.report.figures import _grid_frame, placeholder, pyplot, reference_radiance
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -105,7 +105,7 @@ def plot_sample_maps(res: Results, path: Path, rows: Sequence[tuple[str, str | N
         try:
             if frame is None:
                 raise EvaluationError("no sample map")
-            ax.imshow(preview_rgb8(_reference_frame(res.results_dir / "renders" / scene, frame)),
+            ax.imshow(preview_rgb8(reference_radiance(res.results_dir / "renders" / scene, frame)),
                       interpolation="nearest")
             ax.set_title(f"{scene}, frame {frame}\nreference", fontsize=8)
         except (EvaluationError, OSError) as error:

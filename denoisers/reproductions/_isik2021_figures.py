@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from denoisers.evaluate import FRAME_EXR, MAPS_FILE, EvaluationError, denoised_dir, preview_rgb8
-from denoisers.report.figures import _grid_frame, _reference_frame, placeholder, pyplot
+from denoisers.report.figures import _grid_frame, placeholder, pyplot, reference_radiance
 
 if TYPE_CHECKING:
     from denoisers.report.collect import Results
@@ -90,7 +90,7 @@ def plot_lambda_maps(res: Results, path: Path, row: str | None, spp: int | None)
     image = None
     for r, scene in enumerate(scenes):
         frame, weights = maps[scene]
-        panels = [("reference", lambda: _reference_frame(res.results_dir / "renders" / scene, frame)),
+        panels = [("reference", lambda: reference_radiance(res.results_dir / "renders" / scene, frame)),
                   (f"{row} @ {spp} spp", lambda: read_radiance_exr(
                       denoised_dir(res.results_dir, row, scene, spp) / FRAME_EXR.format(frame)))]
         for c, (title, load) in enumerate(panels):
