@@ -151,7 +151,7 @@ def training_work(cfg: dict, speed: dict, observed: dict[str, float] | None = No
     base model's scaled by their FLOPs per step."""
     import torch
 
-    from denoisers.training.models import model_specs
+    from denoisers.training.models import model_specs, same_training_as
     from denoisers.training.speed import make_trainer, step_flops
     from denoisers.training.synthetic import synthetic_batch
     from denoisers.training.tasks import task_builder
@@ -170,6 +170,11 @@ def training_work(cfg: dict, speed: dict, observed: dict[str, float] | None = No
     with tempfile.TemporaryDirectory(prefix="dag_budget-") as work:
         for spec in specs:
             steps = int(spec.budget.get("max_steps") or 0)
+            source = same_training_as(cfg, spec.id)
+            if source is not None:   # its job copies the base's weights
+                rows.append({"model": spec.id, "steps": 0, "s_per_step": 0.0, "seconds": 0.0,
+                             "how": f"same training as {source}"})
+                continue
             if observed and spec.id in observed:
                 rows.append({"model": spec.id, "steps": steps, "s_per_step": observed[spec.id],
                              "seconds": steps * observed[spec.id], "how": "observed in --run"})

@@ -376,6 +376,11 @@ def test_every_configured_model_is_trained_and_reported(pipeline: PipelineRun) -
         summary = json.loads((folder / "summary.json").read_text())
         assert summary["steps"] == spec.budget["max_steps"] and summary["stopped_by"] == "max_steps"
         assert "test_000" not in summary["train_scenes"] + summary["validation_scenes"]
+    # The smoke config's combined-loss variant is the base model's training: the job reuses its weights.
+    combined = json.loads((model_dir(pipeline.results, "rae_loss_combined") / "summary.json").read_text())
+    assert combined["same_training_as"] == "rae"
+    assert (model_dir(pipeline.results, "rae_loss_combined") / "best.pt").read_bytes() == \
+        (model_dir(pipeline.results, "rae") / "best.pt").read_bytes()
     tables = pipeline.results / "tables"
     training = pd.read_csv(tables / "training.csv")
     assert list(training["model"]) == [spec.id for spec in specs] and set(training["status"]) == {"trained"}

@@ -13,8 +13,8 @@ from denoisers.nets.rae import RAEConfig, parameter_count
 from denoisers.training import data as training_data
 from denoisers.training.job import train_model, work_dir_for
 from denoisers.training.loop import load_checkpoint
-from denoisers.training.models import (model_spec, model_specs, resolve_method_params, training_problems,
-                                       training_split)
+from denoisers.training.models import (model_spec, model_specs, resolve_method_params, same_training_as,
+                                       training_problems, training_split)
 from scenegen.config import load_config
 from tests.test_training import synthetic_clip
 
@@ -62,13 +62,24 @@ def test_ablation_variants_inherit_the_base_model_and_share_the_ablation_budget(
     assert color.net == {"width": 0.5, "demodulate": False, "features": []}
     assert color.loss == base.loss and color.data == base.data and color.optimizer == base.optimizer
     inputs = next(entry for entry in cfg["training"]["ablations"] if entry["id"] == "rae_inputs")
-    assert color.seed == base.seed and color.budget == inputs["budget"] == {"max_steps": 2000, "max_seconds": 3600}
+    assert "budget" not in inputs and color.seed == base.seed and color.budget == base.budget
     assert specs["rae_loss_spatial"].loss == {"spatial": 1.0, "gradient": 0.0, "temporal": 0.0}
     assert (color.ablation, color.variant) == ("rae_inputs", "color")
     # Every input set of Fig. 3 and both losses of §4.4 are configured.
     assert {s.variant for s in specs.values() if s.ablation == "rae_inputs"} == {
         "color", "untextured", "depth", "normal", "normal_depth", "all"}
     assert {s.variant for s in specs.values() if s.ablation == "rae_loss"} == {"spatial", "combined"}
+
+
+def test_a_variant_identical_to_its_base_is_the_same_training() -> None:
+    cfg = load_config(REPO_ROOT / "config" / "config.yaml")
+    same = {spec.id: same_training_as(cfg, spec.id) for spec in model_specs(cfg)}
+    assert same["rae_inputs_all"] == "rae" and same["rae_loss_combined"] == "rae"
+    assert {model for model, source in same.items() if source} == {"rae_inputs_all", "rae_loss_combined"}
+    # A budget of its own makes it a different training.
+    shorter = copy.deepcopy(cfg)
+    next(a for a in shorter["training"]["ablations"] if a["id"] == "rae_inputs")["budget"] = {"max_steps": 2000}
+    assert same_training_as(shorter, "rae_inputs_all") is None
 
 
 def test_missing_keys_take_the_schema_defaults() -> None:
@@ -165,3 +176,35 @@ def test_a_longer_budget_continues_the_previous_run(tmp_path: Path, synthetic_re
     cfg["training"]["models"][0]["budget"] = {"max_steps": 2}
     shorter = train_model(cfg, "rae", tmp_path / "renders", out, threads=1, progress=False)
     assert shorter["resumed_from"] is None and shorter["steps"] == 2
+
+
+def test_an_identical_variant_publishes_the_base_weights_under_its_own_id(tmp_path: Path, synthetic_renders) -> None:
+    from denoisers.experiment import Lineage
+    from denoisers.training.job import publish_same_training
+
+    cfg = tiny_training_config()
+    cfg["training"]["ablations"] = [{"id": "abl", "model": "rae", "variants": [{"id": "same"}]}]
+    models = tmp_path / "models"
+    with pytest.raises(FileNotFoundError, match="'rae'"):
+        train_model(cfg, "abl_same", tmp_path / "renders", models / "abl_same", threads=1, progress=False)
+    train_model(cfg, "rae", tmp_path / "renders", models / "rae", threads=1, progress=False)
+    summary = train_model(cfg, "abl_same", tmp_path / "renders", models / "abl_same", threads=1, progress=False)
+    assert summary["same_training_as"] == "rae" and summary["model_id"] == "abl_same"
+    assert summary["settings_digest"] == Lineage(cfg).model("abl_same") != Lineage(cfg).model("rae")
+    assert (models / "abl_same" / "best.pt").read_bytes() == (models / "rae" / "best.pt").read_bytes()
+    assert json.loads((models / "abl_same" / "settings.json").read_text())["variant"] == "same"
+    # Independent of the shortcut: a model trained for real with the base's settings and seed under another id
+    # has the same weights, so reusing them is what training the variant would give.
+    twin = copy.deepcopy(cfg)
+    twin["training"]["ablations"] = []
+    twin["training"]["models"].append({**copy.deepcopy(twin["training"]["models"][0]), "id": "twin",
+                                       "seed": model_spec(cfg, "rae").seed})
+    train_model(twin, "twin", tmp_path / "renders", tmp_path / "twin" / "models" / "twin", threads=1, progress=False)
+    a, b = (load_checkpoint(path)["model_state"] for path in (models / "rae" / "best.pt",
+                                                             tmp_path / "twin" / "models" / "twin" / "best.pt"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # A base trained with other settings is not reused.
+    stale = copy.deepcopy(cfg)
+    stale["training"]["models"][0]["net"]["width"] = 0.25
+    with pytest.raises(ValueError, match="other settings"):
+        publish_same_training(stale, "abl_same", models / "rae", tmp_path / "stale" / "abl_same")

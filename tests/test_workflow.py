@@ -22,7 +22,8 @@ import yaml
 from denoisers.evaluate import ABLATION_ROLE, method_specs, plan_runs, robustness_runs
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
-from denoisers.training.models import method_model, model_specs, training_split, trains_on_volumes
+from denoisers.training.models import (method_model, model_specs, same_training_as, training_split,
+                                       trains_on_volumes)
 from scenegen.config import (chunk_count, load_config, scene_ids, stability_scene_ids, volume_scene_ids,
                              volume_training_split)
 
@@ -109,8 +110,14 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     # models its rows name, the report and the default target every configured model.
     train_scenes = sum(training_split(cfg), [])
     all_models = len(model_specs(cfg))
-    # The models the evaluated rows name: the configured rows' and the ablation rows' (one per variant).
-    used_models = len({method_model(spec.params) for spec in method_specs(cfg)} - {None})
+
+    # The models the evaluated rows name (the configured rows' and the ablation rows', one per variant), plus
+    # the base of a variant whose training is its base's (same_training_as): its job copies the base's weights.
+    def needed(models: set) -> int:
+        models = models - {None}
+        return len(models | {same_training_as(cfg, m) for m in models} - {None})
+
+    used_models = needed({method_model(spec.params) for spec in method_specs(cfg)})
     # One tuning job per method that an evaluated row takes tuned parameters from; it reads the training scenes.
     tuned = len({run.spec.method for run in plan_runs(cfg) if run.runnable and run.spec.params.get("tuned")})
 
@@ -141,7 +148,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
 
     stab = stability_scene_ids(cfg)
     stab_runs = [run for run in stability_runs(cfg) if run.runnable]
-    stab_models = len({method_model(run.spec.params) for run in stab_runs} - {None})
+    stab_models = needed({method_model(run.spec.params) for run in stab_runs})
     stab_tuned = {run.spec.method for run in stab_runs if run.spec.params.get("tuned")}
     stab_train = train_scenes if stab_models or stab_tuned else []
     stability = {**renders(stab + stab_train, stab + stab_train), "derive_masks": len(stab),
@@ -153,7 +160,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
 
     vol, vol_test = volume_scene_ids(cfg), volume_test_scene_ids(cfg)
     runnable_volume = [run for run in volume_runs(cfg) if run.runnable] if vol_test else []
-    vol_models = len({method_model(run.spec.params) for run in runnable_volume} - {None})
+    vol_models = needed({method_model(run.spec.params) for run in runnable_volume})
     volumes = {**renders(vol, vol), "denoise_volume": len(vol_test) * len(runnable_volume),
                "evaluate_volume": len(vol_test) * len(runnable_volume), "train_denoiser": vol_models,
                "robustness_volume": len(vol_test) * len(volume_robustness_runs(cfg))}
@@ -333,8 +340,9 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
     (workflow_copy / "rows.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
     # Hand count on the one evaluated (test) scene: noisy at 1 and 2 spp, eaw at 2, path_x2 at none, the 7
-    # ablation variants at 2: 10 denoise jobs, which need the 7 variant models (no row uses the base model rae).
-    assert counts["denoise_clip"] == 10 and counts["train_denoiser"] == 7
+    # ablation variants at 2: 10 denoise jobs, which need the 7 variant models and the base model rae (no row
+    # uses it, but rae_loss_combined is its training and reuses its weights).
+    assert counts["denoise_clip"] == 10 and counts["train_denoiser"] == 8
     counts = dry_run("evaluate", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
     # Robustness: noisy and path_x2 (its evaluated spp do not matter), not eaw or the variants.
     assert {rule: counts[rule] for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {

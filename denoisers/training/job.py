@@ -14,6 +14,9 @@ finished is the output directory written (atomically) with:
                       ``settings_digest``: the digest of the model's settings and training data (the
                       workflow's rerun trigger, denoisers.experiment), which the report checks
 * ``settings.json``   the resolved model settings
+
+An ablation variant whose settings equal its base model's (``same_training_as``) is not trained again: its
+directory holds the base's files with its own summary (``same_training_as`` names the base) and settings.
 """
 from __future__ import annotations
 
@@ -27,7 +30,7 @@ from scenegen.atomic import atomic_directory, write_text_atomic
 
 from denoisers.provenance import provenance
 from scenegen.digests import render_digest
-from denoisers.training.models import ModelSpec, model_spec, settings_digest, training_split
+from denoisers.training.models import ModelSpec, model_spec, same_training_as, settings_digest, training_split
 from scenegen.config import short_digest
 
 log = logging.getLogger(__name__)
@@ -98,6 +101,43 @@ def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = Tr
                          channels_last=compute["channels_last"], ema_decay=optimizer.get("ema_decay"))
 
 
+def _model_digest(cfg: dict, spec: ModelSpec) -> str:
+    # = denoisers.experiment.Lineage(cfg).model(spec.id) (that module imports this one).
+    return short_digest(settings_digest(spec, data_settings(cfg, spec)))
+
+
+#: Files of a published model directory that do not depend on the model's id.
+_PUBLISHED_FILES = ("best.pt", "curves.csv", "curves.png", "validation.csv")
+
+
+def publish_same_training(cfg: dict, model_id: str, source_dir: Path, out_dir: Path) -> dict[str, Any]:
+    """Publish ``out_dir`` for an ablation variant whose training is identical to the model published in
+    ``source_dir`` (:func:`denoisers.training.models.same_training_as`): its weights, curves and validation
+    metrics, with a summary under the variant's id, ablation and settings digest that records
+    ``same_training_as``. Raises FileNotFoundError if the source is not trained, ValueError if it is stale."""
+    spec = model_spec(cfg, model_id)
+    source_id = source_dir.name
+    summary_path = source_dir / "summary.json"
+    if not summary_path.exists():
+        raise FileNotFoundError(f"model {model_id!r} trains exactly as {source_id!r} and reuses its weights, but "
+                                f"{summary_path} does not exist: train {source_id!r} first")
+    summary = json.loads(summary_path.read_text())
+    expected = _model_digest(cfg, model_spec(cfg, source_id))
+    if summary.get("settings_digest") != expected:
+        raise ValueError(f"model {model_id!r} reuses {source_dir}, which was trained with other settings "
+                         f"(digest {summary.get('settings_digest')}, this config: {expected}): retrain {source_id!r}")
+    summary.update({"model_id": model_id, "ablation": spec.ablation, "variant": spec.variant,
+                    "same_training_as": source_id, "settings_digest": _model_digest(cfg, spec)})
+    log.info("model %s: the same training as %s (same seed, data, settings and budget): its weights are reused",
+             model_id, source_id)
+    with atomic_directory(out_dir) as staging:
+        for name in _PUBLISHED_FILES:
+            shutil.copy2(source_dir / name, staging / name)
+        write_text_atomic(staging / "summary.json", json.dumps(summary, indent=1, sort_keys=True, default=str) + "\n")
+        write_text_atomic(staging / "settings.json", json.dumps(spec.settings(), indent=1, sort_keys=True) + "\n")
+    return summary
+
+
 def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, threads: int = 2,
                 progress: bool = True) -> dict[str, Any]:
     """Train model ``model_id`` of ``cfg`` on ``render_root/<scene>`` clips; write ``out_dir``; return the summary."""
@@ -109,6 +149,9 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
 
     torch.set_num_threads(int(threads))
     spec = model_spec(cfg, model_id)
+    source = same_training_as(cfg, model_id)
+    if source is not None:
+        return publish_same_training(cfg, model_id, Path(out_dir).parent / source, Path(out_dir))
     builder = task_builder(spec.method)
     task = builder.build(spec)
     train_scenes, validation_scenes = training_split(cfg, spec)
@@ -161,8 +204,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
                     "train_scenes": train_scenes, "validation_scenes": validation_scenes, "stopped_by": stopped_by,
                     "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
                     "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1),
-                    # = denoisers.experiment.Lineage(cfg).model(model_id) (that module imports this one).
-                    "settings_digest": short_digest(settings_digest(spec, data_settings(cfg, spec))),
+                    "settings_digest": _model_digest(cfg, spec),
                     "provenance": provenance({"training": int(threads)})})
     if hasattr(task, "config") and hasattr(task.config, "width"):
         from denoisers.nets import build_net, count_parameters

@@ -99,6 +99,25 @@ def model_spec(cfg: dict, model_id: str) -> ModelSpec:
     raise KeyError(f"no trained model with id {model_id!r}; configured models: {known}")
 
 
+#: What determines a model's weights besides its id and ablation labels (ModelSpec.settings() minus those).
+_TRAINING_KEYS = ("method", "seed", "net", "loss", "data", "optimizer", "budget", "compute")
+
+
+def same_training_as(cfg: dict, model_id: str) -> str | None:
+    """The base model an ablation variant is identical to (same method, seed, net, loss, data, optimizer,
+    budget and compute: e.g. Fig. 3's "all inputs" or the combined loss at the base's budget), else None.
+
+    Such a variant is not trained again: its job publishes the base's weights under its own id
+    (``denoisers.training.job``), so the comparison still has its row and the DAG pays for one training."""
+    spec = model_spec(cfg, model_id)
+    if spec.ablation is None:
+        return None
+    ablation = next(a for a in (cfg.get("training") or {}).get("ablations", []) if a["id"] == spec.ablation)
+    base = model_spec(cfg, ablation["model"])
+    same = all(spec.settings()[key] == base.settings()[key] for key in _TRAINING_KEYS)
+    return base.id if same else None
+
+
 def ablation_variants(cfg: dict, ablation_id: str) -> dict[str, ModelSpec]:
     """variant id -> spec of one ablation (empty if the config has no such ablation)."""
     return {spec.variant: spec for spec in model_specs(cfg) if spec.ablation == ablation_id}

@@ -31,8 +31,8 @@ from denoisers.timing import timed_runs, timing_scene, timing_settings
 from denoisers.training.speed import TRAINING_SPEED_FILE, speed_models, speed_settings
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
-from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, training_problems,
-                                       training_runtime_minutes, training_split)
+from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, same_training_as,
+                                       training_problems, training_runtime_minutes, training_split)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -370,6 +370,13 @@ def training_chunk_dirs(kind: str):
 def train_digest(wildcards) -> str:
     """Param: digest of the model's settings and of what its training data depend on (rerun trigger)."""
     return experiment.train_digest(config, wildcards.model)
+
+
+def same_training_dir(wildcards) -> list[str]:
+    """Input function of train_denoiser: the base model an ablation variant trains exactly as (its weights are
+    reused, denoisers.training.models.same_training_as), or nothing."""
+    source = same_training_as(config, wildcards.model)
+    return [model_dir(OUT, source).as_posix()] if source else []
 
 
 def method_model_dir(wildcards) -> list[str]:

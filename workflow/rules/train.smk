@@ -2,11 +2,13 @@
 #   train_denoiser: <output_dir>/models/{model}/ (best.pt, curves.csv/.png, validation.csv, summary.json, settings.json)
 # {model} is an id of training.models or an ablation variant {ablation}_{variant}. The trainer keeps
 # a resumable checkpoint in <output_dir>/models/.work/ (not an output): a killed job continues from it.
+# An ablation variant identical to its base model (same settings and budget) reuses the base's weights.
 
 
 rule train_denoiser:
     input:
         valid=check_model_target,
+        same_as=same_training_dir,
         noisy=training_chunk_dirs("noisy"),
         reference=training_chunk_dirs("reference"),
     output:
