@@ -305,6 +305,12 @@ def test_report_has_tables_figures_and_claims(pipeline: PipelineRun) -> None:
     with Image.open(pipeline.results / "figures" / "quality_vs_speed.png") as chart:
         assert chart.width > 100 and chart.height > 100
 
+    # The colour balance covers every (row, spp) that ran, the ablation variants at evaluation.ablation_spp too.
+    balance = pd.read_csv(pipeline.results / "tables" / "color_balance.csv")
+    assert {(r.method_id, r.spp) for r in balance.itertuples()} == {(run.spec.id, run.spp) for run in pipeline.runs()}
+    assert set(balance.loc[balance.role == "ablation", "method_id"]) == {
+        spec.id for spec in model_specs(pipeline.cfg) if spec.ablation}
+
     claims = pd.read_csv(pipeline.results / "tables" / "claims.csv").set_index("claim")
     assert list(claims.index) == [claim.id for claim in all_claims()]
     # The smoke config evaluates one test scene and the example XML scene at 1, 2 and 4 spp (most rows at 1

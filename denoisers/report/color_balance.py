@@ -40,15 +40,14 @@ def _reference_means(render_dir: Path, frames: list[int]) -> np.ndarray:
 
 
 def color_balance_table(res: Results) -> pd.DataFrame:
-    """One row per configured (row, spp) that ran: mean per-channel output / reference ratio over the
+    """One row per evaluated (row, spp) that ran, ablation rows included (role 'ablation': e.g. which input set
+    of the RAE brings a cast): mean per-channel output / reference ratio over the
     evaluated scenes (ratio_r, ratio_g, ratio_b), brightness (their mean), cast (mean over scenes of each
     scene's cast) and cast_max (the largest scene's) and the scene it occurs on."""
     references: dict[tuple[str, tuple[int, ...]], np.ndarray] = {}
     rows = []
-    for spec in res.main_specs:
-        for spp in res.cfg["evaluation"]["spp"]:
-            if not res.ran(spec.id, spp):
-                continue
+    for spec in res.specs:
+        for spp in sorted({int(r["spp"]) for r in res.runs if r["id"] == spec.id and r["status"] == "ran"}):
             per_scene = []
             for scene in res.scenes:
                 files = read_frame_files(denoised_dir(res.results_dir, spec.id, scene, spp))
@@ -61,12 +60,12 @@ def color_balance_table(res: Results) -> pd.DataFrame:
             ratios = np.array([r for _, r in per_scene])
             casts = np.array([cast_of(r) for _, r in per_scene])
             worst = int(np.nanargmax(casts))
-            rows.append({"method_id": spec.id, "spp": int(spp), "scenes": len(per_scene),
+            rows.append({"method_id": spec.id, "role": spec.role, "spp": int(spp), "scenes": len(per_scene),
                          "ratio_r": float(ratios[:, 0].mean()), "ratio_g": float(ratios[:, 1].mean()),
                          "ratio_b": float(ratios[:, 2].mean()), "brightness": float(ratios.mean()),
                          "cast": float(np.nanmean(casts)), "cast_max": float(casts[worst]),
                          "cast_max_scene": per_scene[worst][0]})
-    return pd.DataFrame(rows, columns=["method_id", "spp", "scenes", "ratio_r", "ratio_g", "ratio_b", "brightness",
+    return pd.DataFrame(rows, columns=["method_id", "role", "spp", "scenes", "ratio_r", "ratio_g", "ratio_b", "brightness",
                                        "cast", "cast_max", "cast_max_scene"])
 
 
