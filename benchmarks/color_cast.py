@@ -1,0 +1,86 @@
+"""Colour cast of trained RAE models on the held-out validation scenes (never the test scenes), to tell where a
+cast comes from without touching the evaluation.
+
+For each ``--models`` entry (a model directory holding ``best.pt``: ``results/models/<id>`` or a saved copy) and
+each validation scene of ``--config`` (``training.validation_scenes``, the last train_* ids), the model streams
+the whole clip at ``--spp`` through the evaluation's own method (``denoisers.methods.rae``, recurrent state
+carried) and the script prints the per-channel ratio of the mean output to the mean reference radiance over all
+pixels and frames, and the cast as in the report (``denoisers.report.color_balance``: max over channels of
+|ratio / mean ratio - 1|). The noisy input's ratios are printed per scene as the unbiased baseline. With
+``--albedo-layers k`` > spp a second line per model divides by the mean albedo of k layers instead of the
+input's own (is the noisy 1-spp divisor the cause?); colour-only models ignore it.
+
+Usage: python benchmarks/color_cast.py --results results --models results/models/rae results/models/rae_inputs_color
+           [--config config/config.yaml] [--spp 1] [--albedo-layers 8] [--threads 2]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from denoisers.methods.rae import RecurrentAutoencoderDenoiser  # noqa: E402
+from denoisers.registry import clip_frames  # noqa: E402
+from denoisers.report.color_balance import cast_of, channel_means  # noqa: E402
+from denoisers.training.models import training_split  # noqa: E402
+from scenegen.config import load_config  # noqa: E402
+from scenegen.dataset import load_clip  # noqa: E402
+
+
+def stream(method: RecurrentAutoencoderDenoiser, frames: list, albedo: list[torch.Tensor] | None) -> list[np.ndarray]:
+    """(3, H, W) outputs of ``method`` over ``frames``; ``albedo`` (per frame (S, 3, H, W)) replaces the frames'."""
+    method.reset()
+    outputs = []
+    for t, frame in enumerate(frames):
+        if albedo is not None:
+            frame = dataclasses.replace(frame, samples={**frame.samples, "albedo": albedo[t]})
+        with torch.no_grad():
+            outputs.append(method.denoise(frame).numpy())
+    return outputs
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--results", type=Path, required=True, help="results folder holding renders/<scene>")
+    parser.add_argument("--models", type=Path, nargs="+", required=True, help="model directories (best.pt)")
+    parser.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    parser.add_argument("--spp", type=int, default=1)
+    parser.add_argument("--albedo-layers", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cfg = load_config(args.config)
+    _, scenes = training_split(cfg)
+    print(f"validation scenes {', '.join(scenes)} at {args.spp} spp; ratio = mean output / mean reference per "
+          f"channel (R, G, B); cast = max |ratio / mean - 1|")
+    for scene in scenes:
+        layers = max(args.spp, args.albedo_layers)
+        clip = load_clip(args.results / "renders" / scene, buffers=RecurrentAutoencoderDenoiser.info.inputs,
+                         spp=layers, reference=True)
+        reference = channel_means(list(clip.reference["radiance"]))
+        noisy = channel_means(list(clip.samples["radiance"][:, :args.spp].mean(axis=1)))
+        print(f"{scene}  {'noisy input':34s} ratio {np.round(noisy / reference, 3)}  cast {cast_of(noisy / reference):.3f}")
+        frames = list(clip_frames(clip, RecurrentAutoencoderDenoiser.info, args.spp))
+        wide_albedo = None
+        if args.albedo_layers > args.spp:
+            wide = clip.samples["albedo"].mean(axis=1, keepdims=True)          # (T, 1, 3, H, W)
+            wide_albedo = [torch.from_numpy(np.repeat(wide[t], args.spp, axis=0)) for t in range(len(frames))]
+        for model_dir in args.models:
+            method = RecurrentAutoencoderDenoiser(checkpoint=str(model_dir / "best.pt"))
+            variants = [("own albedo", None)]
+            if wide_albedo is not None and method.model.config.demodulate:
+                variants.append((f"albedo of {args.albedo_layers} layers", wide_albedo))
+            for label, albedo in variants:
+                ratio = channel_means(stream(method, frames, albedo)) / reference
+                name = f"{model_dir.name} ({label})"
+                print(f"{scene}  {name:34s} ratio {np.round(ratio, 3)}  cast {cast_of(ratio):.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
