@@ -10,8 +10,11 @@ pixels and frames, and the cast as in the report (``denoisers.report.color_balan
 ``--albedo-layers k`` > spp a second line per model divides by the mean albedo of k layers instead of the
 input's own (is the noisy 1-spp divisor the cause?); colour-only models ignore it.
 
+``--scenes`` names other scenes instead (training scenes: does a model show the cast on data it was trained on?);
+test scenes are refused.
+
 Usage: python benchmarks/color_cast.py --results results --models results/models/rae results/models/rae_inputs_color
-           [--config config/config.yaml] [--spp 1] [--albedo-layers 8] [--threads 2]
+           [--config config/config.yaml] [--spp 1] [--albedo-layers 8] [--threads 2] [--scenes train_003 ...]
 """
 from __future__ import annotations
 
@@ -53,11 +56,15 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=1)
     parser.add_argument("--albedo-layers", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--scenes", nargs="+", default=None,
+                        help="scene ids instead of the validation scenes (e.g. training scenes: is it generalisation?)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cfg = load_config(args.config)
-    _, scenes = training_split(cfg)
-    print(f"validation scenes {', '.join(scenes)} at {args.spp} spp; ratio = mean output / mean reference per "
+    scenes = args.scenes or training_split(cfg)[1]
+    if any(scene.startswith("test_") for scene in scenes):
+        parser.error("test scenes are for the evaluation only: pick validation or training scenes")
+    print(f"scenes {', '.join(scenes)} at {args.spp} spp; ratio = mean output / mean reference per "
           f"channel (R, G, B); cast = max |ratio / mean - 1|")
     for scene in scenes:
         layers = max(args.spp, args.albedo_layers)
