@@ -274,6 +274,8 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
         if model:
             s = model.summary
             validation = model.validation
+            if s.get("same_training_as"):   # the base's weights, not a training of its own (its time is the base's)
+                row["status"] = f"trained = {s['same_training_as']}"
             row.update({"parameters": s.get("parameters"), "parameters_full_width": s.get("parameters_full_width"),
                         "width": s.get("net", {}).get("config", {}).get("width"),
                         "steps": s.get("steps"), "stopped_by": s.get("stopped_by"),
