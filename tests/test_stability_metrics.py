@@ -125,3 +125,16 @@ def test_whole_frame_scenarios_use_the_event_of_events_json() -> None:
                                     np.zeros((T, 2, H, W)), np.ones((T, H, W), bool), [False] * T)
     assert summary["event_frame"] == 6 and summary["frames_to_recover"] == 1
     assert summary["lag_region_pixels"] == H * W and summary["relative_bias"] < 0
+
+
+def test_an_atlas_sentence_without_static_pixels_says_so_instead_of_nan() -> None:
+    """A camera that moves in every frame leaves no static pixel: flicker is undefined (NaN) and the atlas sentence
+    says why instead of printing 'nan'; a measured flicker is printed."""
+    from denoisers.report.atlas import sentence
+
+    record = {"masked_psnr": 21.5, "recovery": "no event", "relative_bias": 0.0, "flicker_trmae": float("nan")}
+    text = sentence("eaw", "texture_motion", record, deficit=-1.25, margin=0.1)
+    assert "no static pixels to measure flicker" in text and "nan" not in text.lower()
+    assert "1.25 dB below" in text
+    measured = sentence("eaw", "texture_motion", {**record, "flicker_trmae": 0.0123}, deficit=0.5, margin=0.1)
+    assert "flicker TRMAE 0.0123" in measured and "0.50 dB above" in measured

@@ -155,9 +155,11 @@ def sentence(row: str, scenario: str, record: dict[str, Any], deficit: float, ma
     kinds = (["ghosting"] if lagging else []) + (
         [f"{'darkening' if bias < 0 else 'brightening'} by {abs(bias):.0%}"] if biased else [])
     relation = f"{-deficit:.2f} dB below" if deficit < 0 else f"{deficit:.2f} dB above"
+    flicker = record.get("flicker_trmae", math.nan)
+    flicker_text = (f"flicker TRMAE {flicker:.3g}" if isinstance(flicker, (int, float)) and math.isfinite(flicker)
+                    else "no static pixels to measure flicker")   # e.g. a camera moving in every frame
     return (f"- **{row}**: {' and '.join(kinds) or 'error'} under {phenomenon}, {lag} (masked PSNR "
-            f"{record['masked_psnr']:.2f} dB, {relation} the rows' median there; flicker TRMAE "
-            f"{record['flicker_trmae']:.3g}).")
+            f"{record['masked_psnr']:.2f} dB, {relation} the rows' median there; {flicker_text}).")
 
 
 def build_atlas(cfg: dict, results_dir: Path) -> list[Path]:
