@@ -138,3 +138,14 @@ def test_an_atlas_sentence_without_static_pixels_says_so_instead_of_nan() -> Non
     assert "1.25 dB below" in text
     measured = sentence("eaw", "texture_motion", {**record, "flicker_trmae": 0.0123}, deficit=0.5, margin=0.1)
     assert "flicker TRMAE 0.0123" in measured and "0.50 dB above" in measured
+
+
+def test_atlas_rows_get_distinct_styles_beyond_ten_rows() -> None:
+    """The default config's 15 rows share tab10's ten colours: colour, marker and line style together differ."""
+    from denoisers.report.atlas_figures import row_styles
+
+    rows = [f"row{i}" for i in range(15)]
+    styles = row_styles(rows)
+    keys = {(tuple(style["color"]), style["marker"], style["linestyle"]) for style in styles.values()}
+    assert len(keys) == len(rows)
+    assert styles["row0"]["color"] == styles["row10"]["color"] and styles["row0"]["marker"] != styles["row10"]["marker"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -16,9 +16,17 @@ if TYPE_CHECKING:
     import pandas as pd
 
 
-def _colour_map(rows: Sequence[str]) -> dict:
+#: Markers and line styles that tell apart rows sharing one of tab10's ten colours (the default has 15 rows).
+_MARKERS = ("o", "s", "^", "D")
+_LINESTYLES = ("-", "--", ":", "-.")
+
+
+def row_styles(rows: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """row -> matplotlib style (color, marker, linestyle): tab10's colours in order, then again with the next
+    marker and line style, so up to 40 rows get distinct styles."""
     cmap = pyplot().get_cmap("tab10")
-    return {row: cmap(i % 10) for i, row in enumerate(rows)}
+    return {row: {"color": cmap(i % 10), "marker": _MARKERS[(i // 10) % len(_MARKERS)],
+                  "linestyle": _LINESTYLES[(i // 10) % len(_LINESTYLES)]} for i, row in enumerate(rows)}
 
 
 def plot_family(scores: pd.DataFrame, scenarios: Sequence[str], rows: Sequence[str], path: Path, title: str) -> None:
@@ -29,13 +37,14 @@ def plot_family(scores: pd.DataFrame, scenarios: Sequence[str], rows: Sequence[s
         placeholder(path, f"{title}: no scores")
         return
     plt = pyplot()
-    colours = _colour_map(rows)
+    styles = row_styles(rows)
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for (row, spp), group in data.groupby(["method_id", "spp"], sort=False):
         x, y = float(np.nanmean(group["ms_per_frame"])), float(np.nanmean(group["masked_psnr"]))
         if not (math.isfinite(y) and math.isfinite(x) and x > 0):
             continue
-        ax.scatter([x], [y], color=colours.get(row), label=f"{row} ({spp} spp)")
+        style = styles.get(row, {})
+        ax.scatter([x], [y], color=style.get("color"), marker=style.get("marker", "o"), label=f"{row} ({spp} spp)")
         ax.annotate(row, (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
     ax.set_xscale("log")
     ax.set_xlabel("ms/frame (stability denoise jobs, median per frame; log scale)")
@@ -64,7 +73,7 @@ def plot_curves(scores: pd.DataFrame, results_dir: Path, scene: str, rows: Seque
         placeholder(path, f"{scene}: not run")
         return
     plt = pyplot()
-    colours = _colour_map(rows)
+    styles = row_styles(rows)
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
     for run in runs.itertuples():
         frames = _score_frames(results_dir, run.method_id, scene, int(run.spp))
@@ -72,8 +81,8 @@ def plot_curves(scores: pd.DataFrame, results_dir: Path, scene: str, rows: Seque
             continue
         with np.errstate(divide="ignore"):
             psnr = -10.0 * np.log10(frames["lag_mse"].to_numpy(np.float64))
-        ax.plot(frames["frame"], psnr, marker="o", markersize=3, color=colours.get(run.method_id),
-                label=f"{run.method_id} ({run.spp} spp)")
+        style = styles.get(run.method_id, {"marker": "o"})
+        ax.plot(frames["frame"], psnr, markersize=3, **style, label=f"{run.method_id} ({run.spp} spp)")
     event = runs["event_frame"].dropna()
     if len(event):
         ax.axvline(float(event.iloc[0]), color="k", linestyle="--", linewidth=1, label="event")
