@@ -27,7 +27,8 @@ Usage: python benchmarks/train_data_choice.py [--config config/config.yaml] [--m
 Arm syntax: key=value[,key=value...] over the training_data keys of the schema, e.g.
 ``crops=importance,importance_floor=0.1``; ``net.<key>=value`` overrides the network instead (a size
 comparison on identical data, e.g. ``net.width=0.5 net.width=0.25``), ``opt.<key>=value`` the optimiser
-(e.g. ``opt.ema_decay=null opt.ema_decay=0.99``).
+(e.g. ``opt.ema_decay=null opt.ema_decay=0.99``), ``comp.<key>=value`` the step arithmetic (e.g.
+``comp.precision=fp32 comp.precision=bf16``).
 """
 from __future__ import annotations
 
@@ -61,6 +62,9 @@ SCENE_KEYS: tuple[str, ...] = ("train", "root")
 NET_PREFIX = "net."
 #: Arm keys starting with this override the model's ``optimizer`` (e.g. ``opt.ema_decay=0.99``).
 OPT_PREFIX = "opt."
+#: Arm keys starting with this override the model's ``compute`` (e.g. ``comp.precision=fp32``): the step
+#: arithmetic, e.g. to ask whether bf16 autocast costs something PSNR does not see.
+COMPUTE_PREFIX = "comp."
 
 
 def scene_list(text: str) -> list[str]:
@@ -88,7 +92,7 @@ def split_arm(text: str) -> tuple[dict[str, str], str]:
 
 
 def prefixed_overrides(text: str, prefix: str = NET_PREFIX) -> dict[str, Any]:
-    """An arm's ``<prefix><key>=value`` parts (``net.`` or ``opt.``) as {key: value}."""
+    """An arm's ``<prefix><key>=value`` parts (``net.``, ``opt.`` or ``comp.``) as {key: value}."""
     out = {}
     for part in filter(None, split_arm(text)[1].split(",")):
         key, _, value = part.partition("=")
@@ -116,7 +120,7 @@ def parse_arm(text: str, base: dict[str, Any]) -> dict[str, Any]:
         key, sep, value = part.partition("=")
         if not sep:
             raise ValueError(f"arm {text!r}: {part!r} is not key=value")
-        if not key.strip().startswith((NET_PREFIX, OPT_PREFIX)):
+        if not key.strip().startswith((NET_PREFIX, OPT_PREFIX, COMPUTE_PREFIX)):
             overrides[key.strip()] = yaml.safe_load(value)
     try:
         return _schema_defaults("training_data", {**base, **overrides})
@@ -186,14 +190,17 @@ def main() -> None:
     for arm, data in arms.items():
         arm_spec: ModelSpec = dataclasses.replace(base, data=data, net={**base.net, **prefixed_overrides(arm)},
                                                   optimizer=_schema_defaults("training_optimizer", {
-                                                      **base.optimizer, **prefixed_overrides(arm, OPT_PREFIX)}))
+                                                      **base.optimizer, **prefixed_overrides(arm, OPT_PREFIX)}),
+                                                  compute=_schema_defaults("training_compute", {
+                                                      **base.compute, **prefixed_overrides(arm, COMPUTE_PREFIX)}))
         clips = load_training_clips(arm_scenes[arm], buffers)
         seconds = render_seconds(arm_scenes[arm])
         print(f"{arm}: {len(clips)} training clips ({', '.join(p.name for p in arm_scenes[arm])}), "
               f"{sum(len(c.frames) for c in clips)} frames, rendered in {seconds / 60:.1f} min (sidecars)", flush=True)
         dataset = SequenceDataset(clips, sequence_config(arm_spec, buffers), seed=arm_spec.seed)
         name = re.sub(r"[^A-Za-z0-9_.=-]+", "_", arm)
-        runs[arm] = train(name, arm_spec, cfg, dataset, validation, arm_spec.compute.get("precision", "auto"), args)
+        runs[arm] = train(name, arm_spec, cfg, dataset, validation, arm_spec.compute.get("precision", "auto"), args,
+                          channels_last=arm_spec.compute.get("channels_last", "auto"))
         trainer = runs[arm]["trainer"]
         runs[arm]["sequences"] = [trainer.evaluate([batch]) for batch in validation]
 

@@ -168,12 +168,15 @@ def test_data_choice_arms_name_their_training_scenes(tmp_path) -> None:
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     try:
-        from train_data_choice import OPT_PREFIX, parse_arm, prefixed_overrides, render_seconds, scene_list, split_arm
+        from train_data_choice import (COMPUTE_PREFIX, OPT_PREFIX, parse_arm, prefixed_overrides, render_seconds,
+                                       scene_list, split_arm)
     finally:
         sys.path.pop(0)
     # net.* keys override the network, opt.* the optimiser; both leave the data keys alone.
     assert prefixed_overrides("net.width=0.25,layers=first,net.levels=4") == {"width": 0.25, "levels": 4}
     assert prefixed_overrides("net.width=0.25,opt.ema_decay=0.99", OPT_PREFIX) == {"ema_decay": 0.99}
+    assert prefixed_overrides("comp.precision=fp32,layers=first", COMPUTE_PREFIX) == {"precision": "fp32"}
+    assert "precision" not in parse_arm("comp.precision=fp32", {"length": 3, "crop": 32, "spp": 1})
     base = {"length": 3, "crop": 32, "spp": 1}
     data = parse_arm("net.width=0.25,layers=first,opt.ema_decay=null", base)
     assert data["layers"] == "first" and not {"net.width", "width", "opt.ema_decay", "ema_decay"} & set(data)
