@@ -208,3 +208,14 @@ def test_an_identical_variant_publishes_the_base_weights_under_its_own_id(tmp_pa
     stale["training"]["models"][0]["net"]["width"] = 0.25
     with pytest.raises(ValueError, match="other settings"):
         publish_same_training(stale, "abl_same", models / "rae", tmp_path / "stale" / "abl_same")
+
+
+@pytest.mark.parametrize("config_name", ["config.yaml", "cluster.yaml", "smoke.yaml"])
+def test_the_hasselgren_variants_share_data_seed_and_budget(config_name: str) -> None:
+    """Issue 12: the five NTASD variants are compared as trained with the same data, seed and budget."""
+    cfg = load_config(REPO_ROOT / "config" / config_name)
+    methods = {"ntasd", "ntasd_uniform", "ntasd_kpn", "ntasd_direct", "dasr"}
+    specs = [spec for spec in model_specs(cfg) if spec.method in methods and spec.ablation is None]
+    assert {spec.method for spec in specs} == methods
+    assert len({spec.seed for spec in specs}) == 1
+    assert all(spec.data == specs[0].data and spec.budget == specs[0].budget for spec in specs)
