@@ -194,3 +194,42 @@ def test_data_choice_arms_name_their_training_scenes(tmp_path) -> None:
     assert render_seconds([tmp_path / "train_000"]) == pytest.approx(34.0)
     with pytest.raises(FileNotFoundError, match="no frame sidecars"):
         render_seconds([tmp_path / "missing"])
+
+
+def test_hue_permutation_and_grayscale_recolour_input_albedo_and_target_alike() -> None:
+    """Hasselgren et al. 2020's augmentations for direct prediction: one channel order per sequence for every
+    colour buffer (radiance, albedo, reference), so demodulated colour is permuted consistently; grayscale = the
+    CCIR 601 grey (0.2989, 0.587, 0.114) in all three channels; normals and depth are left alone."""
+    import dataclasses
+
+    from denoisers.training.data import SequenceConfig, SequenceDataset
+    from tests.test_training import synthetic_clip
+
+    clip = synthetic_clip(frames=4, layers=2)
+    base = dict(length=3, crop=8, spp=1, color_range=None, rotate=False, flip=False)
+    dataset = SequenceDataset([clip], SequenceConfig(**base, permute_channels=True, grayscale_prob=0.5), seed=3)
+    plans = [dataset.plan(dataset.generator(i)) for i in range(12)]
+    assert {p.channels for p in plans} - {(0, 1, 2)} and {p.grayscale for p in plans} == {True, False}
+    plan = next(p for p in plans if p.channels != (0, 1, 2))
+    plain = dataset.sequence(dataclasses.replace(plan, channels=(0, 1, 2), grayscale=False))
+    permuted = dataset.sequence(dataclasses.replace(plan, grayscale=False))
+    order = list(plan.channels)
+    for key in ("radiance", "albedo"):
+        assert torch.equal(permuted[key], plain[key][:, :, order])
+    assert torch.equal(permuted["reference.radiance"], plain["reference.radiance"][:, order])
+    assert torch.equal(permuted["normal"], plain["normal"]) and torch.equal(permuted["depth"], plain["depth"])
+    grey = dataset.sequence(dataclasses.replace(plan, channels=(0, 1, 2), grayscale=True))
+    for key, source in (("radiance", plain["radiance"]), ("albedo", plain["albedo"])):
+        expected = 0.2989 * source[:, :, 0] + 0.587 * source[:, :, 1] + 0.114 * source[:, :, 2]
+        for c in range(3):
+            torch.testing.assert_close(grey[key][:, :, c], expected)
+    # Validation never recolours; switches that are off stay out of the data's fingerprint.
+    off = SequenceConfig(**base)
+    assert not {"permute_channels", "grayscale_prob"} & set(off.to_dict())
+    assert {"permute_channels", "grayscale_prob"} <= set(dataset.config.to_dict())
+    validation = dataset.config.without_augmentation()
+    assert not validation.permute_channels and validation.grayscale_prob == 0
+    # Off, the random stream is the one it always was: the same plans as a config that never had the switches.
+    same = SequenceDataset([clip], SequenceConfig(**base, permute_channels=False, grayscale_prob=0.0), seed=3)
+    default = SequenceDataset([clip], SequenceConfig(**base), seed=3)
+    assert same.plan(same.generator(5)) == default.plan(default.generator(5))

@@ -19,7 +19,12 @@ One sequence (Chaitanya et al. 2017, §4.3) is made by
 5. a random rotation by 0/90/180/270 degrees and (``flip``) a left-right mirror, applied to every
    image buffer; motion vectors and the world-to-view rotation are transformed to match, so
    view-space normals and reprojection stay consistent with the rotated pixel grid;
-6. a per-channel colour modulation drawn from ``color_range`` (paper: [0, 2]) applied to every
+6. with ``permute_channels`` a random order of the R, G, B channels and with chance ``grayscale_prob`` a
+   conversion to CCIR 601 grey (Hasselgren et al. 2020's hue permutation and grayscale augmentation for
+   direct prediction), both applied to every colour buffer (radiance-like and albedo) of the input and the
+   target alike, so demodulation by the albedo is unchanged; drawn only when switched on, so other configs'
+   sequences stay as they were;
+7. a per-channel colour modulation drawn from ``color_range`` (paper: [0, 2]) applied to every
    radiance-like buffer of the input and the target (never to albedo, so demodulated colour is
    modulated too).
 
@@ -54,6 +59,12 @@ from scenegen.dataset import Clip, load_clip
 
 #: Buffers holding radiance: colour modulation scales these (input samples and reference).
 RADIANCE_LIKE: frozenset[str] = frozenset({"radiance", "diffuse", "specular", "radiance_half0", "radiance_half1"})
+#: Buffers holding colour: hue permutation and grayscale apply to these (radiance-like and albedo).
+COLOUR_BUFFERS: frozenset[str] = RADIANCE_LIKE | {"albedo"}
+#: CCIR 601 luma weights of the grayscale augmentation (Hasselgren et al. 2020 use them for grey inputs).
+GREY_WEIGHTS = np.array([0.2989, 0.587, 0.114], dtype=np.float32)
+#: Data switches that are left out of fingerprints and digests while off (added after models were trained).
+OPTIONAL_OFF: dict[str, Any] = {"permute_channels": False, "grayscale_prob": 0.0}
 #: Per-pixel buffers a sequence can carry.
 PIXEL_KEYS: tuple[str, ...] = ("motion", "valid", "gbuffer.position", "gbuffer.normal", "gbuffer.depth",
                                "gbuffer.object")
@@ -120,6 +131,8 @@ class SequenceConfig:
     layers: str = "random"
     crops: str = "uniform"
     importance_floor: float = 0.2
+    permute_channels: bool = False
+    grayscale_prob: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("sample_buffers", "reference_buffers", "pixel_buffers", "mean_buffers"):
@@ -137,6 +150,8 @@ class SequenceConfig:
             raise ValueError(f"data key 'layers' = {self.layers!r} is unknown; allowed: {', '.join(LAYER_MODES)}")
         if self.crops not in CROP_MODES:
             raise ValueError(f"data key 'crops' = {self.crops!r} is unknown; allowed: {', '.join(CROP_MODES)}")
+        if not 0 <= self.grayscale_prob <= 1:
+            raise ValueError(f"data key 'grayscale_prob' = {self.grayscale_prob!r} must lie in [0, 1]")
         if not 0 <= self.importance_floor <= 1:
             raise ValueError(f"data key 'importance_floor' = {self.importance_floor!r} must lie in [0, 1]")
         unknown = [b for b in self.pixel_buffers if b not in PIXEL_KEYS]
@@ -150,11 +165,15 @@ class SequenceConfig:
         """The same cut (length, crop, spp, buffers) without any random augmentation, with random layers and
         uniform crops whatever this config's switches (module docstring): for validation."""
         return SequenceConfig(**{**asdict(self), "rotate": False, "flip": False, "color_range": None,
-                                 "backward_prob": 0.0, "stop_prob": 0.0, "layers": "random", "crops": "uniform"})
+                                 "backward_prob": 0.0, "stop_prob": 0.0, "layers": "random", "crops": "uniform",
+                                 "permute_channels": False, "grayscale_prob": 0.0})
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields as plain values; switches added later are left out while off (:data:`OPTIONAL_OFF`), so
+        a checkpoint fingerprinted before they existed still resumes."""
         data = asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in data.items()}
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in data.items()
+                if not (k in OPTIONAL_OFF and v == OPTIONAL_OFF[k])}
 
 
 @dataclass(frozen=True)
@@ -164,7 +183,8 @@ class SequencePlan:
     frames: clip-local frame positions per output frame (equal neighbours = camera stop);
     layers: sample layers per output frame; crop: (row, column) of the crop's top-left corner;
     rotation: counter-clockwise quarter turns; flip: left-right mirror after the rotation;
-    color: per-channel factors (1, 1, 1 = none).
+    color: per-channel factors (1, 1, 1 = none); channels: the source channel of output R, G, B ((0, 1, 2) =
+    none); grayscale: colour buffers replaced by their grey.
     """
 
     clip: int
@@ -176,11 +196,15 @@ class SequencePlan:
     flip: bool = False
     color: tuple[float, float, float] = (1.0, 1.0, 1.0)
     backward: bool = False
+    channels: tuple[int, int, int] = (0, 1, 2)
+    grayscale: bool = False
 
     def describe(self) -> str:
         return (f"{self.scene} frames {list(self.frames)} layers {[list(l) for l in self.layers]} "
                 f"crop@{self.crop} rot{90 * self.rotation} flip={self.flip} "
-                f"color=({', '.join(f'{c:.3f}' for c in self.color)})")
+                f"color=({', '.join(f'{c:.3f}' for c in self.color)})"
+                + (f" channels={list(self.channels)}" if self.channels != (0, 1, 2) else "")
+                + (" grey" if self.grayscale else ""))
 
 
 @dataclass
@@ -302,8 +326,12 @@ class SequenceDataset:
             color = tuple(float(c) for c in rng.uniform(*config.color_range, size=3))
         else:
             color = (1.0, 1.0, 1.0)
+        # Drawn only when switched on: configs without them keep their random streams (and sequences).
+        channels = tuple(int(c) for c in rng.permutation(3)) if config.permute_channels else (0, 1, 2)
+        grayscale = bool(rng.random() < config.grayscale_prob) if config.grayscale_prob > 0 else False
         return SequencePlan(clip=clip_index, scene=clip.scene, frames=tuple(frames), layers=tuple(layers),
-                            crop=(row, column), rotation=rotation, flip=flip, color=color, backward=backward)
+                            crop=(row, column), rotation=rotation, flip=flip, color=color, backward=backward,
+                            channels=channels, grayscale=grayscale)
 
     def _plan_layers(self, rng: np.random.Generator, frames: Sequence[int], n_layers: int) -> list[tuple[int, ...]]:
         """Sample layers per output frame (``config.layers``); a camera stop gets layers disjoint from the
@@ -341,15 +369,26 @@ class SequenceDataset:
         layers = np.asarray(plan.layers)
         color = np.asarray(plan.color, dtype=np.float32).reshape(3, 1, 1)
         out: dict[str, np.ndarray] = {}
+
+        def recolour(buffer: str, data: np.ndarray) -> np.ndarray:
+            """Hue permutation, grayscale, then the colour modulation of one buffer (channels on axis -3)."""
+            if buffer in COLOUR_BUFFERS:
+                if plan.channels != (0, 1, 2):
+                    data = data[..., list(plan.channels), :, :]
+                if plan.grayscale:
+                    grey = np.tensordot(data, GREY_WEIGHTS, axes=([-3], [0]))[..., None, :, :]
+                    data = np.repeat(grey, 3, axis=-3)
+            return data * color if buffer in RADIANCE_LIKE else data
+
         for buffer in config.sample_buffers:
             data = clip.samples[buffer][:, :, :, rows, columns][frames[:, None], layers]   # (T, S, C, h, w)
-            out[buffer] = data * color if buffer in RADIANCE_LIKE else data
+            out[buffer] = recolour(buffer, data)
         for buffer in config.mean_buffers:
             data = clip.samples[buffer][:, :, :, rows, columns][frames].mean(axis=1)           # (T, C, h, w)
-            out[f"mean.{buffer}"] = data * color if buffer in RADIANCE_LIKE else data
+            out[f"mean.{buffer}"] = recolour(buffer, data)
         for buffer in config.reference_buffers:
             data = clip.reference[buffer][:, :, rows, columns][frames]
-            out[f"reference.{buffer}"] = data * color if buffer in RADIANCE_LIKE else data
+            out[f"reference.{buffer}"] = recolour(buffer, data)
         stopped = np.concatenate([[False], frames[1:] == frames[:-1]])
         for key in config.pixel_buffers:
             if key == "motion":

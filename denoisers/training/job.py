@@ -71,6 +71,8 @@ def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...], pixel_buff
                           flip=data["flip"], color_range=data["color_range"], backward_prob=data["backward_prob"],
                           stop_prob=data["stop_prob"], sample_buffers=sample_buffers, layers=data["layers"],
                           crops=data["crops"], importance_floor=data["importance_floor"],
+                          permute_channels=bool(data.get("permute_channels", False)),
+                          grayscale_prob=float(data.get("grayscale_prob", 0.0)),
                           pixel_buffers=pixel_buffers, mean_buffers=mean_buffers,
                           reference_buffers=reference_buffers)
 
