@@ -248,17 +248,25 @@ def _missing_text(res: Results) -> str:
 
 
 def _deviations(res: Results) -> list[str]:
+    from denoisers.training.data import COLOUR_AUGMENTATION_KEYS
     from denoisers.training.models import model_specs
 
     methods = {need.method for need in OWN_NEEDS}
     specs = [spec for spec in model_specs(res.cfg) if spec.method in methods and not spec.ablation]
     widths = sorted({float(spec.net.get("width", 1.0)) for spec in specs})
-    shared = len({repr((spec.seed, spec.data, spec.budget, spec.optimizer)) for spec in specs}) == 1
+
+    def common(data: dict) -> dict:        # direct prediction's colour augmentation is the paper's (Sec. 2.2)
+        return {k: v for k, v in data.items() if k not in COLOUR_AUGMENTATION_KEYS}
+
+    shared = len({repr((spec.seed, common(spec.data), spec.budget, spec.optimizer)) for spec in specs}) == 1
+    recoloured = [spec.id for spec in specs if any(spec.data.get(k) for k in COLOUR_AUGMENTATION_KEYS)]
     budget = specs[0].budget.get("max_steps") if specs else None
     render = res.cfg["render"]
     return [(f"- Networks: our U-Nets at width {', '.join(f'{w:g}' for w in widths)} of the paper's (~850 k weights "
              f"at width 1, Fig. 3); the variants {'share' if shared else 'do NOT share'} data, seed, optimiser and "
-             f"budget (at most {budget} steps; the paper trains 1000 epochs).") if specs
+             f"budget (at most {budget} steps; the paper trains 1000 epochs)"
+             + (f"; {', '.join(recoloured)} also trains with the hue permutation and grayscale augmentation the "
+                f"paper adds for direct prediction (Sec. 2.2)" if recoloured else "") + ".") if specs
             else "- Networks: no NTASD or DASR model is configured.",
             f"- Scenes: our procedurally generated test scenes at {render['width']}×{render['height']} with "
             f"{render['reference_spp']}-spp references, not SUNTEMPLE / CLASSROOM / BATHROOM at 1080p with 4k-spp "

@@ -65,6 +65,9 @@ COLOUR_BUFFERS: frozenset[str] = RADIANCE_LIKE | {"albedo"}
 GREY_WEIGHTS = np.array([0.2989, 0.587, 0.114], dtype=np.float32)
 #: Data switches that are left out of fingerprints and digests while off (added after models were trained).
 OPTIONAL_OFF: dict[str, Any] = {"permute_channels": False, "grayscale_prob": 0.0}
+#: The augmentations Hasselgren et al. 2020 add for direct prediction only (a variant may differ in these and
+#: still count as trained on the same data).
+COLOUR_AUGMENTATION_KEYS: tuple[str, ...] = ("permute_channels", "grayscale_prob")
 #: Per-pixel buffers a sequence can carry.
 PIXEL_KEYS: tuple[str, ...] = ("motion", "valid", "gbuffer.position", "gbuffer.normal", "gbuffer.depth",
                                "gbuffer.object")
