@@ -280,3 +280,28 @@ def test_write_names_the_missing_rows_and_still_writes_its_outputs(tmp_path: Pat
     results.results_dir = tmp_path / "empty"
     h.write(results, tables, figures)
     assert all((figures / f"{name}.png").stat().st_size > 0 for name in h.figure_names(cfg))
+
+
+def test_a_flat_sample_map_is_named_in_the_report(tmp_path: Path) -> None:
+    """The spread of a row's sample maps: a map with every pixel but one at 4 spp (what a sampler that has not
+    learnt gives) is 'flat'; random counts are not. modal_share and cv computed by hand for the flat case."""
+    results, _ = table1_results()
+    with_files(results, tmp_path / "results")
+    for k, scene in enumerate(results.scenes):
+        maps = np.full((FRAMES, *SIZE), 4, np.uint8)
+        maps[:, 0, 0] = 32
+        np.savez(evaluate.denoised_dir(tmp_path / "results", "ntasd", scene, 4) / SAMPLE_MAPS_FILE,
+                 frames=np.arange(FRAMES), sample_maps=maps)
+    flat = h.map_spread(results, "ntasd")
+    pixels = SIZE[0] * SIZE[1]
+    counts = np.full(pixels, 4.0)
+    counts[0] = 32
+    assert flat["modal_share"] == pytest.approx((pixels - 1) / pixels)
+    assert flat["cv"] == pytest.approx(counts.std() / counts.mean())
+    assert h.map_spread(results, "dasr")["modal_share"] < h.FLAT_MAP_SHARE     # random counts 0..8
+    tables, figures = tmp_path / "tables", tmp_path / "figures"
+    tables.mkdir()
+    figures.mkdir()
+    section = h.write(results, tables, figures)
+    assert "NTASD (ntasd): 98.8% of the pixels at one count" in section and "flat: its sampler does not adapt" in section
+    assert "DASR (dasr)" in section and section.count("flat: its sampler") == 1

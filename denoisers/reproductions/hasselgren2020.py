@@ -88,6 +88,50 @@ def realised_spp(res: Results, row: str | None, spp: int = SPP) -> float:
     return float(np.mean(values)) if values else math.nan
 
 
+#: A row whose sample maps give at least this share of the pixels one and the same count (per frame, averaged)
+#: samples uniformly in effect: its sampler has not learnt to adapt, which the report says beside Fig. 6.
+FLAT_MAP_SHARE = 0.98
+
+
+def map_spread(res: Results, row: str | None, spp: int = SPP) -> dict[str, float] | None:
+    """How adaptive a row's sample maps are, over every evaluated scene and frame: ``modal_share`` = mean per frame
+    of the share of pixels at the frame's most frequent count (1.0 = a flat map) and ``cv`` = mean per frame of
+    std / mean of the counts. None without sample maps."""
+    import numpy as np
+
+    from denoisers.adaptive import SAMPLE_MAPS_FILE
+
+    if row is None or not res.ran(row, spp):
+        return None
+    shares, cvs = [], []
+    for scene in res.scenes:
+        path = denoised_dir(res.results_dir, row, scene, spp) / SAMPLE_MAPS_FILE
+        if not path.is_file():
+            continue
+        with np.load(path) as data:
+            maps = np.asarray(data["sample_maps"], dtype=np.int64).reshape(len(data["sample_maps"]), -1)
+        for counts in maps:
+            shares.append(np.bincount(counts).max() / counts.size)
+            cvs.append(counts.std() / counts.mean() if counts.mean() > 0 else math.nan)
+    if not shares:
+        return None
+    return {"modal_share": float(np.mean(shares)), "cv": float(np.nanmean(cvs))}
+
+
+def _spread_text(res: Results) -> str:
+    parts = []
+    for label, need in SAMPLE_MAP_ROWS:
+        row = row_at(res, need)
+        spread = map_spread(res, row)
+        if spread is None:
+            continue
+        flat = spread["modal_share"] >= FLAT_MAP_SHARE
+        parts.append(f"{label} ({row}): {spread['modal_share']:.1%} of the pixels at one count per frame, coefficient "
+                     f"of variation {spread['cv']:.2f}" + (" -- flat: its sampler does not adapt, so the claims "
+                                                          "comparing it test uniform sampling" if flat else ""))
+    return ("Spread of the maps over every evaluated frame: " + "; ".join(parts) + ".") if parts else ""
+
+
 # ------------------------------------------------------------------------------------------ claims
 def _decide(res: Results, parts: list[tuple[RowNeed, RowNeed, str, str]], note: str) -> Decision:
     """Paired parts (row a, row b, metric, claimed direction of a - b) at 4 spp over the evaluated scenes."""
@@ -295,6 +339,7 @@ def write(res: Results, tables: Path, figures: Path) -> str:
     scene = plot_fig7(res, figures / f"{FIG7_NAME}.png", [(label, row_at(res, need)) for label, need in FIG7], SPP)
     plot_sample_maps(res, figures / f"{SAMPLE_MAPS_NAME}.png",
                      [(label, row_at(res, need)) for label, need in SAMPLE_MAP_ROWS], SPP)
+    spread = _spread_text(res)
     return "\n".join([
         f"NTASD and its ablations (direct prediction, per-frame KPN, temporal uniform, temporal adaptive, uniform "
         f"8 spp) and DASR at an average of {SPP} spp, RAE and SVGF at {SPP} spp; every claim paired over the "
@@ -305,7 +350,7 @@ def write(res: Results, tables: Path, figures: Path) -> str:
         "pixel of the row's sample maps.", "", md7,
         f"![Fig. 7: per-frame PSNR and tPSNR on {scene or 'no scene'}](figures/{FIG7_NAME}.png)", "",
         "### Fig. 6: sample maps of NTASD and DASR", "",
-        f"![Fig. 6: sample maps](figures/{SAMPLE_MAPS_NAME}.png)", "",
+        f"![Fig. 6: sample maps](figures/{SAMPLE_MAPS_NAME}.png)", "", *([spread, ""] if spread else []),
         "### Deviations from the paper", "", *_deviations(res)])
 
 
