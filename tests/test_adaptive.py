@@ -338,3 +338,28 @@ def test_a_non_adaptive_output_of_an_adaptive_method_names_method_and_frame(test
     finally:
         registry._REGISTRY.pop("test_plain_adaptive", None)
     assert math.isclose(adaptive.realised_spp(torch.tensor([[1, 2], [3, 4]])), 2.5)
+
+
+def test_the_renderer_gradient_teaches_a_free_logit_map_where_to_sample() -> None:
+    """End to end through density (Eq. 2), the integer maps and the renderer gradient: a free per-pixel logit map
+    trained by Adam on the L1 error of the gathered means moves samples to where the layers are noisy (left
+    half sigma 1, right half sigma 0.02, budget 4 spp). The expected error of a k-sample mean falls like
+    sigma / sqrt(k), so the optimum gives the noisy half nearly all samples."""
+    torch.manual_seed(0)
+    height = width = 16
+    budget, layers_n = 4.0, 32
+    mu = torch.full((1, 3, height, width), 0.5)
+    sigma = torch.full((1, 1, height, width), 0.02)
+    sigma[..., : width // 2] = 1.0
+    logits = torch.zeros(1, height, width, requires_grad=True)
+    optimizer = torch.optim.Adam([logits], lr=0.05)
+    for _ in range(60):
+        layers = (mu[:, None] + sigma[:, None] * torch.randn(1, layers_n, 3, height, width)).clamp_min(0)
+        means, counts = adaptive.render_adaptive(adaptive.density(logits, budget), layers, budget)
+        loss = (means - mu).abs().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    noisy, clean = counts[0, :, : width // 2].float().mean(), counts[0, :, width // 2:].float().mean()
+    assert counts.sum() <= adaptive.budget_total(budget, height * width)
+    assert noisy > 6.0 and clean < 2.0, (noisy, clean)
