@@ -4,8 +4,9 @@ The renderer stores independent 1-spp layers per frame (``render.spp`` layers wi
 ``render.extra_radiance_spp`` radiance-only layers). A pixel given ``k`` samples gets the mean of its
 first ``k`` layers, which is exactly what rendering ``k`` samples there would give. This module holds:
 
-* :func:`density` -- Eq. 2 of Hasselgren et al. before rounding, ``M n softmax(s)``: differentiable, for
-  training a sample-map network later (real-valued samples per pixel, mean exactly ``n``).
+* :func:`density` -- Eq. 2 of Hasselgren et al. before rounding, ``M n softmax(s)``: differentiable (real-valued
+  samples per pixel, mean exactly ``n``); :func:`capped_density` the same with the renderer's cap of the stored
+  layers per pixel, what the NTASD and DASR samplers train and run with.
 * :func:`normalize_sample_map` -- Eq. 2 to an integer (H, W) sample map whose mean never exceeds the
   budget ``n`` (rounding included), at least ``minimum`` and at most the available layers per pixel.
 * :func:`gather_mean` / :func:`masked_samples` -- the per-pixel mean of the first ``k`` layers (and the
@@ -81,6 +82,39 @@ def density(logits: torch.Tensor, budget: float) -> torch.Tensor:
     height, width = logits.shape[-2:]
     flat = logits.reshape(*logits.shape[:-2], height * width)
     return (torch.softmax(flat, dim=-1) * (height * width * float(budget))).reshape(logits.shape)
+
+
+def capped_density(logits: torch.Tensor, budget: float, max_count: int, *, minimum: int = 0) -> torch.Tensor:
+    """Eq. 2 with the cap the renderer has: ``minimum`` samples everywhere, then the rest of the budget
+    ``T = budget_total(budget, M)`` as ``softmax(s)`` over the pixels, where a pixel cannot get more than
+    ``max_count`` samples (the stored layers) and the excess goes to the others in proportion to ``exp(s)``
+    (the water filling of :func:`normalize_sample_map`).
+
+    logits: (N, H, W). Returns (N, H, W) real samples per pixel summing to T (at most ``M max_count``). Capped
+    pixels are constants (``max_count``, zero gradient); the others are ``minimum + R softmax(s | uncapped)``
+    with R the samples left for them, so the gradient reaches every pixel that can still change. Without the
+    cap (plain :func:`density`) a pixel whose logit outgrows the rest takes all of the real-valued density while
+    rendering gives it only ``max_count`` samples: the other pixels' densities, and so their gradients, vanish,
+    and the map stays flat (what the whole-DAG run of 2026-12-01 showed: logits of +-1000s, one pixel at 32).
+    """
+    height, width = logits.shape[-2:]
+    pixels = height * width
+    total = budget_total(budget, pixels)
+    if minimum * pixels > total:
+        raise BudgetError(f"budget {budget} spp is below the minimum of {minimum} sample(s) per pixel")
+    flat = logits.reshape(-1, pixels)
+    capacity = float(max_count - minimum)
+    out = []
+    for row in flat:
+        weights = torch.softmax(row.detach().to(torch.float64), dim=0)
+        allocation = _water_fill(weights, total - minimum * pixels, torch.full_like(weights, capacity))
+        capped = allocation >= capacity - 1e-9
+        remaining = float(total - minimum * pixels) - capacity * float(capped.sum())
+        free = torch.softmax(torch.where(capped, torch.full_like(row, -math.inf), row), dim=0)
+        if bool(capped.all()):
+            free = torch.zeros_like(row)
+        out.append(minimum + torch.where(capped, torch.full_like(row, capacity), remaining * free))
+    return torch.stack(out).reshape(logits.shape)
 
 
 def _water_fill(weights: torch.Tensor, extra: float, capacity: torch.Tensor) -> torch.Tensor:

@@ -363,3 +363,59 @@ def test_the_renderer_gradient_teaches_a_free_logit_map_where_to_sample() -> Non
     noisy, clean = counts[0, :, : width // 2].float().mean(), counts[0, :, width // 2:].float().mean()
     assert counts.sum() <= adaptive.budget_total(budget, height * width)
     assert noisy > 6.0 and clean < 2.0, (noisy, clean)
+
+
+def test_capped_density_spends_the_budget_within_the_cap_and_keeps_gradients_alive() -> None:
+    """Eq. 2 with the renderer's cap: the real counts sum to the integer budget, never exceed the stored layers,
+    equal plain Eq. 2 when no pixel reaches the cap, and a pixel whose logit outgrows the rest is held at the cap
+    (no gradient) while the others share the rest of the budget and keep their gradients."""
+    torch.manual_seed(1)
+    logits = torch.randn(2, 6, 5)
+    plain = adaptive.density(logits, 4.0)
+    capped = adaptive.capped_density(logits, 4.0, 32)
+    torch.testing.assert_close(capped, plain.to(capped.dtype), rtol=1e-5, atol=1e-5)    # 4 x 30 = 120, nothing capped
+    degenerate = torch.zeros(1, 6, 5)
+    degenerate[0, 2, 3] = 1000.0
+    degenerate.requires_grad_(True)
+    counts = adaptive.capped_density(degenerate, 4.0, 32, minimum=1)
+    assert float(counts.sum()) == pytest.approx(adaptive.budget_total(4.0, 30))
+    assert float(counts[0, 2, 3]) == 32 and float(counts.max()) <= 32
+    others = torch.ones(30, dtype=torch.bool)
+    others[2 * 5 + 3] = False
+    torch.testing.assert_close(counts.flatten()[others], torch.full((29,), (120 - 32) / 29))
+    weights = torch.arange(30, dtype=torch.float32).reshape(1, 6, 5)
+    (counts * weights).sum().backward()
+    assert float(degenerate.grad[0, 2, 3]) == 0.0 and float(degenerate.grad.abs().sum()) > 0
+    # Plain Eq. 2 gives every other pixel ~0 density there: no gradient reaches them.
+    plain_degenerate = degenerate.detach().clone().requires_grad_(True)
+    (adaptive.density(plain_degenerate, 4.0) * weights).sum().backward()
+    assert float(plain_degenerate.grad.abs().sum()) == 0.0
+
+
+def test_a_sampler_stuck_on_one_pixel_recovers_with_the_capped_density() -> None:
+    """The failure of the 2026-12-01 default run: one logit far above the rest (the NTASD sampler's reached
+    +-1000s). With plain Eq. 2 the other pixels get no gradient and the map stays flat; with the capped density
+    the same start learns to sample the noisy half (left sigma 1, right sigma 0.02)."""
+    height = width = 16
+    budget, layers_n = 4.0, 32
+    mu = torch.full((1, 3, height, width), 0.5)
+    sigma = torch.full((1, 1, height, width), 0.02)
+    sigma[..., : width // 2] = 1.0
+    results = {}
+    for name in ("plain", "capped"):
+        torch.manual_seed(0)
+        logits = torch.zeros(1, height, width)
+        logits[0, 15, 0] = 1000.0
+        logits.requires_grad_(True)
+        optimizer = torch.optim.Adam([logits], lr=0.05)
+        for _ in range(60):
+            layers = (mu[:, None] + sigma[:, None] * torch.randn(1, layers_n, 3, height, width)).clamp_min(0)
+            d = adaptive.density(logits, budget) if name == "plain" else adaptive.capped_density(logits, budget, layers_n)
+            means, counts = adaptive.render_adaptive(d, layers, budget)
+            loss = (means - mu).abs().mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        results[name] = (counts[0, :, : width // 2].float().mean(), counts[0, :, width // 2:].float().mean())
+    assert abs(results["plain"][0] - results["plain"][1]) < 1.0, results          # stuck: flat
+    assert results["capped"][0] > 6.0 and results["capped"][1] < 2.0, results

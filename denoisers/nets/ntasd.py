@@ -9,7 +9,7 @@ its text, so these are ours. The default config trains width 0.5 (about 4x fewer
 CPU cores; the size is a config key (``net.width``) and a capacity sweep can choose it.
 
 * Sample-map estimator (:class:`NTASDNet` ``sampler``): one linear output channel, the unnormalised
-  s(p) of Eq. 2 (denoisers.adaptive.density normalises it to the average budget).
+  s(p) of Eq. 2 (denoisers.adaptive.capped_density normalises it to the average budget within the stored layers).
 * Denoiser, kernel prediction (``variant`` 'kpn' and 'temporal'): heads on the decoder's last three
   levels predict per-pixel 5 x 5 kernels (softmax-normalised) for the full, 1/2 and 1/4 resolution noisy
   image and a blend weight alpha (sigmoid) at 1/2 and 1/4 for the scale composition of Vogels et al.

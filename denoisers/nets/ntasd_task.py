@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoisers import kernels
-from denoisers.adaptive import density, gather_mean, normalize_sample_map, render_adaptive
+from denoisers.adaptive import capped_density, gather_mean, normalize_sample_map, render_adaptive
 from denoisers.nets.ntasd import MOTION_SCALE, NTASDConfig, NTASDNet, decode, encode, grey
 
 #: Per-pixel buffers a training batch carries for NTASD (besides the radiance layers and mean albedo).
@@ -105,13 +105,14 @@ def frame_step(model: NTASDNet, frame: FrameInputs, history: torch.Tensor | None
     elif config.sampling == "adaptive":
         x = torch.cat([grey(warped), guide[:, :4], grey(guide[:, 4:7]), motion_features], dim=1)
         logits = model.sample_logits(x)
-        means, counts = render_adaptive(density(logits, budget), layers, budget)
+        means, counts = render_adaptive(capped_density(logits, budget, layers.shape[1]), layers, budget)
     else:                                                        # dasr: a 1-spp initial pass, then Eq. 2
         if budget < 1:
             raise ValueError(f"dasr: the budget {budget} spp is below its initial pass of 1 sample per pixel")
         x = torch.cat([encode(layers[:, 0]), guide], dim=1)
         logits = model.sample_logits(x)
-        means, counts = render_adaptive(1.0 + density(logits, budget - 1.0), layers, budget, minimum=1)
+        means, counts = render_adaptive(capped_density(logits, budget, layers.shape[1], minimum=1), layers, budget,
+                                        minimum=1)
     noisy = encode(means)
     parts = [noisy, guide]
     if config.temporal:
@@ -154,8 +155,11 @@ class NTASDTask:
         return {"name": NTASDNet.NET_NAME, "config": self.config.to_dict()}
 
     def describe(self) -> dict[str, Any]:
-        return {"task": self.name, "net": self.net_spec(), "budget": self.budget,
-                "loss": "L1 + temporal L1 on the last frame (Hasselgren et al. Eq. 4), encoded space"}
+        described = {"task": self.name, "net": self.net_spec(), "budget": self.budget,
+                     "loss": "L1 + temporal L1 on the last frame (Hasselgren et al. Eq. 4), encoded space"}
+        if self.config.sampling != "uniform":   # checkpoints trained with the uncapped density do not resume
+            described["sample_density"] = "capped (adaptive.capped_density)"
+        return described
 
     def run(self, model: nn.Module, batch: Mapping[str, torch.Tensor], first: int = 0) -> list[StepResult]:
         """Frame steps t = first .. T-1, the history carried (temporal variants) from ``first``. ``model`` may be
