@@ -221,6 +221,22 @@ def test_cluster_config_passes_dry_run_and_lint(workflow_copy: Path) -> None:
 
 
 @pytest.mark.slow
+def test_isik2021_config_passes_dry_run_and_lint(workflow_copy: Path) -> None:
+    """config/isik2021.yaml (issue 13: every AFN variant of Tables 2-5 and KPCN, a long run) builds its whole DAG
+    with the jobs its config implies, lints clean, and trains every AFN variant and KPCN."""
+    from denoisers.training.models import training_problems
+
+    isik = load_config(workflow_copy / "config/isik2021.yaml")
+    assert training_problems(isik) == []
+    methods = {spec.method for spec in model_specs(isik)}
+    assert {"afn", "kpcn"} <= methods, methods
+    result = run_snakemake("-n", "--forceall", "--configfile", "config/isik2021.yaml", cwd=workflow_copy, timeout=900)
+    assert job_counts(result.stdout + result.stderr) == expected_jobs(isik)
+    lint = run_snakemake("--lint", "--configfile", "config/isik2021.yaml", cwd=workflow_copy, timeout=900)
+    assert "Lints for" not in lint.stdout + lint.stderr
+
+
+@pytest.mark.slow
 def test_smoke_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
     # --forceall: list every job even if outputs exist.
     counts = dry_run("--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
