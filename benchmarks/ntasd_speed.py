@@ -3,7 +3,7 @@ and 256^2 through the registry method (what the evaluation times), the networks'
 fraction of a float32 sgemm timed in the same interleaved rounds (target >= 30 %), and the kernel
 application's share of a frame.
 
-    python benchmarks/ntasd_speed.py [--sizes 128 256] [--width 0.5] [--threads 1] [--repeats 9]
+    python benchmarks/ntasd_speed.py [--sizes 128 256] [--width 0.5] [--threads N] [--repeats 9]
 
 Items are timed round-robin (every item once per round, median over rounds), so a load change on this
 shared machine hits all of them alike. Untrained networks: speed does not depend on the weights.
@@ -87,7 +87,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
     parser.add_argument("--width", type=float, default=0.5, help="U-Net width (0.5 = the default config's)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads; 1 is what the evaluation uses")
+    parser.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)),
+                        help="torch threads (default: every core here, as the timing job behind the quality-versus-"
+                             "speed chart runs with timing.threads null; the denoise jobs use evaluation.threads)")
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--gemm-size", type=int, default=1024)

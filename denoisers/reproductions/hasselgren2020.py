@@ -347,7 +347,8 @@ def write(res: Results, tables: Path, figures: Path) -> str:
         "### Table 1: rMSE (× 1000)", "", md1,
         f"### Fig. 7: PSNR and tPSNR at {SPP} spp", "",
         "Mean ± 95 % CI over the evaluated scenes; budget = spp × budget_factor; realised = the mean samples per "
-        "pixel of the row's sample maps.", "", md7,
+        "pixel of the row's sample maps. The paper shows Fig. 7 as curves only (no numbers in its text), so no "
+        "published values stand beside these.", "", md7,
         f"![Fig. 7: per-frame PSNR and tPSNR on {scene or 'no scene'}](figures/{FIG7_NAME}.png)", "",
         "### Fig. 6: sample maps of NTASD and DASR", "",
         f"![Fig. 6: sample maps](figures/{SAMPLE_MAPS_NAME}.png)", "", *([spread, ""] if spread else []),
