@@ -530,3 +530,30 @@ def test_the_training_speed_job_times_every_model_and_the_report_shows_it(pipeli
     assert len(table) == sum(len(m["variants"]) for m in record["models"]) and table["configured"].sum() == len(record["models"])
     report = (pipeline.results / "REPORT.md").read_text()
     assert "### Training step speed" in report and "1.6x target is" in report
+
+
+def test_the_stability_suite_scores_every_row_and_builds_the_atlas(pipeline: PipelineRun) -> None:
+    """Issue 15 in the real smoke DAG: every runnable (row, spp) of the suite is scored on every scenario (per-frame
+    CSV and a summary with the failure metrics), the atlas files exist, and ATLAS.md and REPORT.md name every row."""
+    from denoisers.report.atlas import atlas_outputs
+    from denoisers.stability_job import scores_csv, stability_runs
+    from scenegen.config import stability_scene_ids
+
+    scenes = stability_scene_ids(pipeline.cfg)
+    runs = [run for run in stability_runs(pipeline.cfg) if run.runnable]
+    assert scenes and runs
+    for scene in scenes:
+        frames = scene_frame_count(pipeline.cfg, scene)
+        for run in runs:
+            csv = scores_csv(pipeline.results, run.spec.id, scene, run.spp)
+            table = pd.read_csv(csv)
+            assert len(table) == frames and {"psnr", "masked_psnr", "lag_mse", "flicker_trmae"} <= set(table), csv
+            summary = json.loads(csv.with_suffix(".json").read_text())
+            assert {"event_frame", "recovery", "ghosting_ratio", "relative_bias", DIGEST_KEY} <= set(summary), csv
+    for path in atlas_outputs(pipeline.cfg, root=str(pipeline.results))["all"]:
+        assert Path(path).is_file() and Path(path).stat().st_size > 0, path
+    atlas = (pipeline.results / "stability" / "ATLAS.md").read_text()
+    report = (pipeline.results / "REPORT.md").read_text()
+    assert "stability/ATLAS.md" in report
+    for run in runs:
+        assert f"**{run.spec.id}**" in atlas, run.spec.id
