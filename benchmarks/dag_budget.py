@@ -109,7 +109,10 @@ def render_work(cfg: dict) -> pd.DataFrame:
     from scenegen.config import (chunk_count, chunk_frames, scene_ids, scene_reference_spp, scene_render_config,
                                  stability_scene_ids, volume_scene_ids)
 
-    scenes = scene_ids(cfg) + (stability_scene_ids(cfg) if cfg.get("stability", {}).get("enabled") else [])
+    from scenegen.scenarios import stability_control_ids
+
+    # The stability clips and the control clips of the animated ones (empty unless stability.enabled).
+    scenes = scene_ids(cfg) + stability_scene_ids(cfg) + stability_control_ids(cfg)
     rows = []
     for scene in scenes:
         render = scene_render_config(cfg, scene)

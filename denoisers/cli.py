@@ -89,6 +89,10 @@ def _parser() -> argparse.ArgumentParser:
     score.add_argument("--render-dir", type=Path, required=True, help="results/renders/{scene}")
     score.add_argument("--masks", type=Path, required=True, help="results/stability/{scene} (rule derive_masks)")
     score.add_argument("--out", type=Path, required=True, help="CSV file (its .json summary is written beside it)")
+    score.add_argument("--control-denoised", type=Path, default=None,
+                       help="an animated scenario's control clip denoised by the same row: "
+                            "results/stability/denoised/{method}/{scene}__still/spp{spp}")
+    score.add_argument("--control-render-dir", type=Path, default=None, help="results/renders/{scene}__still")
 
     atlas = sub.add_parser("atlas", help="the failure atlas of the stability suite -> <out>/stability/ATLAS.md")
     atlas.add_argument("--config", type=Path, required=True)
@@ -257,7 +261,8 @@ def _run(args: argparse.Namespace) -> int:
     elif args.command == "score-scenario":
         from denoisers.stability_job import score_scenario
 
-        record = score_scenario(cfg, args.denoised, args.render_dir, args.masks, args.out)
+        record = score_scenario(cfg, args.denoised, args.render_dir, args.masks, args.out, args.control_denoised,
+                                args.control_render_dir)
         log.info("%s %s spp %d: masked PSNR %s dB, frames to recover %s, flicker TRMAE %s, relative bias %s",
                  record["method_id"], record["scene"], record["spp"], record["masked_psnr"],
                  record["frames_to_recover"], record["flicker_trmae"], record["relative_bias"])

@@ -96,13 +96,18 @@ def score_digest(cfg: dict) -> str:
 
 def scores_lineage(cfg: dict, spec: MethodSpec, scene: str, spp: int) -> str:
     """Recorded digest of a scores file: the denoised clip's lineage, the reference and masks settings, the
-    scoring settings."""
+    scoring settings, and the control clip's denoised lineage and reference settings (when it has one)."""
     from denoisers.experiment import Lineage
     from scenegen.digests import masks_digest, render_digest
+    from scenegen.scenarios import scenario_control
 
-    return short_digest(config_digest({"denoised": Lineage(cfg).denoised(spec, scene, spp),
-                                       "reference": render_digest(cfg, scene, "reference"),
-                                       "masks": masks_digest(cfg, scene), "score": score_digest(cfg)}))
+    control = scenario_control(cfg, scene)
+    parts = {"denoised": Lineage(cfg).denoised(spec, scene, spp), "reference": render_digest(cfg, scene, "reference"),
+             "masks": masks_digest(cfg, scene), "score": score_digest(cfg)}
+    if control is not None:
+        parts["control"] = {"denoised": Lineage(cfg).denoised(spec, control, spp),
+                            "reference": render_digest(cfg, control, "reference")}
+    return short_digest(config_digest(parts))
 
 
 def load_masks(masks_dir: Path, frames: list[int]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -132,31 +137,60 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def score_scenario(cfg: dict, denoised: Path, render_dir: Path, masks_dir: Path, out_csv: Path) -> dict[str, Any]:
-    """Failure metrics of one denoised scenario clip (denoisers.stability_metrics.scenario_scores) against its
-    reference, masks and events -> ``out_csv`` (per frame) and its .json (summary with the settings digest).
-    Refuses a denoised clip whose recorded digest is not this config's. Returns the summary."""
-    import pandas as pd
-
+def _load_denoised_clip(cfg: dict, denoised: Path, render_dir: Path,
+                        expected: tuple[str, str, int] | None = None) -> tuple:
+    """(row spec, scene, spp, frames, pred (T, 3, H, W), reference (T, 3, H, W), reference frame records, the
+    denoise job's timing record) of a denoised stability clip; refuses a clip whose recorded digest is not this config's, or (``expected`` =
+    (row, scene, spp)) that is not the one asked for."""
     from denoisers.evaluate import EvaluationError, TIMING_FILE, method_spec, read_frame_files, read_radiance_exr
     from denoisers.experiment import DIGEST_KEY, Lineage, check_recorded
     from denoisers.scoring import load_references
-    from denoisers.stability_metrics import scenario_scores
-    from scenegen.atomic import write_text_atomic
-    from scenegen.dataset import load_clip
 
-    denoised, render_dir = Path(denoised), Path(render_dir)
-    timing_path = denoised / TIMING_FILE
+    timing_path = Path(denoised) / TIMING_FILE
     if not timing_path.is_file():
         raise EvaluationError(f"{timing_path}: missing (rule denoise_scenario writes it)")
     timing = json.loads(timing_path.read_text())
     spec, scene, spp = method_spec(cfg, timing["method_id"]), timing["scene"], int(timing["spp"])
+    if expected is not None and (spec.id, scene, spp) != expected:
+        raise EvaluationError(f"{denoised}: holds row {spec.id}, scene {scene}, spp {spp}; expected row "
+                              f"{expected[0]}, scene {expected[1]}, spp {expected[2]}")
     check_recorded(timing_path, timing.get(DIGEST_KEY), Lineage(cfg).denoised(spec, scene, spp))
-    frames, _, reference, ref_meta = load_references(render_dir)
-    found = read_frame_files(denoised)
+    frames, _, reference, ref_meta = load_references(Path(render_dir))
+    found = read_frame_files(Path(denoised))
     if sorted(found) != frames:
         raise EvaluationError(f"{denoised}: denoised frames {sorted(found)} differ from the reference frames {frames}")
     pred = np.nan_to_num(np.stack([read_radiance_exr(found[t]) for t in frames]), nan=0.0, posinf=0.0, neginf=0.0)
+    return spec, scene, spp, frames, pred, reference, ref_meta, timing
+
+
+def score_scenario(cfg: dict, denoised: Path, render_dir: Path, masks_dir: Path, out_csv: Path,
+                   control_denoised: Path | None = None, control_render_dir: Path | None = None) -> dict[str, Any]:
+    """Failure metrics of one denoised scenario clip (denoisers.stability_metrics.scenario_scores) against its
+    reference, masks and events -> ``out_csv`` (per frame) and its .json (summary with the settings digest).
+    An animated scenario needs its control clip's denoised output (same row and spp) and render directory: the
+    lag metric's steady state. Refuses a denoised clip whose recorded digest is not this config's, a missing or
+    mismatched control. Returns the summary."""
+    import pandas as pd
+
+    from denoisers.evaluate import EvaluationError
+    from denoisers.experiment import DIGEST_KEY
+    from denoisers.stability_metrics import scenario_scores
+    from scenegen.atomic import write_text_atomic
+    from scenegen.dataset import load_clip
+    from scenegen.scenarios import scenario_control
+
+    render_dir = Path(render_dir)
+    spec, scene, spp, frames, pred, reference, ref_meta, timing = _load_denoised_clip(cfg, Path(denoised), render_dir)
+    control_id = scenario_control(cfg, scene)
+    control = None
+    if control_id is not None:
+        if control_denoised is None or control_render_dir is None:
+            raise EvaluationError(f"{scene} is animated: scoring it needs its control clip {control_id} denoised by "
+                                  f"{spec.id} at {spp} spp (--control-denoised, --control-render-dir)")
+        control = _load_denoised_clip(cfg, Path(control_denoised), Path(control_render_dir),
+                                      expected=(spec.id, control_id, spp))[4:6]
+    elif control_denoised is not None:
+        raise EvaluationError(f"{scene}: its scenario is not animated and has no control clip; got {control_denoised}")
     masks, events = load_masks(masks_dir, frames)
     clip = load_clip(render_dir, buffers=["radiance"], spp=1, reference=False)
     if pred.shape != reference.shape or masks["subject"].shape != (len(frames), *reference.shape[2:]):
@@ -166,10 +200,10 @@ def score_scenario(cfg: dict, denoised: Path, render_dir: Path, masks_dir: Path,
     settings = stability_settings(cfg)
     per_frame, summary = scenario_scores(pred, reference, masks, events["focus"], events["events"], clip.motion,
                                          clip.valid[:, 0], cuts, cfg["evaluation"]["warmup_frames"],
-                                         settings["margin"])
+                                         settings["margin"], control)
     table = pd.DataFrame({"frame": frames, **per_frame, "camera_cut": cuts})
     record = {"method_id": spec.id, "method": spec.method, "scene": scene, "scenario": events["scenario"], "spp": spp,
-              "focus": events["focus"], "events": events["events"], "frames": len(frames),
+              "focus": events["focus"], "events": events["events"], "frames": len(frames), "control": control_id,
               **{key: _jsonable(value) for key, value in summary.items()},
               "mean_seconds": timing.get("mean_seconds"), "median_seconds": timing.get("median_seconds"),
               DIGEST_KEY: scores_lineage(cfg, spec, scene, spp)}

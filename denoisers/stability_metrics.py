@@ -14,13 +14,15 @@ Definitions (each repeated on its function):
   frame whose focus mask is non-empty (frame 0 counts: a cold start); None when the mask is always empty.
 * **Lag region** R: the union of M_t over t >= e (whole frame if empty), fixed, so every frame's error in R
   is over the same pixels; per-frame lag error l_t = mean error over R.
-* **Steady state** S: median of l_t over the *last* ``steady_frames(T - e)`` = max(1, (T - e) // 3) frames,
-  the level a method settles to once the event is over (frames before an event can show other content:
-  another view, the light off).
+* **Steady state** S: the same row's lag error over the same region R on the scenario's failure-free control
+  clip (stab_{name}__still: every animated thing held at the scenario's final-frame state, denoised by the same
+  row at the same spp), median over its last ``steady_frames(T)`` = max(1, T // 3) frames: the error the method
+  settles to on what the scenario ends with when nothing changes. A scenario in which nothing changes
+  (caustics, low light) is its own control.
 * **Margin** m (config ``stability.margin``, default 0.1): frames-to-recover = the first k >= 0 with
-  l_{e+k} <= (1 + m) S, counted only before the steady-state window; None ("never") when the error settles
-  only inside that window, i.e. not within the clip; undetermined ("too short") with fewer than 3 frames
-  from the event to the clip's end.
+  l_{e+k} <= (1 + m) S; None ("never") when no frame after the event gets there, i.e. the error stays above
+  the failure-free level for the rest of the clip; undetermined ("too short") with fewer than 3 frames from
+  the event to the clip's end.
 * **Ghosting**: mean of l_t over t >= e (the masked error after the event), and its ratio to S.
 * **Flicker**: TRMAE (Isik 2021 Eq. 16) over static pixels: valid reprojection, |motion| < STATIC_MOTION_PX, in
   neither frame t nor t - 1 inside a change or focus mask, in frames with history (not frame 0, not a cut, past
@@ -163,42 +165,55 @@ def event_frame(events: Sequence[Mapping[str, Any]], focus: np.ndarray) -> int |
     return int(filled[0]) if filled.size else None
 
 
-def steady_frames(post_event_frames: int) -> int:
-    """Frames at the end of the clip whose median error is the steady state: max(1, post_event_frames // 3)."""
-    return max(1, int(post_event_frames) // 3)
+def steady_frames(frames: int) -> int:
+    """Frames at the end of a control clip whose median error is the steady state: max(1, frames // 3)."""
+    return max(1, int(frames) // 3)
 
 
-def recovery(errors: np.ndarray, event: int, margin: float = DEFAULT_MARGIN) -> dict[str, Any]:
-    """Lag after ``event`` from the per-frame lag errors (T,) (NaN frames ignored in the medians and means):
-    steady state S = median of the last steady_frames(T - event) frames; frames_to_recover = first k >= 0 with
-    errors[event + k] <= (1 + margin) S before that window (None: never within the clip); recovery = 'recovered',
-    'never' or 'too short' (fewer than MIN_POST_EVENT_FRAMES frames from the event on: frames_to_recover None);
+def steady_state(control_errors: np.ndarray) -> tuple[float, int]:
+    """(S, frames): median of the last steady_frames(T) per-frame lag errors (T,) of the control clip (NaN
+    frames ignored; NaN when none is finite)."""
+    errors = np.asarray(control_errors, np.float64)
+    window = steady_frames(errors.size)
+    tail = errors[-window:]
+    return (float(np.nanmedian(tail)) if np.isfinite(tail).any() else float("nan")), int(window)
+
+
+def recovery(errors: np.ndarray, event: int, steady: float, margin: float = DEFAULT_MARGIN) -> dict[str, Any]:
+    """Lag after ``event`` from the per-frame lag errors (T,) against the steady state ``steady`` (the control
+    clip's, :func:`steady_state`): frames_to_recover = first k >= 0 with errors[event + k] <= (1 + margin) S
+    (NaN frames never count); recovery = 'recovered', 'never' (no frame gets there before the clip ends) or
+    'too short' (fewer than MIN_POST_EVENT_FRAMES frames from the event on: frames_to_recover None);
     ghosting = mean error from the event on, and its ratio to S."""
     errors = np.asarray(errors, np.float64)
     post = errors[event:]
-    window = steady_frames(post.size)
     with np.errstate(all="ignore"):
-        steady = float(np.nanmedian(post[-window:])) if np.isfinite(post[-window:]).any() else float("nan")
         ghosting = float(np.nanmean(post)) if np.isfinite(post).any() else float("nan")
-    within = np.flatnonzero(post[:post.size - window] <= (1.0 + margin) * steady)
+        within = np.flatnonzero(post <= (1.0 + margin) * steady)
     status = "too short" if post.size < MIN_POST_EVENT_FRAMES else "recovered" if within.size else "never"
-    return {"event_frame": int(event), "steady_state_mse": steady, "steady_state_frames": int(window),
-            "margin": float(margin), "recovery": status,
+    return {"event_frame": int(event), "steady_state_mse": float(steady), "margin": float(margin), "recovery": status,
             "frames_to_recover": int(within[0]) if within.size and status == "recovered" else None,
             "post_event_mse": ghosting, "ghosting_ratio": ghosting / steady if steady > 0 else float("nan")}
 
 
 def scenario_scores(pred: np.ndarray, ref: np.ndarray, masks: Mapping[str, np.ndarray], focus: Sequence[str],
                     events: Sequence[Mapping[str, Any]], motion: np.ndarray, valid: np.ndarray, cuts: Sequence[bool],
-                    warmup: int = 1, margin: float = DEFAULT_MARGIN) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+                    warmup: int = 1, margin: float = DEFAULT_MARGIN,
+                    control: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Every failure metric of one denoised clip: (per-frame columns (T,) each, clip summary).
 
+    ``control``: (pred, ref) of the scenario's failure-free control clip (same shape as the clip), denoised by
+    the same row; None for a scenario in which nothing changes, which is its own control.
     Per frame: psnr, tpsnr, trmae over the whole frame; masked_psnr, masked_tpsnr, masked_trmae over the focus
-    mask M_t; lag_mse over the lag region R; flicker_trmae over the static pixels (event frames excluded);
-    mask_pixels, static_pixels.
+    mask M_t; lag_mse over the lag region R (control_lag_mse: the control's); flicker_trmae over the static
+    pixels (event frames excluded); mask_pixels, static_pixels.
     Summary: frame means of those (NaN-aware), the recovery record (:func:`recovery`; None fields without an
-    event), bias (absolute, relative) over M."""
+    event), the steady state's source and frames, bias (absolute, relative) over M."""
     pred, ref = _check(pred, ref)
+    if control is not None:
+        control = _check(*control)
+        if control[0].shape != pred.shape:
+            raise ValueError(f"control clip shape {control[0].shape} differs from the clip's {pred.shape}")
     n_frames, _, height, width = pred.shape
     shape = (n_frames, height, width)
     history = history_frames(n_frames, cuts, warmup)
@@ -219,6 +234,7 @@ def scenario_scores(pred: np.ndarray, ref: np.ndarray, masks: Mapping[str, np.nd
         "masked_psnr": masked_psnr(pred, ref, focus_t), "masked_tpsnr": masked_tpsnr(pred, ref, focus_t, history),
         "masked_trmae": masked_trmae(pred, ref, focus_t, history),
         "lag_mse": masked_mse(pred, ref, region), "flicker_trmae": masked_trmae(pred, ref, static, history),
+        "control_lag_mse": masked_mse(*control, region) if control is not None else np.full(n_frames, np.nan),
         "mask_pixels": focus_t.sum(axis=(1, 2)).astype(np.int64), "static_pixels": static.sum(axis=(1, 2)),
     }
     bias, relative = signed_bias(pred, ref, focus_t)
@@ -232,8 +248,11 @@ def scenario_scores(pred: np.ndarray, ref: np.ndarray, masks: Mapping[str, np.nd
                                                               "masked_trmae", "flicker_trmae")}
     summary.update(bias=bias, relative_bias=relative, mask_frames=int((frames["mask_pixels"] > 0).sum()),
                    lag_region_pixels=int(region[0].sum()))
-    summary.update(recovery(frames["lag_mse"], event, margin) if event is not None else
-                   {"event_frame": None, "steady_state_mse": float("nan"), "steady_state_frames": 0,
-                    "margin": float(margin), "recovery": "no event", "frames_to_recover": None, "post_event_mse": float("nan"),
+    steady, window = steady_state(frames["control_lag_mse"] if control is not None else frames["lag_mse"])
+    summary.update(steady_state_source="control clip" if control is not None else "own clip (nothing changes)",
+                   steady_state_frames=window)
+    summary.update(recovery(frames["lag_mse"], event, steady, margin) if event is not None else
+                   {"event_frame": None, "steady_state_mse": float("nan"), "margin": float(margin),
+                    "recovery": "no event", "frames_to_recover": None, "post_event_mse": float("nan"),
                     "ghosting_ratio": float("nan")})
     return frames, summary

@@ -31,6 +31,9 @@ CUSTOM_PREFIX = "custom_"
 #: Scene ids of the stability scenarios (config section ``stability``, scenegen.scenarios): stab_{scenario}.
 #: They are rendered and masked (target ``stability``), never trained on or evaluated by the evaluation rows.
 STABILITY_PREFIX = "stab_"
+#: Suffix of a scenario's failure-free control clip, stab_{name}__still (scenegen.scenarios.hold_final_frame):
+#: rendered and denoised like its scenario, scored only as the steady state of the scenario's lag metric.
+STABILITY_CONTROL_SUFFIX = "__still"
 #: Scene ids of the volumetric clips (config section ``volumes``, scenegen.volume_scenes):
 #: vol_{split}_{scenario}_{index:03d}, split "test" or "train". Rendered with the volumetric integrators only.
 VOLUME_PREFIX = "vol_"
@@ -305,8 +308,15 @@ def stability_scene_ids(cfg: dict[str, Any]) -> list[str]:
     return [f"{STABILITY_PREFIX}{name}" for name in stability.get("scenarios", [])]
 
 
+def stability_control_id(scene_id: str) -> str:
+    """The failure-free control clip's id of stability scene ``scene_id``: stab_{name}__still."""
+    return f"{scene_id}{STABILITY_CONTROL_SUFFIX}"
+
+
 def stability_scenario(cfg: dict[str, Any], scene_id: str) -> str:
-    """Scenario name of a stab_{name} scene id; KeyError if the config does not have it."""
+    """Scenario name of a stab_{name} scene id or of its control stab_{name}__still; KeyError if the config
+    does not have the scenario."""
+    scene_id = scene_id.removesuffix(STABILITY_CONTROL_SUFFIX)
     if scene_id not in stability_scene_ids(cfg):
         raise KeyError(f"{scene_id!r} is not a stability scene of this config (stability.enabled, "
                        f"stability.scenarios: {', '.join(stability_scene_ids(cfg)) or 'none'})")

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from scenegen.config import (STABILITY_PREFIX, VOLUME_CUSTOM_PREFIX, VOLUME_PREFIX, config_digest, extra_scene,
-                             scene_frame_count, scene_frames_per_chunk, scene_reference_spp, scene_render_config,
-                             stability_scenario, volume_clip_spec, volume_extra)
+from scenegen.config import (STABILITY_CONTROL_SUFFIX, STABILITY_PREFIX, VOLUME_CUSTOM_PREFIX, VOLUME_PREFIX,
+                             config_digest, extra_scene, scene_frame_count, scene_frames_per_chunk,
+                             scene_reference_spp, scene_render_config, stability_scenario, volume_clip_spec,
+                             volume_extra)
 
 #: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
 SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
@@ -31,9 +32,12 @@ def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
         stability = cfg["stability"]
         shared = [f"render.{key}" for key in cfg["render"]
                   if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS | {"width", "height"}]
-        return {"seed": cfg["seed"], "stability": {"scenario": stability_scenario(cfg, scene),
-                                                   **{key: stability[key] for key in ("frames", "width", "height")}},
-                "render_shared": config_digest(cfg, *shared)}
+        settings = {"seed": cfg["seed"], "stability": {"scenario": stability_scenario(cfg, scene),
+                                                       **{key: stability[key] for key in ("frames", "width", "height")}},
+                    "render_shared": config_digest(cfg, *shared)}
+        if scene.endswith(STABILITY_CONTROL_SUFFIX):   # the scenario held at its final frame
+            settings["control"] = "final frame"
+        return settings
     if scene.startswith(VOLUME_PREFIX):
         # A clip depends on its scenario (its seed derives from the scene id), length, size, field and depth.
         volumes = cfg["volumes"]

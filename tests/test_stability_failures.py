@@ -1,10 +1,11 @@
 """The stability suite provokes the failures it is built for on methods known to have them (issue 15 §4), and the
 scores and atlas are deterministic and never crash on missing outputs.
 
-Tiny real clips (24 x 24, 8 frames, 2 spp, 16 spp references), rendered once per module: SVGF's error where the
-shadow moves exceeds its error in the same pixels under a static light (temporal accumulation lags behind a
-moving shadow that the zero motion vectors cannot reveal); frame-by-frame OIDN recovers from a light switch at
-once while SVGF lags, and OIDN flickers more than SVGF on a static, indirectly lit room."""
+Tiny real clips (24 x 24, 8 frames, 2 spp, 16 spp references) of three scenarios and the control clips of the
+animated ones, rendered once per module: SVGF's error where the shadow moves exceeds its error in the same pixels
+on the control clip (temporal accumulation lags behind a moving shadow that the zero motion vectors cannot
+reveal); OIDN recovers from a light switch at once while SVGF needs frames; OIDN flickers more than SVGF on a
+static, indirectly lit room."""
 from __future__ import annotations
 
 import json
@@ -32,93 +33,103 @@ def tiny_config() -> dict:
     return validate_config(cfg)
 
 
-def render(cfg: dict, scene: str, root: Path, edit_manifest=None) -> None:
-    """Scene, renders and masks of ``scene`` below ``root``; ``edit_manifest(manifest)`` may change the scene."""
+def render(cfg: dict, scene: str, root: Path, masks: bool = True) -> None:
+    """Scene, renders and (``masks``) masks of ``scene`` below ``root``."""
     from scenegen import jobs
     from scenegen.scenarios.masks import derive_masks
 
     scene_dir, render_dir = root / "scenes" / scene, root / "renders" / scene
     jobs.run_generate(cfg, scene, scene_dir)
-    if edit_manifest is not None:
-        path = scene_dir / "manifest.json"
-        manifest = json.loads(path.read_text())
-        edit_manifest(manifest)
-        path.write_text(json.dumps(manifest))
     jobs.run_render_noisy(cfg, scene, 0, scene_dir, render_dir / "noisy/chunk_000")
     jobs.run_render_reference(cfg, scene, 0, scene_dir, render_dir / "reference/chunk_000")
-    derive_masks(cfg, scene, scene_dir, render_dir, root / "stability" / scene)
+    if masks:
+        derive_masks(cfg, scene, scene_dir, render_dir, root / "stability" / scene)
 
 
-def denoise_and_score(cfg: dict, root: Path, row: str, scene: str) -> dict:
+def denoise(cfg: dict, root: Path, row: str, scene: str) -> Path:
     from denoisers.denoise_job import denoise_clip
-    from denoisers.stability_job import scenario_denoised_dir, score_scenario, scores_csv
+    from denoisers.stability_job import scenario_denoised_dir
 
     out = scenario_denoised_dir(root, row, scene, SPP)
     if not out.is_dir():
         denoise_clip(cfg, row, scene, SPP, root / "renders" / scene, out, threads=1, results=root)
-    return score_scenario(cfg, out, root / "renders" / scene, root / "stability" / scene,
-                          scores_csv(root, row, scene, SPP))
+    return out
 
 
-def static_light(manifest: dict) -> None:
-    """The moving_shadow scene with its light held at the clip's middle position."""
-    light = next(e for e in manifest["emitters"] if "position_per_frame" in e)
-    middle = light["position_per_frame"][len(light["position_per_frame"]) // 2]
-    light["position_per_frame"] = [middle] * len(light["position_per_frame"])
+def denoise_and_score(cfg: dict, root: Path, row: str, scene: str) -> dict:
+    """Denoise ``scene`` (and its control clip, if it has one) with ``row`` and score it as rule score_scenario."""
+    from denoisers.stability_job import score_scenario, scores_csv
+    from scenegen.scenarios import scenario_control
+
+    control = scenario_control(cfg, scene)
+    extra = (denoise(cfg, root, row, control), root / "renders" / control) if control else (None, None)
+    return score_scenario(cfg, denoise(cfg, root, row, scene), root / "renders" / scene, root / "stability" / scene,
+                          scores_csv(root, row, scene, SPP), *extra)
+
+
+def scores(root: Path, scenario: str) -> dict[str, dict]:
+    return {row["id"]: json.loads((root / f"stability/scores/{row['id']}/stab_{scenario}/spp{SPP}.json").read_text())
+            for row in ROWS}
 
 
 @pytest.fixture(scope="module")
-def suite(tmp_path_factory) -> tuple[dict, Path, Path]:
-    """(config, root with every scenario rendered and scored by every row, root of the static-light variant)."""
-    cfg, root, static = tiny_config(), tmp_path_factory.mktemp("suite"), tmp_path_factory.mktemp("static")
+def suite(tmp_path_factory) -> tuple[dict, Path]:
+    """(config, root with every scenario and its control clip rendered, and every scenario scored by every row)."""
+    from scenegen.scenarios import stability_control_ids
+
+    cfg, root = tiny_config(), tmp_path_factory.mktemp("suite")
+    for control in stability_control_ids(cfg):
+        render(cfg, control, root, masks=False)
     for name in SCENARIOS:
         render(cfg, f"stab_{name}", root)
         for row in ROWS:
             denoise_and_score(cfg, root, row["id"], f"stab_{name}")
-    render(cfg, "stab_moving_shadow", static, static_light)
-    return cfg, root, static
+    return cfg, root
 
 
-def lag_region_error(cfg: dict, root: Path, row: str, masks_root: Path) -> np.ndarray:
-    """(T,) tonemapped MSE of ``row``'s output under ``root`` over the shadow masks of ``masks_root``'s clip."""
+def lag_region_error(root: Path, row: str, scene: str) -> np.ndarray:
+    """(T,) tonemapped MSE of ``row``'s output on clip ``scene`` over the moving-shadow scenario's shadow masks."""
     from denoisers.evaluate import read_frame_files, read_radiance_exr
     from denoisers.scoring import load_references
     from denoisers.stability_job import load_masks, scenario_denoised_dir
     from denoisers.stability_metrics import masked_mse
 
-    scene = "stab_moving_shadow"
     frames, _, reference, _ = load_references(root / "renders" / scene)
     found = read_frame_files(scenario_denoised_dir(root, row, scene, SPP))
     pred = np.stack([read_radiance_exr(found[t]) for t in frames])
-    masks, _ = load_masks(masks_root / "stability" / scene, frames)
+    masks, _ = load_masks(root / "stability" / "stab_moving_shadow", frames)
     region = np.broadcast_to(masks["shadow"].any(axis=0), masks["shadow"].shape)
     return masked_mse(pred, reference, region)
 
 
 @pytest.mark.slow
 def test_svgf_lags_behind_a_moving_shadow(suite) -> None:
-    cfg, root, static = suite
-    denoise_and_score(cfg, static, "svgf", "stab_moving_shadow")
-    moving = lag_region_error(cfg, root, "svgf", root)
-    still = lag_region_error(cfg, static, "svgf", root)     # the same pixels, the light held still
+    """SVGF's error where the shadow moves exceeds its error in the same pixels on the control clip (the light held
+    still at its final position), and the scores say so: the steady state comes from that control, so a lag that
+    lasts the whole clip is not read as recovered."""
+    _, root = suite
+    moving = lag_region_error(root, "svgf", "stab_moving_shadow")
+    still = lag_region_error(root, "svgf", "stab_moving_shadow__still")
     assert np.isfinite(moving[2:]).all() and moving[2:].mean() > 1.5 * still[2:].mean(), (moving, still)
-    record = json.loads((root / "stability/scores/svgf/stab_moving_shadow/spp2.json").read_text())
+    record = scores(root, "moving_shadow")["svgf"]
     assert record["focus"] == ["shadow"] and record["event_frame"] == 1 and record["mask_frames"] >= 5
+    assert record["control"] == "stab_moving_shadow__still" and record["steady_state_source"] == "control clip"
+    # Well beyond what the content change alone does to the per-frame noisy input's error (its own ratio).
+    content = scores(root, "moving_shadow")["noisy"]["ghosting_ratio"]
+    assert record["ghosting_ratio"] > 1.5 and record["ghosting_ratio"] > 2 * content, (record, content)
 
 
 @pytest.mark.slow
 def test_oidn_has_no_lag_after_a_light_switch_but_svgf_has(suite) -> None:
-    _, root, _ = suite
-    scores = {row["id"]: json.loads((root / f"stability/scores/{row['id']}/stab_light_switch/spp2.json").read_text())
-              for row in ROWS}
-    assert scores["oidn"]["event_frame"] == 4 and scores["oidn"]["frames_to_recover"] == 0
-    assert scores["svgf"]["frames_to_recover"] is None or scores["svgf"]["frames_to_recover"] >= 1
-    assert scores["svgf"]["ghosting_ratio"] > scores["oidn"]["ghosting_ratio"]
+    record = scores(suite[1], "light_switch")
+    assert record["oidn"]["event_frame"] == 4 and record["oidn"]["frames_to_recover"] == 0
+    assert record["svgf"]["frames_to_recover"] is None or record["svgf"]["frames_to_recover"] >= 1
+    assert record["svgf"]["ghosting_ratio"] > record["oidn"]["ghosting_ratio"]
 
 
 @pytest.mark.slow
 def test_frame_by_frame_oidn_flickers_more_than_svgf_on_a_static_room(suite) -> None:
-    _, root, _ = suite
+    _, root = suite
     flicker = {row["id"]: json.loads((root / f"stability/scores/{row['id']}/stab_low_light/spp2.json")
                                      .read_text())["flicker_trmae"] for row in ROWS}
     assert flicker["noisy"] > flicker["oidn"] > flicker["svgf"] > 0, flicker
@@ -129,7 +140,7 @@ def test_masks_match_the_renderer_geometry_and_scores_are_deterministic(suite, t
     from denoisers.stability_job import load_masks, score_scenario
     from scenegen.dataset import load_clip
 
-    cfg, root, _ = suite
+    cfg, root = suite
     scene = "stab_moving_shadow"
     clip = load_clip(root / "renders" / scene, buffers=["radiance"], spp=1, reference=False)
     masks, events = load_masks(root / "stability" / scene, list(range(8)))
@@ -139,7 +150,9 @@ def test_masks_match_the_renderer_geometry_and_scores_are_deterministic(suite, t
     assert not (masks["shadow"] & ~clip.valid[:, 0]).any()
     csv = root / "stability/scores/svgf" / scene / "spp2.csv"
     again = score_scenario(cfg, root / "stability/denoised/svgf" / scene / "spp2", root / "renders" / scene,
-                           root / "stability" / scene, tmp_path / "again.csv")
+                           root / "stability" / scene, tmp_path / "again.csv",
+                           root / "stability/denoised/svgf" / f"{scene}__still" / "spp2",
+                           root / "renders" / f"{scene}__still")
     assert (tmp_path / "again.csv").read_bytes() == csv.read_bytes()
     assert again == json.loads(csv.with_suffix(".json").read_text())
 
@@ -148,7 +161,7 @@ def test_masks_match_the_renderer_geometry_and_scores_are_deterministic(suite, t
 def test_atlas_tables_sentences_and_not_run(suite, tmp_path: Path) -> None:
     from denoisers.report.atlas import atlas_outputs, build_atlas, report_section
 
-    cfg, root, _ = suite
+    cfg, root = suite
     work = tmp_path / "results"
     for folder in ("renders", "stability", "scenes"):
         shutil.copytree(root / folder, work / folder)

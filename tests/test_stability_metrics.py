@@ -38,24 +38,40 @@ def test_masked_psnr_only_sees_the_mask_and_is_nan_when_empty() -> None:
     assert sm.masked_psnr(pred, ref, mask)[1] == pytest.approx(expected)
 
 
+def test_steady_state_is_the_median_of_the_control_clips_last_third() -> None:
+    control = np.array([9.0, 5.0, 3.0, 2.0, 1.0, 1.2, 0.8, 1.0, 1.1, 0.9, 1.0, 3.0])
+    steady, window = sm.steady_state(control)
+    assert window == T // 3 == 4 and steady == pytest.approx(np.median(control[-4:]))
+    assert sm.steady_state(np.array([np.nan, 2.0]))[0] == 2.0 and np.isnan(sm.steady_state(np.full(3, np.nan))[0])
+
+
 def test_lagging_ramp_recovers_in_exactly_three_frames() -> None:
     errors = np.array([1.0, 1.0, 1.0, 1.0, 5.0, 4.0, 3.0, 1.05, 1.0, 1.0, 1.0, 1.0])
-    record = sm.recovery(errors, event=4, margin=0.1)
-    # 8 frames from the event: the steady state is the median of the last 8 // 3 = 2 frames.
-    assert record["steady_state_frames"] == 2 and record["steady_state_mse"] == 1.0
-    assert record["frames_to_recover"] == 3
+    record = sm.recovery(errors, event=4, steady=1.0, margin=0.1)
+    assert record["steady_state_mse"] == 1.0 and record["frames_to_recover"] == 3
+    assert record["recovery"] == "recovered"
     assert record["post_event_mse"] == pytest.approx(errors[4:].mean())
     assert record["ghosting_ratio"] == pytest.approx(errors[4:].mean())
-    # A per-frame method with constant error has no lag; one that settles only at the clip's end never recovers.
-    assert sm.recovery(np.ones(T), event=4)["frames_to_recover"] == 0
-    never = sm.recovery(np.array([1, 1, 1, 1, 9, 8, 7, 6, 5, 4, 1, 1.0]), event=4)
-    assert never["frames_to_recover"] is None and never["recovery"] == "never"
-    assert record["recovery"] == "recovered"
+    # A per-frame method whose error equals its failure-free error has no lag.
+    assert sm.recovery(np.ones(T), event=4, steady=1.0)["frames_to_recover"] == 0
     # Two frames after the event are too few to tell lag from noise.
-    short = sm.recovery(np.array([1.0, 1.0, 5.0, 1.0]), event=2)
+    short = sm.recovery(np.array([1.0, 1.0, 5.0, 1.0]), event=2, steady=1.0)
     assert short["recovery"] == "too short" and short["frames_to_recover"] is None
     # A tighter margin moves the recovery later.
-    assert sm.recovery(errors, event=4, margin=0.01)["frames_to_recover"] == 4
+    assert sm.recovery(errors, event=4, steady=1.0, margin=0.01)["frames_to_recover"] == 4
+
+
+def test_a_lag_that_lasts_the_whole_clip_never_recovers() -> None:
+    """The defect the control clip fixes: an error that stays high until the clip ends settled at its own level, so
+    a steady state taken from the clip's last frames read '0 frames to recover'. Against the failure-free level
+    (the control clip's) it is 'never', with a ghosting ratio of 5."""
+    errors = np.array([1.0] * 4 + [5.0] * 8)
+    record = sm.recovery(errors, event=4, steady=1.0)
+    assert record["recovery"] == "never" and record["frames_to_recover"] is None
+    assert record["ghosting_ratio"] == pytest.approx(5.0)
+    # A clip that only settles in its last frames recovers there (no window is excluded any more).
+    late = sm.recovery(np.array([1, 1, 1, 1, 9, 8, 7, 6, 5, 4, 1, 1.0]), event=4, steady=1.0)
+    assert late["recovery"] == "recovered" and late["frames_to_recover"] == 6
 
 
 def test_constant_signed_offset_gives_that_bias() -> None:
@@ -108,6 +124,7 @@ def test_event_frame_and_scenario_scores_of_a_lagging_shadow() -> None:
     frames, summary = sm.scenario_scores(pred, ref, masks, ["shadow"], [], np.zeros((T, 2, H, W)),
                                          np.ones((T, H, W), bool), [False] * T, warmup=1, margin=0.1)
     assert summary["event_frame"] == 4 and summary["frames_to_recover"] == 3
+    assert summary["steady_state_source"].startswith("own clip")
     assert summary["lag_region_pixels"] == H * 4 and summary["steady_state_mse"] == 0.0
     assert summary["post_event_mse"] > 0 and summary["relative_bias"] == pytest.approx(4.0)
     assert np.isnan(frames["masked_psnr"][0]) and frames["mask_pixels"].tolist() == [0] * 4 + [H * 4] + [0] * 7
@@ -149,3 +166,43 @@ def test_atlas_rows_get_distinct_styles_beyond_ten_rows() -> None:
     keys = {(tuple(style["color"]), style["marker"], style["linestyle"]) for style in styles.values()}
     assert len(keys) == len(rows)
     assert styles["row0"]["color"] == styles["row10"]["color"] and styles["row0"]["marker"] != styles["row10"]["marker"]
+
+
+def test_scenario_scores_take_the_steady_state_from_the_control_clip() -> None:
+    """A shadow that appears in frame 4 and a 'denoiser' that never shows it: its own last frames are as wrong as
+    the frames after the event, but the control clip (the final state held still, denoised without error in the
+    lag region except a small constant) sets the failure-free level: 'never', and the ratio says how far off."""
+    ref = constant(1.0)
+    ref[4:, :, :, :4] = 0.2
+    pred = ref.copy()
+    pred[4:, :, :, :4] = 1.0                      # the shadow never appears
+    masks = {kind: np.zeros((T, H, W), bool) for kind in ("disocclusion", "shadow", "fast_motion", "subject")}
+    masks["shadow"][4, :, :4] = True
+    control_ref = np.broadcast_to(ref[-1:], ref.shape).copy()
+    control_pred = control_ref + 0.01
+    args = (masks, ["shadow"], [], np.zeros((T, 2, H, W)), np.ones((T, H, W), bool), [False] * T)
+    frames, summary = sm.scenario_scores(pred, ref, *args, control=(control_pred, control_ref))
+    expected_steady = float(np.mean((metrics.tonemap(0.21) - metrics.tonemap(0.2)) ** 2))
+    assert summary["steady_state_source"] == "control clip" and summary["steady_state_frames"] == T // 3
+    assert summary["steady_state_mse"] == pytest.approx(expected_steady)
+    assert summary["recovery"] == "never" and summary["frames_to_recover"] is None
+    assert summary["ghosting_ratio"] > 100
+    assert np.allclose(frames["control_lag_mse"], expected_steady)
+    # Without the control the same clip would read as settled from the event on (the old definition).
+    assert sm.recovery(frames["lag_mse"], 4, sm.steady_state(frames["lag_mse"])[0])["frames_to_recover"] == 0
+    with pytest.raises(ValueError, match="control clip shape"):
+        sm.scenario_scores(pred, ref, *args, control=(control_pred[:-1], control_ref[:-1]))
+
+
+def test_an_atlas_sentence_reads_ghosting_against_the_noisy_inputs_ratio() -> None:
+    """A scenario that changes in every frame never matches its control exactly; the noisy input's ratio there is
+    what the content change alone does. A row whose ratio is no larger (by the margin) is not called ghosting."""
+    from denoisers.report.atlas import sentence
+
+    record = {"masked_psnr": 20.0, "recovery": "never", "frames_to_recover": None, "ghosting_ratio": 1.95,
+              "relative_bias": 0.0, "flicker_trmae": 0.1}
+    assert "ghosting under moving shadows" in sentence("oidn", "moving_shadow", record, -1.0, 0.1)
+    content = sentence("oidn", "moving_shadow", record, -1.0, 0.1, input_ratio=1.8)
+    assert "ghosting" not in content.split(",")[0] and "noisy input's 1.80" in content
+    lagging = sentence("svgf", "moving_shadow", {**record, "ghosting_ratio": 28.0}, -9.0, 0.1, input_ratio=1.8)
+    assert lagging.startswith("- **svgf**: ghosting under moving shadows, not back within 10%")

@@ -97,6 +97,53 @@ def test_every_scenario_builds_a_valid_deterministic_manifest(name: str, tmp_pat
     assert other["seed"] != manifest["seed"]
 
 
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_the_control_clip_holds_the_scenarios_final_frame(name: str) -> None:
+    """stab_{name}__still: the scenario's content (same materials, meshes, lights) with every animated thing at its
+    final-frame state in every frame and no events; only animated scenarios have one, and a scenario declared not
+    animated really has nothing that changes."""
+    from scenegen.scenarios import scenario_control, stability_control_ids
+
+    cfg = tiny_config()
+    scene = f"stab_{name}"
+    manifest = draw_scenario(cfg, scene).manifest
+    cameras = manifest["camera"]["frames"]
+    changes = (any(s["to_world_per_frame"] is not None and not np.allclose(s["to_world_per_frame"],
+                                                                            s["to_world_per_frame"][-1])
+                   for s in manifest["shapes"])
+               or any(not np.allclose(e[key], e[key][-1]) for e in manifest["emitters"] for key in e
+                      if key.endswith("_per_frame"))
+               or any(not np.allclose(c["origin"], cameras[-1]["origin"]) or not np.allclose(c["target"],
+                      cameras[-1]["target"]) or c["cut"] for c in cameras))
+    assert SCENARIOS[name].animated == changes
+    control = scenario_control(cfg, scene)
+    assert (control in stability_control_ids(cfg)) == changes
+    if not changes:
+        assert control is None
+        with pytest.raises(KeyError, match="not animated"):
+            draw_scenario(cfg, f"{scene}__still")
+        return
+    held = draw_scenario(cfg, control).manifest
+    assert control == f"{scene}__still" and held["scene_id"] == control and held["n_frames"] == FRAMES
+    assert held["stability"]["events"] == [] and held["stability"]["control_of"] == name
+    assert held["materials"] == manifest["materials"] and held["seed"] == manifest["seed"]
+    assert all(c == {**cameras[-1], "cut": False} for c in held["camera"]["frames"])
+    for original, still in zip(manifest["shapes"], held["shapes"]):
+        if original["to_world_per_frame"] is not None:
+            assert all(np.allclose(m, original["to_world_per_frame"][-1]) for m in still["to_world_per_frame"])
+            assert np.allclose(still["to_world"], original["to_world_per_frame"][-1])
+        else:
+            assert still == original
+    for original, still in zip(manifest["emitters"], held["emitters"]):
+        for key in original:
+            expected = [original[key][-1]] * FRAMES if key.endswith("_per_frame") else original[key]
+            assert np.allclose(still[key], expected) if key != "name" and key != "type" else still[key] == expected
+    # Its own scene digest (rendered with its own noise), same content digest inputs otherwise.
+    from scenegen.digests import scene_settings
+
+    assert scene_settings(cfg, control) == {**scene_settings(cfg, scene), "control": "final frame"}
+
+
 def test_config_section_is_validated_with_readable_errors() -> None:
     cfg = tiny_config()
     assert stability_scene_ids(cfg) == [f"stab_{name}" for name in SCENARIOS]
@@ -239,10 +286,12 @@ def test_smoke_stability_target_plans_the_expected_jobs(tmp_path: Path) -> None:
     n, rows = len(cfg["stability"]["scenarios"]), len(cfg["stability"]["rows"])
     assert cfg["stability"]["denoise_spp"] == [1] and (n, rows) == (2, 3)
     # The smoke config's rows (noisy, svgf, oidn) on its two clips at 1 spp: nothing learned or tuned, so no
-    # training, tuning or training-scene renders.
+    # training, tuning or training-scene renders. Both scenarios are animated: each has a control clip, rendered and
+    # denoised like it (no masks, no scores).
+    clips = 2 * n
     assert counts == expected_jobs(cfg, "stability") == {
-        "generate_scene": n, "render_noisy": n, "render_reference": n, "derive_masks": n,
-        "denoise_scenario": n * rows, "score_scenario": n * rows, "build_atlas": 1, "stability": 1}
+        "generate_scene": clips, "render_noisy": clips, "render_reference": clips, "derive_masks": n,
+        "denoise_scenario": clips * rows, "score_scenario": n * rows, "build_atlas": 1, "stability": 1}
     bad = run_snakemake("-n", f"{cfg['output_dir']}/stability/stab_nope", "--configfile", "config/smoke.yaml",
                         cwd=work, check=False)
     assert bad.returncode != 0 and "stab_nope is not a stability scenario" in bad.stdout + bad.stderr

@@ -146,13 +146,18 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     # rows need (and so the training scenes' renders), and one build_atlas job.
     from denoisers.stability_job import stability_runs
 
-    stab = stability_scene_ids(cfg)
+    from scenegen.scenarios import stability_control_ids
+
+    # Each animated scenario's failure-free control clip (stab_{name}__still) is rendered and denoised by every
+    # run (the lag metric's steady state), but has no masks and no scores of its own.
+    stab, stab_controls = stability_scene_ids(cfg), stability_control_ids(cfg)
     stab_runs = [run for run in stability_runs(cfg) if run.runnable]
     stab_models = needed({method_model(run.spec.params) for run in stab_runs})
     stab_tuned = {run.spec.method for run in stab_runs if run.spec.params.get("tuned")}
     stab_train = train_scenes if stab_models or stab_tuned else []
-    stability = {**renders(stab + stab_train, stab + stab_train), "derive_masks": len(stab),
-                 "denoise_scenario": len(stab) * len(stab_runs), "score_scenario": len(stab) * len(stab_runs),
+    stab_clips = stab + stab_controls
+    stability = {**renders(stab_clips + stab_train, stab_clips + stab_train), "derive_masks": len(stab),
+                 "denoise_scenario": len(stab_clips) * len(stab_runs), "score_scenario": len(stab) * len(stab_runs),
                  "build_atlas": 1 if stab else 0, "train_denoiser": stab_models, "tune_method": len(stab_tuned)}
     # The volumetric clips (target `volumes`, also part of `report` and `all`): their scenes and chunks (one per
     # clip), and every runnable (volume row, spp) denoised and scored on every vol_test_* clip.
@@ -187,7 +192,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
         base = scenes if target == "all" else test_scenes + training_inputs
         evaluated_tuned = {run.spec.method for run in plan_runs(cfg) if run.runnable and run.spec.params.get("tuned")}
         jobs = {**{rule: jobs.get(rule, 0) + stability.get(rule, 0) for rule in {**jobs, **stability}},
-                **renders(list({*base, *stab, *stab_train}), list({*base, *stab, *stab_train})),
+                **renders(list({*base, *stab_clips, *stab_train}), list({*base, *stab_clips, *stab_train})),
                 "train_denoiser": max(jobs.get("train_denoiser", 0), stab_models),
                 "tune_method": len(evaluated_tuned | stab_tuned)}
         # The volume jobs: their own scenes; their models (if any) are among every configured model already.

@@ -132,19 +132,36 @@ def atlas_markdown(table: pd.DataFrame, worst: dict[str, str], rows: list[str], 
     return markdown_table(["scenario (masked PSNR, dB ↑)", *rows], body)
 
 
-def sentence(row: str, scenario: str, record: dict[str, Any], deficit: float, margin: float) -> str:
+def input_ratios(scores: pd.DataFrame, cfg: dict) -> dict[tuple[str, int], float]:
+    """{(scenario, spp): ghosting ratio of the per-frame noisy input row} (empty without a configured ``noisy``
+    row): how far the content change alone moves the lag-region error from the control clip's, the baseline a
+    temporal row's ratio is read against."""
+    from denoisers.stability_job import stability_rows
+
+    inputs = [spec.id for spec in stability_rows(cfg) if spec.method == "noisy"]
+    if not inputs or scores.empty:
+        return {}
+    at = scores[scores.method_id == inputs[0]]
+    return {(str(s), int(p)): float(r) for s, p, r in zip(at.scenario, at.spp, at.ghosting_ratio)}
+
+
+def sentence(row: str, scenario: str, record: dict[str, Any], deficit: float, margin: float,
+             input_ratio: float = math.nan) -> str:
     """One line per row, computed from its worst scenario's scores: what goes wrong (ghosting when the error needs
     frames to settle after the event, else a bias above BIAS_SHOWN, else plain error), under which phenomenon,
-    how long it takes to settle, the masked PSNR against the rows' median and the flicker."""
+    how long it takes to settle, the masked PSNR against the rows' median and the flicker. ``input_ratio``: the
+    noisy input's ghosting ratio on the scenario (what the content change alone does; NaN if unknown)."""
     phenomenon = PHENOMENA.get(scenario, scenario)
     recover = record.get("frames_to_recover")
     bias = record.get("relative_bias", math.nan)
     status, ratio = record.get("recovery", "no event"), record.get("ghosting_ratio", math.nan)
-    # Ghosting: the error needs frames to settle and its mean after the event exceeds the steady state by the margin
-    # (a noisy frame alone does not make a row lag).
-    above = isinstance(ratio, float) and not math.isnan(ratio) and ratio > 1.0 + margin
+    # Ghosting: the error needs frames to settle and its mean after the event exceeds the failure-free (control) level
+    # by the margin, and by more than the content change alone moves the per-frame input's (a scenario that changes
+    # in every frame never matches its control exactly).
+    baseline = input_ratio if isinstance(input_ratio, float) and math.isfinite(input_ratio) else 1.0
+    above = isinstance(ratio, float) and not math.isnan(ratio) and ratio > (1.0 + margin) * max(1.0, baseline)
     if status == "never":
-        lag, lagging = f"not back within {margin:.0%} of its steady state within the clip", above
+        lag, lagging = f"not back within {margin:.0%} of its failure-free error within the clip", above
     elif status == "recovered":
         lag, lagging = f"{int(recover)} frame{'s' if int(recover) != 1 else ''} to recover", int(recover) > 0 and above
     elif status == "too short":
@@ -158,6 +175,8 @@ def sentence(row: str, scenario: str, record: dict[str, Any], deficit: float, ma
     flicker = record.get("flicker_trmae", math.nan)
     flicker_text = (f"flicker TRMAE {flicker:.3g}" if isinstance(flicker, (int, float)) and math.isfinite(flicker)
                     else "no static pixels to measure flicker")   # e.g. a camera moving in every frame
+    if isinstance(ratio, float) and math.isfinite(ratio) and status in ("never", "recovered"):
+        lag += f", ghosting ratio {ratio:.2f}" + (f" (noisy input's {baseline:.2f})" if baseline != 1.0 else "")
     return (f"- **{row}**: {' and '.join(kinds) or 'error'} under {phenomenon}, {lag} (masked PSNR "
             f"{record['masked_psnr']:.2f} dB, {relation} the rows' median there; {flicker_text}).")
 
@@ -192,15 +211,21 @@ def build_atlas(cfg: dict, results_dir: Path) -> list[Path]:
              "Definitions: *masked PSNR* = PSNR of tonemapped radiance over the scenario's focus mask per frame (whole "
              "frame for camera cut and light switch), mean over frames; *event* = the first event of events.json, "
              "else the first frame with a non-empty focus mask; *lag region* = the union of the focus masks from the "
-             "event on; *steady state* = median lag-region error (tonemapped MSE) over the last max(1, (T − event) // "
-             f"3) frames; *frames to recover* = first frame after the event within {settings['margin']:.0%} of it "
-             "(config `stability.margin`), before that window, else *never*; *ghosting ratio* = mean lag-region error "
-             "from the event on / steady state; *flicker* = TRMAE over static pixels (no motion, valid reprojection, "
+             "event on; *steady state* = the same row's median lag-region error (tonemapped MSE) over the last third "
+             "of the scenario's failure-free control clip (`stab_<name>__still`: every animated thing held at the "
+             "scenario's final frame, denoised by the same row at the same spp; a scenario in which nothing changes is "
+             f"its own control); *frames to recover* = first frame after the event within {settings['margin']:.0%} "
+             "of it (config `stability.margin`), else *never* (not back to the failure-free level before the clip "
+             "ends); *ghosting ratio* = mean lag-region error "
+             "from the event on / steady state (a scenario that changes in every frame never matches its control "
+             "exactly: read a row's ratio against the noisy input's on the same scenario, which shows what the content "
+             "change alone does; a sentence names ghosting only above (1 + margin) × that); *flicker* = TRMAE over static pixels (no motion, valid reprojection, "
              "no change or focus mask in t or t − 1); *bias* = mean signed luminance error in the focus mask / mean "
              "reference luminance there.", ""]
     lines += [f"Speed: ms/frame of the stability denoise jobs themselves (median `denoise()` call without the first "
               "frame); they may have shared the machine, so the charts are indicative. The report's timing table "
               "(rule time_methods) is the careful measurement.", ""]
+    baselines = input_ratios(scores, cfg)
     for spp in settings["denoise_spp"]:
         table, worst = atlas_table(scores, spp) if len(scores) else (pd.DataFrame(), {})
         markdown = atlas_markdown(table, worst, rows, scenarios)
@@ -212,7 +237,7 @@ def build_atlas(cfg: dict, results_dir: Path) -> list[Path]:
                 continue
             record = scores[(scores.method_id == row) & (scores.spp == spp) & (scores.scenario == worst[row])].iloc[0]
             sentences.append(sentence(row, worst[row], record.to_dict(), float(deficit.at[worst[row], row]),
-                                      settings["margin"]))
+                                      settings["margin"], baselines.get((worst[row], spp), math.nan)))
         if spp == settings["denoise_spp"][0]:
             long = table.reset_index().melt(id_vars="scenario", var_name="method_id", value_name=ATLAS_METRIC) \
                 if len(table) else pd.DataFrame(columns=["scenario", "method_id", ATLAS_METRIC])

@@ -93,7 +93,7 @@ def moving_reflection(b: ScenarioBuilder) -> None:
     b.fill_light(0.05)
 
 
-@register_scenario("caustics", focus=("firefly", "transmission"))
+@register_scenario("caustics", focus=("firefly", "transmission"), animated=False)
 def caustics(b: ScenarioBuilder) -> None:
     """A glass sphere on a floor lit by a small bright panel behind it: a caustic seen as fireflies."""
     b.set_camera([0.0, 1.2, 2.2], [0.0, 0.25, 0.0])
@@ -146,7 +146,7 @@ def light_switch(b: ScenarioBuilder) -> None:
     b.fill_light(0.03)
 
 
-@register_scenario("low_light", focus=("indirect_only",))
+@register_scenario("low_light", focus=("indirect_only",), animated=False)
 def low_light(b: ScenarioBuilder) -> None:
     """A closed room lit by one narrow spot on a corner of the floor: most of the frame is lit indirectly."""
     room = np.array([4.0, 2.6, 4.0])

@@ -20,6 +20,7 @@ from scenegen.config import (
     volume_scene_ids,
 )
 from scenegen.digests import masks_digest as scene_masks_digest
+from scenegen.scenarios import stability_control_ids
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
 from denoisers import experiment
 from denoisers.evaluate import (evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids,
@@ -67,6 +68,9 @@ SCENES = scene_ids(config)
 # The stability scenarios' scenes (stab_{name}; target `stability`): generated and rendered by the same rules,
 # never trained on or evaluated (not in SCENES, which the split and the evaluation read).
 STABILITY_SCENES = stability_scene_ids(config)
+# Their failure-free controls (stab_{name}__still: each animated scenario held at its final frame), rendered and
+# denoised like the scenarios; they give the steady state of the lag metric (no masks, no scores of their own).
+STABILITY_CONTROLS = stability_control_ids(config)
 # The volumetric clips (vol_{split}_{scenario}_{index}; target `volumes`): generated and rendered by the same rules
 # with the volumetric integrators; not in SCENES (the surface scenes' split, training and evaluation).
 VOLUME_SCENES = volume_scene_ids(config)
@@ -122,7 +126,7 @@ def _listing(values) -> str:
 
 
 def check_scene_target(wildcards, job_rule: str = "generate_scene", pattern: str = "scenes/{scene}") -> list:
-    known = SCENES + STABILITY_SCENES + VOLUME_SCENES
+    known = SCENES + STABILITY_SCENES + STABILITY_CONTROLS + VOLUME_SCENES
     if wildcards.scene not in known:
         raise impossible_target(job_rule, pattern, wildcards, f"scene {wildcards.scene} is not in this config; "
                                 f"scenes: {_listing(known)}")

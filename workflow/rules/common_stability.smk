@@ -26,18 +26,46 @@ def scenario_outputs(kind: str):
                               for run in stability_run_list() for scene in STABILITY_SCENES]
 
 
-def check_scenario_target(job_rule: str, pattern: str):
-    """Input function of denoise_scenario / score_scenario: a stability scene, and a row and spp the suite runs."""
+def check_scenario_target(job_rule: str, pattern: str, controls: bool = False):
+    """Input function of denoise_scenario (``controls``: the control clips too) / score_scenario: a stability
+    scene, and a row and spp the suite runs."""
     from denoisers.stability_job import scenario_target_problem
 
+    scenes = STABILITY_SCENES + (STABILITY_CONTROLS if controls else [])
+
     def check(wildcards) -> list:
-        problem = scenario_target_problem(STABILITY_SCENES, stability_run_list(), wildcards.scene, wildcards.method,
+        problem = scenario_target_problem(scenes, stability_run_list(), wildcards.scene, wildcards.method,
                                           int(wildcards.spp))
         if problem:
             raise impossible_target(job_rule, pattern, wildcards, problem)
         return []
 
     return check
+
+
+def _scenario_control(scene: str) -> str | None:
+    from scenegen.scenarios import scenario_control
+
+    return scenario_control(config, scene)
+
+
+def scenario_control_inputs(wildcards) -> list[str]:
+    """Input function of score_scenario: the failure-free control clip's denoised output (same row and spp) and
+    reference chunks, whose error is the lag metric's steady state; none for a scenario that is not animated."""
+    control = _scenario_control(wildcards.scene)
+    if control is None:
+        return []
+    return [results_path(f"stability/denoised/{wildcards.method}/{control}/spp{wildcards.spp}")] + [
+        results_path(f"renders/{control}/reference/chunk_{chunk:03d}") for chunk in range(chunk_count(config, control))]
+
+
+def scenario_control_args(wildcards) -> str:
+    """Param of score_scenario: the control clip's --control-denoised / --control-render-dir ('' without one)."""
+    control = _scenario_control(wildcards.scene)
+    if control is None:
+        return ""
+    return (f"--control-denoised {results_path(f'stability/denoised/{wildcards.method}/{control}/spp{wildcards.spp}')}"
+            f" --control-render-dir {results_path(f'renders/{control}')}")
 
 
 def scenario_score_digest(wildcards) -> str:

@@ -1,11 +1,14 @@
-# Temporal-stability scenarios (scenegen/scenarios/, config section `stability`): scenes stab_{name} are
-# generated and rendered by generate_scene, render_noisy and render_reference (one chunk per clip); this rule
+# Temporal-stability scenarios (scenegen/scenarios/, config section `stability`): scenes stab_{name} and the
+# controls stab_{name}__still of the animated ones (held at their final frame) are generated and rendered by
+# generate_scene, render_noisy and render_reference (one chunk per clip); this rule
 # derives where and when each scenario's difficulty happens from those renders.
 #   derive_masks:     <output_dir>/stability/{scene}/masks/frame_{t:04d}.exr + events.json
 # Every configured row of evaluation.methods (not the ablation variants) then runs on every clip at
 # stability.denoise_spp (denoisers.stability_job), and the failure atlas is built from the scores:
 #   denoise_scenario: <output_dir>/stability/denoised/{method}/{scene}/spp{spp}/ (as denoise_clip's outputs)
-#   score_scenario:   <output_dir>/stability/scores/{method}/{scene}/spp{spp}.csv + .json (failure metrics)
+#   score_scenario:   <output_dir>/stability/scores/{method}/{scene}/spp{spp}.csv + .json (failure metrics; the
+#                     lag metric's steady state from the scenario's failure-free control stab_{name}__still,
+#                     denoised by the same row)
 #   build_atlas:      <output_dir>/stability/ATLAS.md, stability/tables/, stability/figures/ (build_report links it)
 
 rule derive_masks:
@@ -38,7 +41,7 @@ rule derive_masks:
 
 rule denoise_scenario:
     input:
-        valid=check_scenario_target("denoise_scenario", "stability/denoised/{method}/{scene}/spp{spp}"),
+        valid=check_scenario_target("denoise_scenario", "stability/denoised/{method}/{scene}/spp{spp}", controls=True),
         noisy=scene_chunk_dirs("noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
@@ -71,6 +74,7 @@ rule score_scenario:
         denoised=results_path("stability/denoised/{method}/{scene}/spp{spp}"),
         reference=scene_chunk_dirs("reference"),
         masks=results_path("stability/{scene}"),
+        control=scenario_control_inputs,
     output:
         csv=results_path("stability/scores/{method}/{scene}/spp{spp}.csv"),
         summary=results_path("stability/scores/{method}/{scene}/spp{spp}.json"),
@@ -78,6 +82,7 @@ rule score_scenario:
         config_file=resolved_config_file,
         config_digest=scenario_score_digest,
         render_dir=render_dir,
+        control=scenario_control_args,
     log:
         results_path("logs/score_scenario/{method}/{scene}/spp{spp}.log"),
     benchmark:
@@ -91,7 +96,7 @@ rule score_scenario:
     shell:
         "OMP_NUM_THREADS={threads} python -m denoisers score-scenario --config {params.config_file}"
         " --denoised {input.denoised} --render-dir {params.render_dir} --masks {input.masks}"
-        " --out {output.csv} > {log} 2>&1"
+        " --out {output.csv} {params.control} > {log} 2>&1"
 
 
 rule build_atlas:
