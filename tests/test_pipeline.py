@@ -151,13 +151,17 @@ def test_full_run_reuses_the_scenes(pipeline: PipelineRun) -> None:
     scene_files = {path: mtime for path, mtime in _tree(pipeline.results).items() if path.startswith("scenes/")}
     before = {path: mtime for path, mtime in pipeline.after_scenes.items() if path.startswith("scenes/")}
     # The stage target `scenes` builds the procedural and external scenes; the full run adds the stability
-    # scenarios (stab_*, target `stability`) and the volumetric clips (vol_*, target `volumes`) and must leave
-    # every scene that existed untouched.
+    # scenarios (stab_*, target `stability`) with the control clips of the animated ones (stab_*__still) and the
+    # volumetric clips (vol_*, target `volumes`) and must leave every scene that existed untouched.
+    from scenegen.scenarios import stability_control_ids
+
     assert {path: scene_files.get(path) for path in before} == before, \
         "the full run regenerated scenes that were already up to date"
     added = {path.split("/")[1] for path in set(scene_files) - set(before)}
     assert added == ({f"stab_{name}" for name in pipeline.cfg["stability"]["scenarios"]}
-                     | set(volume_scene_ids(pipeline.cfg))), added
+                     | set(stability_control_ids(pipeline.cfg)) | set(volume_scene_ids(pipeline.cfg))), added
+    assert stability_control_ids(pipeline.cfg) == [f"stab_{name}__still" for name in
+                                                   pipeline.cfg["stability"]["scenarios"]]
     assert volume_scene_ids(pipeline.cfg) == ["vol_test_camera_000", "vol_train_camera_000", "vol_train_camera_001"]
 
 
