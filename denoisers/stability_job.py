@@ -140,8 +140,8 @@ def _jsonable(value: Any) -> Any:
 def _load_denoised_clip(cfg: dict, denoised: Path, render_dir: Path,
                         expected: tuple[str, str, int] | None = None) -> tuple:
     """(row spec, scene, spp, frames, pred (T, 3, H, W), reference (T, 3, H, W), reference frame records, the
-    denoise job's timing record) of a denoised stability clip; refuses a clip whose recorded digest is not this config's, or (``expected`` =
-    (row, scene, spp)) that is not the one asked for."""
+    denoise job's timing record) of a denoised stability clip; refuses a clip whose recorded digest is not this
+    config's, or (``expected`` = (row, scene, spp)) that is not the one asked for."""
     from denoisers.evaluate import EvaluationError, TIMING_FILE, method_spec, read_frame_files, read_radiance_exr
     from denoisers.experiment import DIGEST_KEY, Lineage, check_recorded
     from denoisers.scoring import load_references

@@ -199,7 +199,8 @@ def recovery(errors: np.ndarray, event: int, steady: float, margin: float = DEFA
 def scenario_scores(pred: np.ndarray, ref: np.ndarray, masks: Mapping[str, np.ndarray], focus: Sequence[str],
                     events: Sequence[Mapping[str, Any]], motion: np.ndarray, valid: np.ndarray, cuts: Sequence[bool],
                     warmup: int = 1, margin: float = DEFAULT_MARGIN,
-                    control: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+                    control: tuple[np.ndarray, np.ndarray] | None = None,
+                    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Every failure metric of one denoised clip: (per-frame columns (T,) each, clip summary).
 
     ``control``: (pred, ref) of the scenario's failure-free control clip (same shape as the clip), denoised by

@@ -32,8 +32,8 @@ def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
         stability = cfg["stability"]
         shared = [f"render.{key}" for key in cfg["render"]
                   if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS | {"width", "height"}]
-        settings = {"seed": cfg["seed"], "stability": {"scenario": stability_scenario(cfg, scene),
-                                                       **{key: stability[key] for key in ("frames", "width", "height")}},
+        clip = {key: stability[key] for key in ("frames", "width", "height")}
+        settings = {"seed": cfg["seed"], "stability": {"scenario": stability_scenario(cfg, scene), **clip},
                     "render_shared": config_digest(cfg, *shared)}
         if scene.endswith(STABILITY_CONTROL_SUFFIX):   # the scenario held at its final frame
             settings["control"] = "final frame"

@@ -219,7 +219,8 @@ def build_atlas(cfg: dict, results_dir: Path) -> list[Path]:
              "ends); *ghosting ratio* = mean lag-region error "
              "from the event on / steady state (a scenario that changes in every frame never matches its control "
              "exactly: read a row's ratio against the noisy input's on the same scenario, which shows what the content "
-             "change alone does; a sentence names ghosting only above (1 + margin) × that); *flicker* = TRMAE over static pixels (no motion, valid reprojection, "
+             "change alone does; a sentence names ghosting only above (1 + margin) × that); *flicker* = TRMAE over "
+             "static pixels (no motion, valid reprojection, "
              "no change or focus mask in t or t − 1); *bias* = mean signed luminance error in the focus mask / mean "
              "reference luminance there.", ""]
     lines += [f"Speed: ms/frame of the stability denoise jobs themselves (median `denoise()` call without the first "
