@@ -48,8 +48,11 @@ def test_render_work_counts_every_chunk_at_its_own_reference_spp_and_layers() ->
     assert (clip["reference_integrator"], clip["noisy_integrator"]) == ("volpath", "mcdn_volpath_features")
     assert work.loc[("test_000", 0), "noisy_integrator"] == "mcdn_features"
     n_volume = len(vol["scenarios"]) * (vol["n_test"] + vol["n_train"])
+    # Every animated scenario also renders its failure-free control clip stab_{name}__still.
+    controls = [f"stab_{name}__still" for name in stab["scenarios"] if name not in ("caustics", "low_light")]
+    assert work.loc[(controls[0], 0), "reference_integrator"] == "mcdn_features"
     assert work.index.get_level_values("scene").nunique() == (scenes["n_train"] + scenes["n_test"]
-                                                              + len(stab["scenarios"]) + n_volume)
+                                                              + len(stab["scenarios"]) + len(controls) + n_volume)
 
 
 def test_rates_come_from_the_sidecars_and_benchmark_folders_map_to_rules(tmp_path: Path) -> None:
