@@ -64,3 +64,45 @@ def test_under_trained_models_are_flagged_in_the_table_and_in_every_claim_using_
     assert "under-trained" in res.models.models["rae_inputs_all"].undertrained(cfg)
     late = trained(cfg, "rae", [math.nan] * 9 + [0.5])
     assert "convergence unknown" in late.undertrained(cfg)
+
+
+# Best 0.40 at step 400, then the run blows up and settles at 1.6: its last validation is 300 % above the best.
+DIVERGED = [1.0, 0.6, 0.5, 0.40, 1.9, 1.8, 1.7, 1.6, 1.6, 1.6]
+
+
+def test_a_diverged_run_is_under_trained_although_its_best_no_longer_falls() -> None:
+    cfg = claims_config()
+    model = trained(cfg, "rae", DIVERGED)
+    # The window rule alone would call it converged: the best (step 400) lies before the window.
+    assert model.validation_improvement(0.2) == 0.0
+    assert model.final_rise() == (pytest.approx(3.0), 400)
+    reason = model.undertrained(cfg)
+    assert "under-trained" in reason and "diverged" in reason and "step 400 of 1000" in reason
+    assert _converged_column(cfg, model) == "no (under-trained)"
+    # A rise within the stated threshold (FLAT ends at its best) is not divergence.
+    assert trained(cfg, "rae", FLAT).final_rise()[0] == pytest.approx(0.0)
+    cfg["training"]["convergence"] = {"max_final_rise": 3.5}
+    assert model.undertrained(cfg) == ""
+
+
+def test_a_run_stopped_by_its_time_cap_is_under_trained_and_its_claims_say_so() -> None:
+    cfg = claims_config()
+    res = results_for("C1.1", CLEAR, cfg=cfg)
+    res.models = TrainedModels(model_specs(cfg))
+    for spec in res.models.specs:
+        res.models.models[spec.id] = trained(cfg, spec.id, FLAT)
+    capped = res.models.models["rae"] = trained(cfg, "rae", [1.0, 0.5, 0.43, 0.43, 0.43, 0.43, 0.43, 0.43, 0.43, 0.43])
+    capped.summary.update({"steps": 700, "max_steps": STEPS, "max_seconds": 3600, "stopped_by": "max_seconds"})
+    capped.curves = capped.curves[capped.curves.step <= 700]
+    assert "stopped by its time cap (max_seconds 3600) at 700 of 1000 steps" in res.flag("rae", 1)
+    claims = claims_table(res, all_claims()).set_index("claim")
+    assert claims.loc["C1.1", "note"].startswith(UNDERTRAINED_NOTE)
+    # The same curves stopped by the step budget are not flagged.
+    capped.summary.update({"stopped_by": "max_steps", "max_steps": 700})
+    assert res.flag("rae", 1) == ""
+
+
+def _converged_column(cfg: dict, model: TrainedModel) -> str:
+    models = TrainedModels(model_specs(cfg))
+    models.models[model.spec.id] = model
+    return training_table(models, cfg).set_index("model").loc[model.spec.id, "converged"]

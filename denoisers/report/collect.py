@@ -91,16 +91,43 @@ class TrainedModel:
         best_before, best = float(before.min()), float(val["val_loss"].min())
         return (best_before - best) / best_before if best_before > 0 else math.nan
 
+    def final_rise(self) -> tuple[float, int | None]:
+        """(relative rise of the last validation loss above the best one, step of the best); (NaN, None)
+        without validation."""
+        if "val_loss" not in self.curves:
+            return math.nan, None
+        val = self.curves.dropna(subset=["val_loss"])
+        if not len(val):
+            return math.nan, None
+        best = val.loc[val["val_loss"].idxmin()]
+        last = float(val["val_loss"].iloc[-1])
+        return ((last - float(best["val_loss"])) / float(best["val_loss"]) if best["val_loss"] > 0 else math.nan,
+                int(best["step"]))
+
     def undertrained(self, cfg: dict) -> str:
-        """'' or why the model counts as under-trained (training.convergence)."""
-        rule = {"window_fraction": 0.2, "min_improvement": 0.01, **cfg.get("training", {}).get("convergence", {})}
+        """'' or why the model counts as under-trained (training.convergence): stopped by its time cap before
+        its step budget, diverged (its last validation loss far above its best, so best.pt is an early model),
+        or its best validation loss still falling over the last part of the run."""
+        rule = {"window_fraction": 0.2, "min_improvement": 0.01, "max_final_rise": 0.1,
+                **cfg.get("training", {}).get("convergence", {})}
+        steps, max_steps = self.summary.get("steps"), self.summary.get("max_steps")
+        reasons = []
+        if self.summary.get("stopped_by") == "max_seconds" and steps is not None and max_steps is not None:
+            reasons.append(f"stopped by its time cap (max_seconds {self.summary.get('max_seconds')}) at {steps} of "
+                           f"{max_steps} steps")
+        rise, best_step = self.final_rise()
+        if not math.isnan(rise) and rise > rule["max_final_rise"]:
+            reasons.append(f"training diverged: the last validation loss is {rise:.0%} above the best, which "
+                           f"best.pt keeps from step {best_step} of {steps} (threshold {rule['max_final_rise']:.0%})")
         fall = self.validation_improvement(rule["window_fraction"])
-        window = f"the last {rule['window_fraction']:.0%} of its {self.summary.get('steps')} steps"
+        window = f"the last {rule['window_fraction']:.0%} of its {steps} steps"
+        if fall > rule["min_improvement"]:
+            reasons.append(f"best validation loss fell {fall:.1%} over {window} "
+                           f"(threshold {rule['min_improvement']:.1%})")
+        if reasons:
+            return f"model {self.spec.id} under-trained: " + "; ".join(reasons)
         if math.isnan(fall):
             return f"model {self.spec.id} convergence unknown: no validation before {window}"
-        if fall > rule["min_improvement"]:
-            return (f"model {self.spec.id} under-trained: best validation loss fell {fall:.1%} over {window} "
-                    f"(threshold {rule['min_improvement']:.1%})")
         return ""
 
     def describe(self) -> str:
