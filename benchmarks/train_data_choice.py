@@ -48,7 +48,7 @@ from scipy import stats
 
 from train_precision_quality import train  # benchmarks/ is sys.path[0] when run as a script
 from denoisers.training.data import SequenceDataset, fixed_batches, load_training_clips
-from denoisers.training.job import sequence_config
+from denoisers.training.job import clip_buffers, task_sequence_config
 from denoisers.training.models import _schema_defaults, model_spec
 from denoisers.training.spec import ModelSpec
 from denoisers.training.tasks import task_builder
@@ -167,7 +167,8 @@ def main() -> None:
         parser.error(str(err))
     base = dataclasses.replace(spec, data=base_data, budget={**spec.budget, "max_steps": args.steps, "max_seconds": None})
     args.channels_last = base.compute.get("channels_last", "auto")   # read by train()
-    buffers = task_builder(base.method).sample_buffers
+    builder = task_builder(base.method)
+    buffers = clip_buffers(builder)
     train_root = args.train_root or args.render_root
     arm_scenes: dict[str, list[Path]] = {}
     for arm in args.arms:
@@ -176,8 +177,8 @@ def main() -> None:
         arm_scenes[arm] = [root / scene for scene in (scene_list(keys["train"]) if "train" in keys else args.train)]
     train_clips = load_training_clips(arm_scenes[args.arms[0]], buffers)
     validation_clips = load_training_clips([args.render_root / s for s in args.validate], buffers)
-    validation = fixed_batches(validation_clips, sequence_config(base, buffers), args.validation_sequences,
-                               batch_size=1, seed=int(cfg["seed"]))
+    validation = fixed_batches(validation_clips, task_sequence_config(builder, base, validation_clips),
+                               args.validation_sequences, batch_size=1, seed=int(cfg["seed"]))
     shape = train_clips[0].samples["radiance"].shape
     print(f"torch {torch.__version__}; {args.threads} threads; load average "
           f"{' / '.join(f'{v:.2f}' for v in os.getloadavg())}")
@@ -197,7 +198,8 @@ def main() -> None:
         seconds = render_seconds(arm_scenes[arm])
         print(f"{arm}: {len(clips)} training clips ({', '.join(p.name for p in arm_scenes[arm])}), "
               f"{sum(len(c.frames) for c in clips)} frames, rendered in {seconds / 60:.1f} min (sidecars)", flush=True)
-        dataset = SequenceDataset(clips, sequence_config(arm_spec, buffers), seed=arm_spec.seed)
+        dataset = SequenceDataset(clips, task_sequence_config(builder, arm_spec, clips + validation_clips),
+                                  seed=arm_spec.seed)
         name = re.sub(r"[^A-Za-z0-9_.=-]+", "_", arm)
         runs[arm] = train(name, arm_spec, cfg, dataset, validation, arm_spec.compute.get("precision", "auto"), args,
                           channels_last=arm_spec.compute.get("channels_last", "auto"))

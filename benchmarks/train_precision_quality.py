@@ -34,7 +34,7 @@ from typing import Any
 import torch
 
 from denoisers.training.data import SequenceDataset, fixed_batches, load_training_clips
-from denoisers.training.job import sequence_config, trainer_config
+from denoisers.training.job import clip_buffers, task_sequence_config, trainer_config
 from denoisers.training.loop import Trainer
 from denoisers.training.models import model_spec
 from denoisers.training.precision import bf16_support, resolve
@@ -85,10 +85,10 @@ def main() -> None:
     spec = model_spec(cfg, args.model)
     spec = dataclasses.replace(spec, data={**spec.data, "crop": args.crop, "length": args.length},
                                budget={**spec.budget, "max_steps": args.steps, "max_seconds": None})
-    buffers = task_builder(spec.method).sample_buffers
-    train_clips = load_training_clips([args.render_root / s for s in args.train], buffers)
-    validation_clips = load_training_clips([args.render_root / s for s in args.validate], buffers)
-    sequences = sequence_config(spec, buffers)
+    builder = task_builder(spec.method)
+    train_clips = load_training_clips([args.render_root / s for s in args.train], clip_buffers(builder))
+    validation_clips = load_training_clips([args.render_root / s for s in args.validate], clip_buffers(builder))
+    sequences = task_sequence_config(builder, spec, train_clips + validation_clips)
     validation = fixed_batches(validation_clips, sequences, args.validation_sequences, batch_size=1,
                                seed=int(cfg["seed"]))
     shape = train_clips[0].samples["radiance"].shape

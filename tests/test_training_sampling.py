@@ -233,3 +233,33 @@ def test_hue_permutation_and_grayscale_recolour_input_albedo_and_target_alike() 
     same = SequenceDataset([clip], SequenceConfig(**base, permute_channels=False, grayscale_prob=0.0), seed=3)
     default = SequenceDataset([clip], SequenceConfig(**base), seed=3)
     assert same.plan(same.generator(5)) == default.plan(default.generator(5))
+
+
+def test_benchmarks_and_the_job_build_one_sequence_config_per_task() -> None:
+    """The training job and the training benchmarks (train_data_choice, train_precision_quality) load the same
+    buffers and build the same batches: the task's per-sample, per-pixel and mean buffers (NTASD's mean albedo
+    was missing from the benchmarks' batches, which then failed on 'mean.albedo')."""
+    import yaml
+
+    from denoisers.training.job import clip_buffers, task_sequence_config
+    from denoisers.training.tasks import task_builder
+
+    cfg = validate_config(yaml.safe_load((REPO_ROOT / "config" / "config.yaml").read_text()))
+    for model_id in ("rae", "ntasd"):
+        spec = model_spec(cfg, model_id)
+        builder = task_builder(spec.method)
+        sequences = task_sequence_config(builder, spec, [])
+        assert set(builder.mean_buffers) <= set(clip_buffers(builder))
+        assert sequences.mean_buffers == builder.mean_buffers and sequences.pixel_buffers == builder.pixel_buffers
+        assert sequences.sample_buffers == builder.sample_buffers and sequences.reference_buffers == ("radiance",)
+    assert task_builder("ntasd").mean_buffers == ("albedo",)
+    import sys
+
+    sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
+    try:
+        import train_data_choice
+        import train_precision_quality
+    finally:
+        sys.path.pop(0)
+    for module in (train_data_choice, train_precision_quality):
+        assert module.task_sequence_config is task_sequence_config and module.clip_buffers is clip_buffers

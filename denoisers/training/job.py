@@ -86,6 +86,18 @@ def reference_buffers(builder: Any, clips: Any) -> tuple[str, ...]:
     return ("radiance", *held)
 
 
+def clip_buffers(builder: Any) -> tuple[str, ...]:
+    """Buffers to load from the renders for a task: its per-sample buffers, then its per-pixel means."""
+    return tuple(dict.fromkeys(builder.sample_buffers + builder.mean_buffers))
+
+
+def task_sequence_config(builder: Any, spec: ModelSpec, clips: Any) -> Any:
+    """The SequenceConfig a task's batches need (sample, pixel, mean and reference buffers) for ``spec``'s data
+    keys; ``clips`` decide the optional reference buffers (:func:`reference_buffers`)."""
+    return sequence_config(spec, builder.sample_buffers, builder.pixel_buffers, builder.mean_buffers,
+                           reference_buffers(builder, clips))
+
+
 def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = True) -> Any:
     from denoisers.training.loop import TrainerConfig
     from denoisers.training.precision import DEFAULT_COMPUTE
@@ -161,7 +173,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
         raise ValueError(f"model {model_id!r}: need training and validation scenes, got {train_scenes} / "
                          f"{validation_scenes}")
     render_root = Path(render_root)
-    buffers = tuple(dict.fromkeys(builder.sample_buffers + builder.mean_buffers))
+    buffers = clip_buffers(builder)
     log.info("model %s (%s): training on %s, validating on %s", model_id, spec.method, ", ".join(train_scenes),
              ", ".join(validation_scenes))
     train_clips = load_training_clips([render_root / s for s in train_scenes], buffers)
@@ -169,12 +181,10 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
 
     from denoisers.training.data import SequenceDataset
 
-    references = reference_buffers(builder, train_clips + validation_clips)
+    sequences = task_sequence_config(builder, spec, train_clips + validation_clips)
     if builder.optional_reference_buffers:
-        log.info("model %s: reference buffers %s (optional: %s)", model_id, ", ".join(references),
+        log.info("model %s: reference buffers %s (optional: %s)", model_id, ", ".join(sequences.reference_buffers),
                  ", ".join(builder.optional_reference_buffers))
-    sequences = sequence_config(spec, builder.sample_buffers, builder.pixel_buffers, builder.mean_buffers,
-                                references)
     dataset = SequenceDataset(train_clips, sequences, seed=spec.seed)
     # The same validation sequences for every model of the config (seeded by the global seed), so
     # models are compared pairwise on identical data.
