@@ -29,6 +29,11 @@ error the integer step's finite difference E[L(k + 1)] - E[L(k)] adds a positive
 estimate is exactly twice that finite difference (-2 sigma^2 / (k (k + 1)) against -sigma^2 / (k (k + 1))
 per pixel): same sign and the same ordering of pixels by the error one more sample removes.
 tests/test_ntasd.py checks this against directly computed finite differences of the expected error.
+When the network sees the means through an encoding T (NTASD's log-gamma), the difference is taken after it,
+T(I_{k+1}) - T(I_k): the chain rule through T'(I_k) instead multiplies a firefly's linear jump by T's slope at
+a dark mean (up to 151 for NTASD's encoding at 0): replaying the 2026-12-01 run's adaptive training, the
+sampler's gradient norm reached 20,000 times its median within 300 steps, and that run's model diverged at
+step 750 and never recovered.
 
 Rounding (``normalize_sample_map``): the budget is ``T = floor(n M + 1e-9)`` integer samples for M pixels
 (:func:`budget_total`). Eq. 2 gives real counts ``x_p = minimum + (T - minimum M) w_p / sum w``; counts
@@ -48,7 +53,7 @@ and those samples count toward the budget.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -257,24 +262,31 @@ def budget_problems(sample_maps: Sequence, budget: float, frames: Sequence[int],
 
 
 class _RenderAdaptive(torch.autograd.Function):
-    """Forward: (N, H, W) integer counts -> (N, C, H, W) means of the first k layers. Backward: the
-    renderer gradient of the module docstring to the (N, H, W) real density (counts are not differentiated)."""
+    """Forward: (N, H, W) integer counts -> (N, C, H, W) ``transform`` of the means of the first k layers.
+    Backward: the renderer gradient of the module docstring, taken after ``transform``, to the (N, H, W) real
+    density (counts are not differentiated)."""
 
     @staticmethod
-    def forward(ctx, density: torch.Tensor, layers: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    def forward(ctx, density: torch.Tensor, layers: torch.Tensor, counts: torch.Tensor,
+                transform: Callable[[torch.Tensor], torch.Tensor] | None) -> torch.Tensor:
         means = torch.stack([gather_mean(layer, count) for layer, count in zip(layers, counts)])
         ctx.save_for_backward(layers, counts, means)
-        return means
+        ctx.transform = transform
+        return means if transform is None else transform(means)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         layers, counts, means = ctx.saved_tensors
-        return renderer_derivative(layers, counts, means).mul(grad).sum(dim=1), None, None
+        derivative = renderer_derivative(layers, counts, means, transform=ctx.transform)
+        return derivative.mul(grad).sum(dim=1), None, None, None
 
 
-def renderer_derivative(layers: torch.Tensor, counts: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
+def renderer_derivative(layers: torch.Tensor, counts: torch.Tensor, means: torch.Tensor,
+                        transform: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """(N, C, H, W) dI/dk of the module docstring: layers (N, S, C, H, W), integer counts k (N, H, W),
-    means I_k (N, C, H, W)."""
+    means I_k (N, C, H, W). With ``transform`` (elementwise, e.g. the network's input encoding) the difference
+    is taken after it, T(I_{k+1}) - T(I_k): the change of what the network sees, bounded by T's range, instead
+    of T'(I_k) (I_{k+1} - I_k), which a firefly after dark samples makes enormous where T is steep."""
     available = layers.shape[1]
     k = counts.to(torch.int64)
     at_end = k >= available
@@ -282,24 +294,30 @@ def renderer_derivative(layers: torch.Tensor, counts: torch.Tensor, means: torch
     gather_index = index[:, None, None].expand(-1, 1, layers.shape[2], -1, -1)
     next_layer = torch.gather(layers, 1, gather_index)[:, 0]                     # (N, C, H, W)
     kf = k.to(layers.dtype)[:, None]
-    forward = (next_layer - means) / (kf + 1.0)
-    # k = S: I_S - I_{S-1} = (x_S - I_{S-1}) / S with I_{S-1} = (S I_S - x_S) / (S - 1)
+    after = means + (next_layer - means) / (kf + 1.0)                            # I_{k+1}
+    # k = S: the backward difference I_S - I_{S-1}, with I_{S-1} = (S I_S - x_S) / (S - 1) (I_0 = 0)
     if available > 1:
-        previous = (available * means - next_layer) / (available - 1)
-        backward = (next_layer - previous) / available
+        before = (available * means - next_layer) / (available - 1)
     else:
-        backward = next_layer.clone()
-    return torch.where(at_end[:, None], backward, forward)
+        before = torch.zeros_like(means)
+    low = torch.where(at_end[:, None], before, means)
+    high = torch.where(at_end[:, None], means, after)
+    if transform is None:
+        return high - low
+    return transform(high) - transform(low)
 
 
 def render_adaptive(density: torch.Tensor, layers: torch.Tensor, budget: float, *, minimum: int = 0,
-                    rounding: str = "largest_remainder", seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+                    rounding: str = "largest_remainder", seed: int = 0,
+                    transform: Callable[[torch.Tensor], torch.Tensor] | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """Training's renderer: density (N, H, W) real samples per pixel (e.g. :func:`density`), layers
-    (N, S, C, H, W) stored 1-spp samples -> (means (N, C, H, W), counts (N, H, W) int64). Counts per image
-    by :func:`normalize_sample_map` (never above the budget); gradient to ``density`` as documented above."""
+    (N, S, C, H, W) stored 1-spp samples -> (means (N, C, H, W), counts (N, H, W) int64), the means passed
+    through ``transform`` when given. Counts per image by :func:`normalize_sample_map` (never above the
+    budget); gradient to ``density`` as documented above (after ``transform``, :func:`renderer_derivative`)."""
     # Eq. 2's weights are the samples above the minimum (DASR's initial pass), so a density built as
     # minimum + (n - minimum) M softmax(s) is reproduced up to rounding.
     counts = torch.stack([normalize_sample_map((d.detach() - minimum).clamp_min(0), budget, layers.shape[1],
                                                minimum=minimum,
                                                rounding=rounding, seed=seed + i) for i, d in enumerate(density)])
-    return _RenderAdaptive.apply(density, layers, counts), counts
+    return _RenderAdaptive.apply(density, layers, counts, transform), counts

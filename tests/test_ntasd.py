@@ -62,6 +62,34 @@ def test_renderer_gradient_against_finite_differences_of_the_expected_error() ->
     assert torch.allclose(gradient, 2 * finite, rtol=0.1)
 
 
+def test_renderer_gradient_after_the_encoding_is_the_encoded_finite_difference() -> None:
+    """With the network's encoding T, the derivative is T(I_{k+1}) - T(I_k) computed from directly gathered
+    means of k and k + 1 layers (k = S: T(I_S) - T(I_{S-1})), so it stays within T's range: a firefly after dark
+    samples moves the encoded input by at most T(65535), whereas the chain rule T'(I_k) (I_{k+1} - I_k)
+    multiplies the firefly by T's steep slope at the dark mean."""
+    generator = torch.Generator().manual_seed(5)
+    layers = torch.rand(2, 4, 3, 3, 5, generator=generator, dtype=torch.float64) * 0.01
+    layers[0, 1, :, 1, 2] = 60000.0                              # a firefly as the second sample of one pixel
+    counts = torch.randint(0, 5, (2, 3, 5), generator=generator)
+    counts[0, 1, 2] = 1
+    means = torch.stack([gather_mean(s, c) for s, c in zip(layers, counts)])
+    derivative = renderer_derivative(layers, counts, means, transform=encode)
+    more = torch.stack([gather_mean(s, (c + 1).clamp_max(4)) for s, c in zip(layers, counts)])
+    fewer = torch.stack([gather_mean(s, (c - 1).clamp_min(0)) for s, c in zip(layers, counts)])
+    at_end = (counts >= 4)[:, None]
+    direct = torch.where(at_end, encode(means) - encode(fewer), encode(more) - encode(means))
+    assert torch.allclose(derivative, direct, atol=1e-9)
+    assert float(derivative.abs().max()) <= float(encode(torch.tensor(65535.0))) + 1e-9
+    assert float(derivative[0, :, 1, 2].min()) > 1.0            # the firefly pixel: one more sample matters
+    linear = renderer_derivative(layers, counts, means)
+    dark = means.detach().clone().requires_grad_(True)
+    encode(dark).sum().backward()
+    chain_rule = dark.grad * linear
+    assert float(chain_rule[0, :, 1, 2].min()) > 1000 * float(derivative[0, :, 1, 2].max())
+    # Without a transform: the linear difference I_{k+1} - I_k, the same gathered means.
+    assert torch.allclose(linear, torch.where(at_end, means - fewer, more - means), atol=1e-9)
+
+
 def test_renderer_gradient_sign_follows_the_integer_step_and_the_noise() -> None:
     """Per pixel (identity denoiser, squared error): the mean derivative is -2 sigma^2 / (k (k + 1)), so it
     has the sign of E[L(k + 1)] - E[L(k)] = -sigma^2 / (k (k + 1)) and is larger where the noise is."""

@@ -99,21 +99,23 @@ def frame_step(model: NTASDNet, frame: FrameInputs, history: torch.Tensor | None
         motion_features = torch.cat([torch.nan_to_num(frame.motion) / MOTION_SCALE, validity], dim=1)
     logits = None
     layers = torch.nan_to_num(frame.layers, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    # The adaptive renderers return the encoded means: their gradient is the renderer's finite difference in
+    # the encoded space the networks see (denoisers.adaptive.renderer_derivative).
     if config.sampling == "uniform":
         counts = uniform_counts(budget, layers)
-        means = torch.stack([gather_mean(layer, count) for layer, count in zip(layers, counts)])
+        noisy = encode(torch.stack([gather_mean(layer, count) for layer, count in zip(layers, counts)]))
     elif config.sampling == "adaptive":
         x = torch.cat([grey(warped), guide[:, :4], grey(guide[:, 4:7]), motion_features], dim=1)
         logits = model.sample_logits(x)
-        means, counts = render_adaptive(capped_density(logits, budget, layers.shape[1]), layers, budget)
+        noisy, counts = render_adaptive(capped_density(logits, budget, layers.shape[1]), layers, budget,
+                                        transform=encode)
     else:                                                        # dasr: a 1-spp initial pass, then Eq. 2
         if budget < 1:
             raise ValueError(f"dasr: the budget {budget} spp is below its initial pass of 1 sample per pixel")
         x = torch.cat([encode(layers[:, 0]), guide], dim=1)
         logits = model.sample_logits(x)
-        means, counts = render_adaptive(capped_density(logits, budget, layers.shape[1], minimum=1), layers, budget,
-                                        minimum=1)
-    noisy = encode(means)
+        noisy, counts = render_adaptive(capped_density(logits, budget, layers.shape[1], minimum=1), layers, budget,
+                                        minimum=1, transform=encode)
     parts = [noisy, guide]
     if config.temporal:
         parts += [motion_features, warped]
@@ -157,8 +159,9 @@ class NTASDTask:
     def describe(self) -> dict[str, Any]:
         described = {"task": self.name, "net": self.net_spec(), "budget": self.budget,
                      "loss": "L1 + temporal L1 on the last frame (Hasselgren et al. Eq. 4), encoded space"}
-        if self.config.sampling != "uniform":   # checkpoints trained with the uncapped density do not resume
+        if self.config.sampling != "uniform":   # checkpoints of the earlier sampler training do not resume
             described["sample_density"] = "capped (adaptive.capped_density)"
+            described["renderer_gradient"] = "finite difference after the encoding (adaptive.renderer_derivative)"
         return described
 
     def run(self, model: nn.Module, batch: Mapping[str, torch.Tensor], first: int = 0) -> list[StepResult]:
