@@ -305,3 +305,25 @@ def test_a_flat_sample_map_is_named_in_the_report(tmp_path: Path) -> None:
     section = h.write(results, tables, figures)
     assert "NTASD (ntasd): 98.8% of the pixels at one count" in section and "flat: its sampler does not adapt" in section
     assert "DASR (dasr)" in section and section.count("flat: its sampler") == 1
+
+
+def test_the_image_grids_show_the_adaptive_rows_sample_maps(tmp_path: Path) -> None:
+    """Issue 12: sample maps beside the image grids. sample_maps_of reads an adaptive row's maps per frame; a grid
+    given a map for one of its columns gains a fourth row (taller figure), one without maps keeps three."""
+    from PIL import Image
+
+    from denoisers.report.figures import image_grid, sample_maps_of
+
+    results, _ = table1_results()
+    with_files(results, tmp_path / "results")
+    scene = results.scenes[0]
+    maps = sample_maps_of(tmp_path / "results", "ntasd", scene, 4)
+    written = np.load(evaluate.denoised_dir(tmp_path / "results", "ntasd", scene, 4) / SAMPLE_MAPS_FILE)
+    assert sorted(maps) == list(range(FRAMES)) and np.array_equal(maps[2], written["sample_maps"][2])
+    assert sample_maps_of(tmp_path / "results", "svgf", scene, 4) == {}
+    reference = np.ones((3, *SIZE), np.float32)
+    columns = [("svgf", reference * 0.9), ("ntasd", reference * 1.1)]
+    image_grid(columns, reference, tmp_path / "plain.png", "plain")
+    image_grid(columns, reference, tmp_path / "maps.png", "maps", sample_maps=[None, maps[2]])
+    plain, with_maps = (Image.open(tmp_path / name).size for name in ("plain.png", "maps.png"))
+    assert with_maps[1] > 1.2 * plain[1]

@@ -236,9 +236,24 @@ def _crop_window(error: np.ndarray, size: int) -> tuple[int, int]:
     return int(y), int(x)
 
 
-def image_grid(columns: Sequence[tuple[str, np.ndarray]], reference: np.ndarray, path: Path, title: str) -> None:
+def sample_maps_of(results_dir: Path, row: str, scene: str, spp: int) -> dict[int, np.ndarray]:
+    """{frame: (H, W) samples per pixel} of an adaptive row's clip (its sample_maps.npz beside the denoised
+    frames); empty for a row without sample maps."""
+    from denoisers.adaptive import SAMPLE_MAPS_FILE
+
+    path = denoised_dir(results_dir, row, scene, spp) / SAMPLE_MAPS_FILE
+    if not path.is_file():
+        return {}
+    with np.load(path) as data:
+        return {int(f): np.asarray(m, dtype=np.float64) for f, m in zip(data["frames"].tolist(), data["sample_maps"])}
+
+
+def image_grid(columns: Sequence[tuple[str, np.ndarray]], reference: np.ndarray, path: Path, title: str,
+               sample_maps: Sequence[np.ndarray | None] = ()) -> None:
     """Columns of (label, (3, H, W) radiance) plus the reference: full frame with the crop marked, the crop
-    enlarged, and the error map |tonemap(x) - tonemap(ref)| (channel mean, common colour scale)."""
+    enlarged, and the error map |tonemap(x) - tonemap(ref)| (channel mean, common colour scale). With
+    ``sample_maps`` (one (H, W) map or None per column) a fourth row shows the adaptive columns' sample maps
+    (samples per pixel, one colour scale)."""
     from denoisers import metrics
     from denoisers.evaluate import preview_rgb8
 
@@ -253,7 +268,9 @@ def image_grid(columns: Sequence[tuple[str, np.ndarray]], reference: np.ndarray,
     vmax = float(np.percentile(errors[0], 99)) if errors else 1.0
     vmax = vmax if vmax > 0 else 1.0
     panels = [*columns, ("reference", reference)]
-    fig, axes = plt.subplots(3, len(panels), figsize=(1.9 * len(panels), 6.0), squeeze=False)
+    maps = [*sample_maps, *[None] * (len(panels) - len(sample_maps))]
+    rows = 4 if any(m is not None for m in maps) else 3
+    fig, axes = plt.subplots(rows, len(panels), figsize=(1.9 * len(panels), 2.0 * rows), squeeze=False)
     for col, (label, img) in enumerate(panels):
         rgb = preview_rgb8(img)
         is_ref = col == len(panels) - 1
@@ -266,16 +283,32 @@ def image_grid(columns: Sequence[tuple[str, np.ndarray]], reference: np.ndarray,
             axes[2][col].imshow(np.zeros_like(ref_tm[0]), cmap="inferno", vmin=0, vmax=vmax)
         else:
             axes[2][col].imshow(errors[col], cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
-        for row in range(3):
+        for row in range(rows):
             axes[row][col].set_xticks([])
             axes[row][col].set_yticks([])
     axes[1][0].set_ylabel("crop", fontsize=8)
     axes[2][0].set_ylabel("|error|, tonemapped", fontsize=8)
+    if rows == 4:
+        spp_max = max(1.0, max(float(m.max()) for m in maps if m is not None))
+        for col, found in enumerate(maps):
+            ax = axes[3][col]
+            if found is None:
+                ax.set_axis_off()
+                continue
+            ax.imshow(found, cmap="viridis", vmin=0.0, vmax=spp_max, interpolation="nearest")
+            ax.set_title(f"mean {found.mean():.2f} spp", fontsize=7)
+        axes[3][0].set_ylabel("sample map", fontsize=8)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     mappable = plt.cm.ScalarMappable(cmap="inferno", norm=plt.Normalize(0.0, vmax))
     bar = fig.colorbar(mappable, ax=list(axes[2]), fraction=0.02, pad=0.01, format="%.2g")
     bar.ax.tick_params(labelsize=7)
+    if rows == 4:
+        shown = [ax for ax, found in zip(axes[3], maps) if found is not None]
+        spp_bar = fig.colorbar(plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0.0, spp_max)), ax=shown,
+                               fraction=0.02, pad=0.01)
+        spp_bar.set_label("spp", fontsize=7)
+        spp_bar.ax.tick_params(labelsize=7)
     fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
@@ -304,17 +337,18 @@ def plot_grids(res: Results, figures: Path) -> list[Path]:
     """One image grid per evaluated scene and evaluated spp, plus the robustness grid."""
     written = []
     for scene, spp in ((scene, spp) for scene in res.scenes for spp in res.cfg["evaluation"]["spp"]):
-        columns, frame = [], None
+        columns, frame, maps = [], None, []
         for spec in res.main_specs:
             if not res.ran(spec.id, spp):
                 continue
             files = read_frame_files(denoised_dir(res.results_dir, spec.id, scene, spp))
             frame = _grid_frame(res.cfg, sorted(files)) if frame is None else frame
             columns.append((spec.id, read_radiance_exr(files[frame])))
+            maps.append(sample_maps_of(res.results_dir, spec.id, scene, spp).get(frame))
         frame = frame if frame is not None else 0
         path = figures / f"grid_{scene}_spp{spp}.png"
         reference = reference_radiance(res.results_dir / "renders" / scene, frame)
-        image_grid(columns, reference, path, f"{scene}, frame {frame}, {spp} spp")
+        image_grid(columns, reference, path, f"{scene}, frame {frame}, {spp} spp", sample_maps=maps)
         written.append(path)
     robustness = res.cfg["evaluation"]["robustness"]
     path = figures / "robustness_grid.png"

@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from denoisers.evaluate import EvaluationError, denoised_dir, preview_rgb8
-from denoisers.report.figures import _grid_frame, placeholder, pyplot, reference_radiance
+from denoisers.evaluate import EvaluationError, preview_rgb8
+from denoisers.report.figures import _grid_frame, placeholder, pyplot, reference_radiance, sample_maps_of
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -70,19 +70,13 @@ def plot_fig7(res: Results, path: Path, rows: Sequence[tuple[str, str | None]], 
 
 def _sample_map(res: Results, row: str | None, scene: str, spp: int) -> tuple[int, np.ndarray] | None:
     """(frame, (H, W) sample map) of the grid frame of one row's clip, None without sample maps."""
-    from denoisers.adaptive import SAMPLE_MAPS_FILE
-
     if row is None or not res.ran(row, spp):
         return None
-    path = denoised_dir(res.results_dir, row, scene, spp) / SAMPLE_MAPS_FILE
-    if not path.is_file():
-        return None
-    with np.load(path) as data:
-        by_frame = dict(zip(data["frames"].tolist(), data["sample_maps"]))
+    by_frame = sample_maps_of(res.results_dir, row, scene, spp)
     if not by_frame:
         return None
     frame = _grid_frame(res.cfg, sorted(by_frame))
-    return frame, np.asarray(by_frame[frame], dtype=np.float64)
+    return frame, by_frame[frame]
 
 
 def plot_sample_maps(res: Results, path: Path, rows: Sequence[tuple[str, str | None]], spp: int) -> None:
