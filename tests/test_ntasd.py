@@ -271,3 +271,27 @@ def test_bf16_wrapper_of_the_trainer_runs_the_frame_steps_under_autocast() -> No
     bf16, _ = task.loss(AutocastForward(model, torch.bfloat16), batch)
     assert bf16.dtype == torch.float32 and torch.isfinite(bf16)
     assert float(bf16) == pytest.approx(float(fp32), rel=0.1)
+
+
+def test_a_saturated_blend_weight_keeps_its_gradient_under_bf16_autocast() -> None:
+    """The temporal blend alpha' at a logit of 8: sigmoid(8) = 0.99966 in float32, exactly 1 in bf16, where
+    its gradient would vanish for good. The heads' weights are computed in float32 under autocast, so the
+    blend bias gets the analytic gradient sigma'(8) * dL/dalpha' and not zero."""
+    torch.manual_seed(0)
+    net = NTASDNet(NTASDConfig(variant="temporal", sampling="uniform", width=0.25, levels=3))
+    taps = net.config.kernel_size ** 2
+    blend = 2 * taps
+    with torch.no_grad():
+        net.heads[0].weight[blend].zero_()
+        net.heads[0].bias[blend] = 8.0
+    x = torch.rand(1, net.config.denoiser_in_channels, 16, 16)
+    noisy, history = torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = net.denoise(x, noisy, history)
+    out.float().sum().backward()
+    gradient = float(net.heads[0].bias.grad[blend])
+    assert abs(gradient) > 0.0
+    # Reference: the same network in float32; only bf16 rounding of the other terms may differ.
+    net.zero_grad()
+    net.denoise(x, noisy, history).sum().backward()
+    assert gradient == pytest.approx(float(net.heads[0].bias.grad[blend]), rel=0.2, abs=1e-4)

@@ -239,7 +239,9 @@ class NTASDNet(nn.Module):
         taps = self.config.kernel_size ** 2
         noisy = pad_to(noisy, self.multiple)
         pyramid = [noisy, kernels.downsample(noisy), kernels.downsample(kernels.downsample(noisy))]
-        outputs = [head(level) for head, level in zip(self.heads, decoded)]
+        # Kernel weights and blends in float32 under bf16 autocast: a bf16 sigmoid/softmax rounds to exactly
+        # 1 at logits above ~6, and the saturated weight then has no gradient to come back.
+        outputs = [head(level).float() for head, level in zip(self.heads, decoded)]
         spatial = [torch.softmax(out[:, :taps], dim=1) for out in outputs]
         filtered = [kernels.apply_kernels(image, weights) for image, weights in zip(pyramid, spatial)]
         alphas = [torch.sigmoid(out[:, taps:taps + 1]) for out in outputs[1:]]
