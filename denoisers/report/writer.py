@@ -10,6 +10,7 @@ from denoisers.evaluate import ALL_METRICS, EvaluationError
 from denoisers.provenance import describe, provenance
 from denoisers.report import figures as fig
 from denoisers.report import tables as tab
+from denoisers.report import targets
 from denoisers.report.atlas import report_section as atlas_section
 from denoisers.report.capacity import capacity_section
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, MIN_UNITS, NOT_RUN, REPRODUCED, claims_table
@@ -103,6 +104,17 @@ def _claims_section(claims: pd.DataFrame) -> list[str]:
             "",
             f"Verdicts: {tally}.", "", frame_to_markdown(claims[CLAIMS_SHOWN]), "",
             "[claims (CSV)](tables/claims.csv)", ""]
+
+
+def _targets_section(res: Results, tables: Path) -> list[str]:
+    """The harness's quality targets (denoisers.report.targets); writes tables/targets."""
+    table = targets.targets_table(res)
+    tab.write_table(table, tables, "targets")
+    return ["## Quality targets", "",
+            "What the harness's issues expect a working build to show, not the papers' claims; decided like the "
+            f"claims, from paired per-scene differences ({targets.RULE}). Flags name rows that are suspect or "
+            "under-trained.", "", frame_to_markdown(table[list(targets.SHOWN)]), "",
+            "[targets (CSV)](tables/targets.csv)", ""]
 
 
 def _external_section(res: Results, tables: Path) -> list[str]:
@@ -282,7 +294,7 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
              "![Quality versus speed](figures/quality_vs_speed.png)", "",
              "[Quality vs speed (SVG)](figures/quality_vs_speed.svg)", "", *color_balance_section(res, tables),
              *_external_section(res, tables),
-             *_tuning_section(res, tables), *_claims_section(claims)]
+             *_tuning_section(res, tables), *_claims_section(claims), *_targets_section(res, tables)]
     for reproduction in all_reproductions():
         section = reproduction.write(res, tables, figures)
         ids = [c.id for c in reproduction.claims]
