@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from denoisers.report.claims import Claim, Decision, Part, RowNeed, compare_rows, not_run
 from denoisers.report.stats import LABELS, fmt_ci, frame_to_markdown, mean_ci
+from denoisers.reproductions import _isik2021_paper as paper
 from denoisers.reproductions.base import Reproduction
 
 if TYPE_CHECKING:
@@ -48,20 +49,6 @@ AFN = RowNeed("afn", "AFN, the full temporal model (net defaults)")
 KPCN = RowNeed("kpcn", "KPCN (Bako et al. 2017)")
 OIDN = RowNeed("oidn", "OIDN (standing in for the OptiX denoiser)")
 
-#: Published PSNR (dB) of Table 2 (single frame) at 2/4/8/16/32 spp, rows relevant to our targets.
-PAPER_TABLE2 = {"KPCN": (27.95, 30.86, 32.79, 33.90, 34.54), "NBG*": (26.04, 27.58, 28.52, 29.11, 29.42),
-                "ours-K1": (29.13, 31.87, 33.28, 34.11, 34.42), "ours-single": (30.93, 32.67, 33.66, 34.34, 34.81)}
-PAPER_TABLE2_SPP = (2, 4, 8, 16, 32)
-#: Published PSNR (dB) and TRMAE of Table 3 (video) at 2/4/8 spp.
-PAPER_TABLE3 = {"NBG": (26.67, 28.48, 29.56, 2.058, 1.695, 1.453),
-                "ours-K1*": (30.48, 32.64, 33.97, 0.803, 0.650, 0.565),
-                "ours-single*": (32.17, 33.67, 34.54, 0.640, 0.556, 0.511),
-                "ours-wpred": (32.18, 33.48, 34.33, 0.513, 0.482, 0.462),
-                "ours-heur": (32.05, 32.89, 33.33, 0.511, 0.485, 0.472),
-                "ours-ntk": (32.55, 33.79, 34.44, 0.502, 0.474, 0.457),
-                "ours-nar": (32.37, 33.76, 34.56, 0.508, 0.473, 0.454),
-                "ours": (32.34, 33.93, 34.81, 0.517, 0.467, 0.446)}
-PAPER_TABLE3_SPP = (2, 4, 8)
 TABLES = ("isik_table2", "isik_table3", "isik_table4", "isik_table5")
 FIG8 = "isik_fig8"
 FIG5 = "isik_fig5_lambda"
@@ -202,17 +189,26 @@ def _cell(res: Results, row: str, spp: int, metric: str) -> str:
     return fmt_ci(*mean_ci(res.scene_values(row, spp, metric).to_numpy(float))[:3], metric)
 
 
+#: {(metric, spp): published value} per line label: the paper's number shown beside ours.
+PaperBeside = Mapping[str, Mapping[tuple[str, int], float]]
+
+
 def _layout(res: Results, rows: list[tuple[str, str]], metrics: tuple[str, ...],
-            extra: Mapping[str, Mapping[str, Any]] | None = None) -> pd.DataFrame:
-    """One line per (label, row id), columns (metric, spp) 'mean ± CI' over scenes, spp = evaluation.spp."""
+            beside: PaperBeside | None = None) -> pd.DataFrame:
+    """One line per (label, row id), columns (metric, spp) 'mean ± CI' over scenes, spp = evaluation.spp; a
+    ``paper`` column beside each of ours where the paper has a number for some line at that metric and spp."""
     import pandas as pd
 
+    beside = beside or {}
     lines = []
     for label, row in rows:
-        line: dict[str, Any] = {"method": label, "row": row, **(extra or {}).get(row, {})}
+        line: dict[str, Any] = {"method": label, "row": row}
         for metric in metrics:
             for spp in res.cfg["evaluation"]["spp"]:
                 line[f"{LABELS[metric]} @ {spp} spp"] = _cell(res, row, spp, metric)
+                if any((metric, spp) in values for values in beside.values()):
+                    line[f"paper @ {spp} spp" if len(metrics) == 1 else f"paper {LABELS[metric]} @ {spp} spp"] = \
+                        (beside.get(label) or {}).get((metric, spp))
         lines.append(line)
     return pd.DataFrame(lines)
 
@@ -232,23 +228,49 @@ def _variant_lines(res: Results, names: tuple[str, ...]) -> list[tuple[str, str]
     return [(name, row) for name in names for row, (variant, _) in rows.items() if variant == name]
 
 
+def _kernel_lines(res: Results) -> tuple[list[tuple[str, str]], dict[str, tuple[str, int, int]]]:
+    """Table 5 lines: the single-frame affinity models (ours-single, ours-K1) at their trained size and at the
+    sizes their test-time rows run (params.kernel_size), and the gather models; with each line's paper key
+    (kind, K, size)."""
+    lines, keys = [], {}
+    candidates = [(row, name, net, int(net["kernel_size"]), False) for row, (name, net) in afn_rows(res).items()]
+    candidates += [(row, name, net, int(res.spec(row).params["kernel_size"]), True)
+                   for row, (name, net) in afn_rows(res, test_time_size=True).items()]
+    for row, name, net, size, test_time in candidates:
+        if net["temporal"] or name not in ("ours-single", "ours-K1", "gather K1", "gather K3"):
+            continue
+        kind = "gather" if net["kernel_kind"] == "gather" else "affinity"
+        label = f"{kind} K={net['kernels']}, {size}x{size}"
+        if test_time:
+            label += f" (trained {net['kernel_size']}x{net['kernel_size']})"
+        lines.append((label, row))
+        keys[label] = (kind, int(net["kernels"]), size)
+    lines.sort(key=lambda line: (keys[line[0]][0], keys[line[0]][1], keys[line[0]][2], line[0]))
+    return lines, keys
+
+
 def tables(res: Results) -> dict[str, pd.DataFrame]:
-    """Tables 2-5 (module docstring); each lists only rows that ran."""
+    """Tables 2-5 (module docstring) with the paper's numbers beside ours; each lists only rows that ran."""
     rows = afn_rows(res)
     nets = {row: net for row, (_, net) in rows.items()}
     d_lines = sorted(((f"d={net['affinity_dim']}", row) for row, (name, net) in rows.items()
                       if name in ("ours-single", "d=1", "d=2", "d=4")), key=lambda x: nets[x[1]]["affinity_dim"])
-    kernel_lines = sorted(((f"{'gather' if net['kernel_kind'] == 'gather' else 'affinity'} K={net['kernels']}, "
-                            f"{net['kernel_size']}x{net['kernel_size']}", row) for row, (name, net) in rows.items()
-                           if not net["temporal"] and name in ("ours-single", "ours-K1", "gather K1", "gather K3")),
-                          key=lambda x: x[0])
+    kernel_lines, kernel_keys = _kernel_lines(res)
+    single = ("psnr",)
+    beside2 = {label: paper.paper_values(v, paper.TABLE2_SPP, single) for label, v in paper.TABLE2_BESIDE.items()}
+    beside3 = {label: paper.paper_values(v, paper.TABLE3_SPP, ("video_psnr", "trmae"))
+               for label, v in paper.TABLE3_BESIDE.items()}
+    beside4 = {f"d={d}": paper.paper_values(v, paper.TABLE2_SPP, single) for d, v in paper.TABLE4.items()}
+    beside5 = {label: paper.paper_values(paper.TABLE5[key], paper.TABLE3_SPP, single)
+               for label, key in kernel_keys.items() if key in paper.TABLE5}
     return {
-        "isik_table2": _layout(res, _baselines(res) + _variant_lines(res, ("d=1", "ours-K1", "ours-single")), ("psnr",)),
+        "isik_table2": _layout(res, _baselines(res) + _variant_lines(res, ("d=1", "ours-K1", "ours-single")), single,
+                               beside2),
         "isik_table3": _layout(res, [(label, row) for label, row in _baselines(res) if label == "OIDN"]
                                + _variant_lines(res, ("ours-K1", "ours-single", "ours-wpred", "ours-heur", "ours-ntk",
-                                                      "ours-nar", "ours")), ("video_psnr", "trmae")),
-        "isik_table4": _layout(res, d_lines, ("psnr",)),
-        "isik_table5": _layout(res, kernel_lines, ("psnr",)),
+                                                      "ours-nar", "ours")), ("video_psnr", "trmae"), beside3),
+        "isik_table4": _layout(res, d_lines, single, beside4),
+        "isik_table5": _layout(res, kernel_lines, single, beside5),
     }
 
 
@@ -267,17 +289,20 @@ def write(res: Results, tables_dir: Path, figures: Path) -> str:
     if not table_names(res.cfg):
         return "No `afn` rows are configured (evaluation.methods): the AFN tables are not built."
     built = tables(res)
-    paper2 = _paper_table(PAPER_TABLE2, [f"PSNR @ {s} spp" for s in PAPER_TABLE2_SPP])
-    paper3 = _paper_table(PAPER_TABLE3, [f"PSNR @ {s} spp" for s in PAPER_TABLE3_SPP]
-                          + [f"TRMAE @ {s} spp" for s in PAPER_TABLE3_SPP])
-    context = {"isik_table2": "\nPaper (Table 2, single frame, 1080p; for context only):\n\n" + frame_to_markdown(paper2),
-               "isik_table3": "\nPaper (Table 3, video; for context only):\n\n" + frame_to_markdown(paper3)}
+    paper2 = _paper_table(paper.TABLE2, [f"PSNR @ {s} spp" for s in paper.TABLE2_SPP])
+    paper3 = _paper_table(paper.TABLE3, [f"PSNR @ {s} spp" for s in paper.TABLE3_SPP]
+                          + [f"TRMAE @ {s} spp" for s in paper.TABLE3_SPP])
+    context = {"isik_table2": "\nPaper, every row (Table 2, single frame, 1080p; for context only):\n\n"
+                              + frame_to_markdown(paper2),
+               "isik_table3": "\nPaper, every row (Table 3, video; for context only):\n\n" + frame_to_markdown(paper3),
+               "isik_table5": "\nThe paper's affinity lines are one model per K run at every size at test time; its "
+                              "gather lines are one model per size."}
     titles = {"isik_table2": "Table 2 layout: single-frame PSNR (frame mean)",
               "isik_table3": "Table 3 layout: video PSNR (Eq. 14) and TRMAE (Eq. 16)",
               "isik_table4": "Table 4 layout: affinity feature dimension d (single-frame models)",
               "isik_table5": "Table 5 layout: affinity versus gather kernels (single-frame models)"}
     lines = ["AFN rows are identified by their model's net settings (module denoisers.reproductions.isik2021); "
-             "mean ± 95 % CI over the evaluated scenes."]
+             "mean ± 95 % CI over the evaluated scenes. " + paper.BESIDE_NOTE]
     for name, table in built.items():
         markdown = frame_to_markdown(table) if len(table) else "No row of this layout ran.\n"
         markdown += context.get(name, "")
