@@ -94,15 +94,19 @@ def _row_spp(cfg: dict, wanted: Sequence[int] | None) -> tuple[int, ...]:
 
 def ablation_method_specs(cfg: dict) -> list[MethodSpec]:
     """Rows evaluating every trained ablation variant (denoisers.training.models.model_specs with
-    ``ablation`` set): id and ``params.model`` = the model id, at ``evaluation.ablation_spp`` (default
-    [1]; [] = none), not in the robustness scenario. Empty when ``ablation_spp`` is empty."""
+    ``ablation`` set): id and ``params.model`` = the model id, at its ablation's ``spp`` or else
+    ``evaluation.ablation_spp`` (default [1]; [] = none), not in the robustness scenario."""
     from denoisers.training.models import model_specs
 
-    spp = _row_spp(cfg, cfg["evaluation"].get("ablation_spp", [1]))
-    if not spp:
-        return []
-    return [MethodSpec(model.id, model.method, {"model": model.id}, spp, robustness=False, role=ABLATION_ROLE)
-            for model in model_specs(cfg) if model.ablation]
+    default = cfg["evaluation"].get("ablation_spp", [1])
+    own = {entry["id"]: entry["spp"] for entry in (cfg.get("training") or {}).get("ablations", []) if "spp" in entry}
+    specs = []
+    for model in model_specs(cfg):
+        spp = _row_spp(cfg, own.get(model.ablation, default)) if model.ablation else []
+        if spp:
+            specs.append(MethodSpec(model.id, model.method, {"model": model.id}, spp, robustness=False,
+                                    role=ABLATION_ROLE))
+    return specs
 
 
 def method_specs(cfg: dict) -> list[MethodSpec]:
@@ -176,15 +180,22 @@ def evaluation_problems(cfg: dict) -> list[str]:
     variants = [model.id for model in model_specs(cfg) if model.ablation]
     ablation_spp = list(evaluation.get("ablation_spp", [1]))
     outside = [spp for spp in ablation_spp if spp not in evaluated]
+    for entry in (cfg.get("training") or {}).get("ablations", []):
+        own_outside = [spp for spp in entry.get("spp", []) if spp not in evaluated]
+        if own_outside:
+            problems.append(f"config key 'training.ablations' entry {entry['id']!r} has spp {entry['spp']!r} with "
+                            f"values {own_outside} that are not in 'evaluation.spp' = {evaluated!r}; allowed: values "
+                            "of evaluation.spp, or [] to not evaluate its variants")
     if variants and outside:
         problems.append(f"config key 'evaluation.ablation_spp' = {ablation_spp!r} has values {outside} that are not in "
                         f"'evaluation.spp' = {evaluated!r}; allowed: values of evaluation.spp, or [] to not "
                         "evaluate the ablation variants")
-    if variants and ablation_spp:
-        for method_id in sorted(set(ids) & set(variants)):
-            problems.append(f"config key 'evaluation.methods' has the id {method_id!r}, which is the id of the row "
-                            "added for that trained ablation variant (evaluation.ablation_spp); allowed: ids other "
-                            f"than the ablation variants {variants}, or evaluation.ablation_spp: []")
+    evaluated_variants = [spec.id for spec in ablation_method_specs(cfg)]
+    for method_id in sorted(set(ids) & set(evaluated_variants)):
+        problems.append(f"config key 'evaluation.methods' has the id {method_id!r}, which is the id of the row "
+                        "added for that trained ablation variant (evaluation.ablation_spp or its ablation's spp); "
+                        f"allowed: ids other than the ablation variants {evaluated_variants}, or "
+                        "evaluation.ablation_spp: [] / the ablation's spp: []")
     frames, grid_frame = cfg["scenes"]["frames"], evaluation["grid_frame"]
     if not -frames <= grid_frame < frames:
         problems.append(f"config key 'evaluation.grid_frame' = {grid_frame} is outside the clips' frames; allowed: "

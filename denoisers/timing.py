@@ -178,8 +178,8 @@ def timing_scene(cfg: dict) -> str | None:
 def timed_runs(cfg: dict) -> list[tuple[str, int]]:
     """(row id, spp) the timing job times, in table order: every runnable configured row at every spp it is
     evaluated at, then the rows of the capacity ablations' variants (training.ablations with kind capacity) at
-    evaluation.ablation_spp, whose networks differ in size. Comparison variants are not timed: they share
-    their base row's network size."""
+    their evaluated spp (the ablation's spp or evaluation.ablation_spp), whose networks differ in size.
+    Comparison variants are not timed: they share their base row's network size."""
     from denoisers.evaluate import plan_runs
     from denoisers.training.models import capacity_model_ids
 

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from denoisers.evaluate import method_specs
+from denoisers.evaluate import evaluation_problems, method_specs
 from denoisers.report import report_outputs
 from denoisers.report.capacity import (capacity_section, capacity_table, output_name, select_smallest,
                                        selection_statement)
@@ -262,3 +262,32 @@ def test_the_timing_job_times_capacity_variants_but_not_comparison_variants() ->
     assert not [row for row, _ in runs if row.startswith(("rae_inputs_", "rae_loss_"))]
     # Evaluated at ablation_spp only; none when the variants are not evaluated.
     assert not [row for row, _ in timed_runs(smoke_config(ablation_spp=[])) if row.startswith("rae_capacity")]
+
+
+# ------------------------------------------------------------------------------------------ per-ablation spp
+def test_an_ablation_may_set_its_own_evaluated_spp() -> None:
+    """A family trained at another sample count (NTASD at an average of 4 spp) sets ``spp`` on its ablation: its
+    variants' rows (and timing) use it, the other ablations keep evaluation.ablation_spp."""
+    cfg = smoke_config(ablation_spp=[1])
+    ablation_of(cfg)["spp"] = [2]
+    cfg = validate_config(cfg)
+    rows = {spec.id: spec.spp for spec in method_specs(cfg) if spec.role == "ablation"}
+    assert rows["rae_capacity_width0125"] == (2,) and rows["rae_capacity_levels4"] == (2,)
+    assert all(spp == (1,) for row, spp in rows.items() if not row.startswith("rae_capacity"))
+    assert timed_runs(cfg)[-2:] == [("rae_capacity_width0125", 2), ("rae_capacity_levels4", 2)]
+    ablation_of(cfg)["spp"] = []
+    assert not [s for s in method_specs(validate_config(cfg)) if s.id.startswith("rae_capacity")]
+
+
+def test_an_ablation_spp_outside_the_evaluated_spp_is_refused() -> None:
+    cfg = smoke_config(ablation_spp=[1])
+    ablation_of(cfg)["spp"] = [3]
+    problems = "\n".join(evaluation_problems(validate_config(cfg)))
+    assert "'training.ablations' entry 'rae_capacity' has spp [3]" in problems
+
+
+def test_an_empty_own_spp_is_named_in_the_capacity_table() -> None:
+    cfg = capacity_config()
+    ablation_of(cfg)["spp"] = []
+    table, _ = capacity_table(make_results(validate_config(cfg)), ablation_of(cfg))
+    assert "training.ablations rae_capacity spp is empty" in table["note"].iloc[0]

@@ -5,7 +5,8 @@ A capacity ablation trains the base model at several sizes (variants override on
 ``width`` and ``levels``) with the same data, seed and budget. The base model itself joins the sweep when the
 ablation's step budget equals its own (then its configured size is one of the points). Per size the report
 shows the parameters (the trained model's summary.json), the test PSNR (mean over the evaluated scenes with a
-95 % Student-t interval, at the spp the variants are evaluated at, ``evaluation.ablation_spp``), the paired
+95 % Student-t interval, at the spp the variants are evaluated at: the ablation's ``spp``, else
+``evaluation.ablation_spp``), the paired
 per-scene difference to the best size with its interval, ms/frame from the timing job (which times the
 capacity variants too) and whether the run converged; a chart plots PSNR against parameters and against
 ms/frame.
@@ -178,7 +179,8 @@ def capacity_table(res: Results, ablation: Mapping[str, Any]) -> tuple[pd.DataFr
         if model is None:
             reasons.append(f"model {member.spec.id} not trained (no complete model directory)")
         if spp is None:
-            reasons.append("the variants are not evaluated (evaluation.ablation_spp is empty)")
+            key = f"training.ablations {ablation['id']} spp" if "spp" in ablation else "evaluation.ablation_spp"
+            reasons.append(f"the variants are not evaluated ({key} is empty)")
         elif member.row is None:
             reasons.append(f"no evaluation row uses model {member.spec.id} with params exactly {{model: "
                            f"{member.spec.id}}}" if member.is_base else f"no evaluation row for {member.spec.id}")

@@ -289,7 +289,7 @@ def render_digest(kind: str):
 # The evaluated scenes are the test_* scenes and the external custom_* scenes (extra_scenes), each an
 # independent unit of the report's comparisons; train_* scenes never are. The rows are evaluation.methods
 # (each at its own `spp`, in the robustness scenario if its `robustness` is true) followed by one row
-# per trained ablation variant (at evaluation.ablation_spp, not in the robustness scenario); see
+# per trained ablation variant (at its ablation's spp or evaluation.ablation_spp, not in robustness); see
 # denoisers.evaluate.method_specs.
 # A (row, spp) pair that needs more sample layers than were rendered (e.g. path tracing at 2 x 4 spp
 # with 4 layers) is left out of the DAG; the report lists it as "not run" with the reason. Planning
