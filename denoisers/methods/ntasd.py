@@ -26,6 +26,13 @@ from denoisers.registry import AdaptiveOutput, Denoiser, Frame, register
 from denoisers.training.tasks import NTASD_VARIANTS
 
 INPUTS = ("radiance", "albedo")
+
+
+def _for_inference(model: NTASDNet) -> NTASDNet:
+    """``model`` in eval mode with channels-last weights: oneDNN's convolutions then run channels-last from the
+    first layer on (the U-Nets' forward 1.6x faster than NCHW at 128 x 128, 1-2 threads, fp32; the same
+    arithmetic). Kernel application makes its inputs contiguous itself (denoisers.kernels.apply_kernels)."""
+    return model.eval().to(memory_format=torch.channels_last)
 PIXEL_INPUTS = ("motion", "valid", "gbuffer.normal", "gbuffer.depth")
 
 
@@ -56,7 +63,7 @@ class NTASDDenoiser(Denoiser):
         method = cls.__new__(cls)
         Denoiser.__init__(method)
         method.checkpoint, method.samples_factor = None, int(budget_factor)
-        method._model, method._history = model.eval(), None
+        method._model, method._history = _for_inference(model), None
         method._check_variant(model)
         return method
 
@@ -74,7 +81,7 @@ class NTASDDenoiser(Denoiser):
 
             model = load_model(self.checkpoint)
             self._check_variant(model)
-            self._model = model.eval()
+            self._model = _for_inference(model)
         return self._model
 
     def reset(self) -> None:

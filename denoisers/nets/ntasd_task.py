@@ -26,6 +26,7 @@ frames for this loss, so only those are run (the result is identical).
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -98,7 +99,10 @@ def frame_step(model: NTASDNet, frame: FrameInputs, history: torch.Tensor | None
             validity = frame.valid
         motion_features = torch.cat([torch.nan_to_num(frame.motion) / MOTION_SCALE, validity], dim=1)
     logits = None
-    layers = torch.nan_to_num(frame.layers, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    layers = frame.layers
+    if config.sampling == "uniform":             # reads the first ceil(budget) layers only: sanitise just those
+        layers = layers[:, :max(1, min(layers.shape[1], math.ceil(budget)))]
+    layers = torch.nan_to_num(layers, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
     # The adaptive renderers return the encoded means: their gradient is the renderer's finite difference in
     # the encoded space the networks see (denoisers.adaptive.renderer_derivative).
     if config.sampling == "uniform":
