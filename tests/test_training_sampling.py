@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from denoisers.training.crops import RELATIVE_EPS, ImportanceCrops
-from denoisers.training.data import SequenceConfig, SequenceDataset, fixed_batches
+from denoisers.training.data import SequenceConfig, SequenceDataset, _orient, fixed_batches
 from denoisers.training.job import sequence_config
 from denoisers.training.models import model_spec
 from scenegen.config import ConfigError, load_config, validate_config
@@ -68,6 +68,29 @@ def test_random_layers_draw_every_stored_layer_about_equally() -> None:
             counts[list(layers)] += 1
     expected = 400 * 3 * 2 / 5                                                       # 480 per layer, sd ~ 20
     assert np.all(np.abs(counts - expected) < 0.15 * expected), counts
+
+
+def test_random_layers_keep_the_drawn_order_so_a_prefix_is_a_random_subset() -> None:
+    """spp = every stored layer (NTASD carries all 32 and reads each pixel's first k): the layers come in the
+    order drawn, so the first two of a frame are any two of the five, each about equally often, and the
+    batch's layer axis follows that order."""
+    config = SequenceConfig(length=2, crop=8, spp=5, stop_prob=0.0, color_range=None)
+    clip = synthetic_clip(layers=5)
+    dataset = SequenceDataset([clip], config, seed=2)
+    firsts = np.zeros(5)
+    for plan in plans(dataset, 300):
+        for layers in plan.layers:
+            assert sorted(layers) == [0, 1, 2, 3, 4]
+            firsts[list(layers[:2])] += 1
+    expected = 300 * 2 * 2 / 5                                                       # 240 per layer, sd ~ 13
+    assert np.all(np.abs(firsts - expected) < 0.2 * expected), firsts
+    plan = dataset.plan(dataset.generator(0))
+    sequence = dataset.sequence(plan)
+    row, column = plan.crop
+    frame, layers = plan.frames[0], list(plan.layers[0])
+    direct = clip.samples["radiance"][frame][layers][..., row:row + 8, column:column + 8]
+    oriented = np.stack([np.ascontiguousarray(_orient(layer, plan.rotation, plan.flip)) for layer in direct])
+    assert np.allclose(sequence["radiance"][0].numpy(), oriented)
 
 
 def test_validation_ignores_the_switches() -> None:

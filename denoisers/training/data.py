@@ -10,7 +10,8 @@ One sequence (Chaitanya et al. 2017, §4.3) is made by
    layers disjoint from the previous frame's whenever the stack has enough layers;
 3. ``spp`` of the stored sample layers per output frame (each layer is an independent 1-spp image,
    docs/data-format.md): with ``layers='random'`` (default) drawn without replacement from all stored
-   layers, so training sees every stored noise realisation; with ``layers='first'`` always layers
+   layers and kept in the order drawn, so training sees every stored noise realisation (and a method that
+   reads a prefix, NTASD's first k layers per pixel, a random subset even when spp is every stored layer); with ``layers='first'`` always layers
    0..spp-1 (what a renderer producing exactly ``spp`` samples would give), except that a camera stop takes
    the next ``spp`` layers (cyclically) so its noise is fresh whenever the stack has >= 2 spp layers;
 4. a square crop, the same for every frame: with ``crops='uniform'`` (default) at a uniform position;
@@ -355,7 +356,9 @@ class SequenceDataset:
                 fresh = np.setdiff1d(pool, layers[-1])
                 if fresh.size >= spp:
                     pool = fresh
-            layers.append(tuple(int(s) for s in np.sort(rng.choice(pool, spp, replace=False))))
+            # In the order drawn: a method that reads a prefix of the layers (NTASD's first k per pixel) then
+            # sees a random subset of the stored layers, not always layers 0..k-1.
+            layers.append(tuple(int(s) for s in rng.choice(pool, spp, replace=False)))
         return layers
 
     # ----------------------------------------------------------------------------- materialising
