@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from denoisers.filters import check_sizes
+from denoisers.nets import for_inference
 from denoisers.nets.afn import AFNNet
 from denoisers.nets.afn_task import SAMPLE_BUFFERS, History, frame_step, sample_features
 from denoisers.nets.rae import world_to_view
@@ -49,7 +50,7 @@ class AFNDenoiser(Denoiser):
         method = cls.__new__(cls)
         Denoiser.__init__(method)
         method.checkpoint, method.kernel_size, method.temporal_kernel_size = None, kernel_size, temporal_kernel_size
-        method._model, method._history, method._blend = model.eval(), None, None
+        method._model, method._history, method._blend = for_inference(model), None, None
         return method
 
     @property
@@ -60,7 +61,7 @@ class AFNDenoiser(Denoiser):
             model = load_model(self.checkpoint)
             if not isinstance(model, AFNNet):
                 raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not an AFN")
-            self._model = model.eval()
+            self._model = for_inference(model)
         return self._model
 
     def reset(self) -> None:

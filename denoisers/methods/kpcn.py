@@ -7,6 +7,7 @@ from pathlib import Path
 import torch
 
 from denoisers.filters import check_sizes
+from denoisers.nets import for_inference
 from denoisers.nets.kpcn import KPCNNet
 from denoisers.nets.kpcn_task import SAMPLE_BUFFERS, frame_step
 from denoisers.nets.rae import world_to_view
@@ -36,7 +37,7 @@ class KPCNDenoiser(Denoiser):
         """The method around an in-memory network (tests, benchmarks)."""
         method = cls.__new__(cls)
         Denoiser.__init__(method)
-        method.checkpoint, method._model = None, model.eval()
+        method.checkpoint, method._model = None, for_inference(model)
         return method
 
     @property
@@ -47,7 +48,7 @@ class KPCNDenoiser(Denoiser):
             model = load_model(self.checkpoint)
             if not isinstance(model, KPCNNet):
                 raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not a KPCN")
-            self._model = model.eval()
+            self._model = for_inference(model)
         return self._model
 
     def denoise(self, frame: Frame) -> torch.Tensor:

