@@ -79,7 +79,8 @@ def build_items(sizes: list[int], width: float, kpcn_width: float, spp: int, cou
             if backend == "native" and _native_missing():
                 continue
             items.append(Item(f"affinity 13x13 {backend}", size, None,
-                              lambda _, b=backend: affinity.affinity_sums(image, features, a, c, 13, 1, backend=b)))
+                              lambda _, b=backend, i=image, f=features, a=a, c=c:
+                              affinity.affinity_sums(i, f, a, c, 13, 1, backend=b)))
     return items + gemm_items(gemm_size)
 
 
