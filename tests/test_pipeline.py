@@ -262,13 +262,15 @@ def test_second_run_has_nothing_to_do(pipeline: PipelineRun) -> None:
 def test_every_planned_run_has_denoised_frames_and_metrics(pipeline: PipelineRun) -> None:
     runs = pipeline.runs()
     # The smoke config renders enough layers for every configured (method, spp), and every trained
-    # ablation variant is evaluated at evaluation.ablation_spp.
-    variants = [spec.id for spec in model_specs(pipeline.cfg) if spec.ablation]
+    # ablation variant is evaluated at its ablation's spp (ntasd_capacity: 4) or else evaluation.ablation_spp.
+    own_spp = {a["id"]: a["spp"] for a in pipeline.cfg["training"]["ablations"] if "spp" in a}
+    assert own_spp == {"ntasd_capacity": [4]}
+    variant_runs = {(spec.id, s) for spec in model_specs(pipeline.cfg) if spec.ablation
+                    for s in own_spp.get(spec.ablation, pipeline.cfg["evaluation"]["ablation_spp"])}
     evaluated_spp = pipeline.cfg["evaluation"]["spp"]
     assert len(runs) == (sum(len(row.get("spp") or evaluated_spp) for row in pipeline.cfg["evaluation"]["methods"])
-                         + len(variants) * len(pipeline.cfg["evaluation"]["ablation_spp"]))
-    assert {(v, s) for v in variants for s in pipeline.cfg["evaluation"]["ablation_spp"]} <= \
-        {(run.spec.id, run.spp) for run in runs}
+                         + len(variant_runs))
+    assert variant_runs <= {(run.spec.id, run.spp) for run in runs}
     for scene in evaluated_scene_ids(pipeline.cfg):
         frames = list(range(scene_frame_count(pipeline.cfg, scene)))
         for run in runs:
@@ -417,6 +419,15 @@ def test_every_configured_model_is_trained_and_reported(pipeline: PipelineRun) -
     assert list(capacity["variant"]) == ["width0125", "levels4", "base"] and set(capacity["status"]) == {"ran"}
     assert np.isfinite(capacity[["parameters", "psnr_mean", "ms_per_frame"]].to_numpy(float)).all()
     assert capacity["selected"].sum() == 1 and "## Model capacity" in report and "Smallest size within 0.2 dB" in report
+    # The NTASD sweep is scored at its ablation's own spp (4, where the family trains), the base ntasd included.
+    ntasd_capacity = pd.read_csv(tables / "capacity_ntasd_capacity.csv")
+    assert list(ntasd_capacity["variant"]) == ["width0125", "base"] and set(ntasd_capacity["spp"]) == {4}
+    assert set(ntasd_capacity["status"]) == {"ran"} and np.isfinite(ntasd_capacity["psnr_mean"]).all()
+    # Quality targets: two evaluated scenes are fewer than a verdict needs; the AFN target needs 8 spp.
+    targets = pd.read_csv(tables / "targets.csv").set_index("target")
+    assert list(targets.index) == ["T11", "T12", "T13"] and "## Quality targets" in report
+    assert targets.loc["T11", "status"] == targets.loc["T12", "status"] == "inconclusive"
+    assert targets.loc["T13", "status"] == "not run" and "8 spp" in targets.loc["T13", "note"]
 
 
 def test_a_second_config_gets_its_own_complete_folder(pipeline: PipelineRun) -> None:

@@ -133,9 +133,9 @@ def targets_table(res: Results, targets: tuple[Target, ...] = TARGETS) -> pd.Dat
         flags = []
         for part, _ in parts:
             for row, spp in part.rows:
-                text = res.flag(row, spp)
-                if text and f"{row}: {text}" not in flags:
-                    flags.append(f"{row}: {text}")
+                text = res.flag(row, spp)               # names the row and spp itself
+                if text and text not in flags:
+                    flags.append(text)
         lines.append({
             "target": target.id, "issue": target.issue, "statement": target.statement, "status": status,
             "comparisons": "; ".join(f"{p.a} − {p.b} ({LABEL[mode]} {p.quantity}): {comparison_state(p, mode)}"
