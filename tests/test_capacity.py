@@ -22,8 +22,7 @@ from scenegen.config import ConfigError, validate_config
 from tests.test_evaluate import smoke_config as _smoke_config
 
 def smoke_config(**evaluation) -> dict:
-    """The smoke config with its RAE capacity sweep only (its NTASD sweep, ntasd_capacity, is left out here:
-    these tests build results for the RAE sizes; test_pipeline covers the NTASD sweep)."""
+    """The smoke config with its RAE capacity sweep only (these tests build results for the RAE sizes)."""
     cfg = _smoke_config(**evaluation)
     cfg["training"]["ablations"] = [a for a in cfg["training"]["ablations"] if a["id"] != "ntasd_capacity"]
     return validate_config(cfg)

@@ -406,11 +406,8 @@ def test_rows_have_their_own_spp_and_ablation_variants_get_rows() -> None:
 
     cfg = smoke_config(methods=[*BASIC_METHODS, {"id": "eaw", "method": "eaw", "spp": [2], "robustness": False}],
                        spp=[1, 2], ablation_spp=[1])
-    # The smoke config's rae_inputs (3), rae_loss (2) and rae_capacity (2) variants; its ntasd_capacity variant is
-    # scored at its ablation's own spp [4], which this config does not evaluate, so it gets no row.
-    variants = [model for model in model_specs(cfg) if model.ablation and model.ablation != "ntasd_capacity"]
-    assert len(variants) == 7
-    assert [m.id for m in model_specs(cfg) if m.ablation == "ntasd_capacity"] == ["ntasd_capacity_width0125"]
+    variants = [model for model in model_specs(cfg) if model.ablation]
+    assert len(variants) == 7  # the smoke config's rae_inputs (3), rae_loss (2) and rae_capacity (2) variants
     specs = evaluate.method_specs(cfg)
     assert [spec.id for spec in specs] == ["noisy", "path_x2", "eaw", *(model.id for model in variants)]
     assert specs[0] == evaluate.MethodSpec("noisy", "noisy", {}, (1, 2), True, evaluate.METHOD_ROLE)
@@ -467,12 +464,9 @@ def test_evaluation_problems_name_row_spp_ablation_spp_and_ablation_ids() -> Non
     assert "config key 'evaluation.ablation_spp' = [1, 3] has values [3]" in problems
     assert "config key 'evaluation.methods' has the id 'rae_loss_spatial'" in problems
     assert "ablation variant" in problems
-    # An ablation's own spp is checked too (the smoke config's NTASD sweep is scored at 4).
-    assert "config key 'training.ablations' entry 'ntasd_capacity' has spp [4] with values [4]" in problems
     # Without the ablation rows the id is free; without ablation variants ablation_spp is not checked.
     cfg["evaluation"]["ablation_spp"] = []
     cfg["evaluation"]["methods"][2]["spp"] = [1]
-    next(a for a in cfg["training"]["ablations"] if a["id"] == "ntasd_capacity")["spp"] = []
     assert evaluate.evaluation_problems(cfg) == []
     cfg = smoke_config(methods=BASIC_METHODS, spp=[2], ablation_spp=[1])
     assert "'evaluation.ablation_spp' = [1]" in "\n".join(evaluate.evaluation_problems(cfg))
