@@ -39,8 +39,9 @@ RowFinder = Callable[["Results", int], "str | None"]
 def by_method(need: RowNeed) -> RowFinder:
     """The first row of ``need`` that ran at the spp, else the first configured one (so 'not run' names it)."""
     def find(res: Results, spp: int) -> str | None:
-        rows = res.rows_of(need.method, **dict(need.params))
-        return next((row for row in rows if res.ran(row, spp)), rows[0] if rows else None)
+        from denoisers.reproductions.hasselgren2020 import row_at
+
+        return row_at(res, need, spp)
     return find
 
 
