@@ -27,12 +27,14 @@ def random_case(dims: int, with_center: bool, seed: int, batch: int = 2, channel
 
 
 @pytest.mark.parametrize("with_center", [False, True])
-@pytest.mark.parametrize("dims", [1, 8])
+# (d, C) with C = 3 and d in {1, 2, 4, 8} take the fused per-tap loop, the others the unfused passes.
+@pytest.mark.parametrize("dims, channels", [(1, 3), (8, 3), (3, 3), (8, 1)])
 @pytest.mark.parametrize("dilation", [1, 2, 4])
 @pytest.mark.parametrize("size", [1, 3, 5, 13])
-def test_native_matches_torch_reference(size: int, dilation: int, dims: int, with_center: bool) -> None:
+def test_native_matches_torch_reference(size: int, dilation: int, dims: int, channels: int, with_center: bool) -> None:
     require_native()
-    image, features, neighbours, bandwidth, center = random_case(dims, with_center, seed=size * 100 + dilation)
+    image, features, neighbours, bandwidth, center = random_case(dims, with_center, seed=size * 100 + dilation,
+                                                                 channels=channels)
     # 13 x 4 reaches 24 pixels out: every tap of the largest kernels is outside for part of the 17 x 23 image.
     num, den = affinity.affinity_sums(image, features, bandwidth, center, size, dilation, neighbours=neighbours,
                                       backend="native")
