@@ -7,8 +7,9 @@ kernels' share of a frame (one 13 x 13 kernel, native and torch), and the peak r
 
 Items are timed round-robin (every item once per round, median over rounds), so a load change on this
 shared machine hits all of them alike. Untrained networks: speed does not depend on the weights. GFLOP per
-frame counts every Conv2d (the per-sample embedding's 1 x 1 layers at S samples, the U-Net, KPCN's
-convolutions) from forward hooks, 2 FLOPs per multiply-add; kernel application is not counted.
+frame counts every convolution and matrix product (the per-sample embedding's 1 x 1 layers at S samples, the
+U-Net, KPCN's convolutions) with torch's FlopCounterMode, 2 FLOPs per multiply-add; kernel application is not
+counted.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import resource
 
 import torch
 from torch import nn
+from torch.utils.flop_counter import FlopCounterMode
 
 from denoisers import affinity, registry
 from denoisers.methods import afn as _afn, kpcn as _kpcn  # noqa: F401 -- registers the methods
@@ -40,21 +42,19 @@ def frames(size: int, count: int, spp: int) -> list[Frame]:
                   meta={"camera": {"to_world": torch.eye(4).tolist()}}) for index in range(count)]
 
 
+#: The ops counted as network arithmetic: convolutions and the matrix products of AFN's per-sample embedding
+#: (its 1 x 1 layers run as F.linear). Kernel application (native, or torch einsum / bmm) is left out.
+NETWORK_OPS = ("convolution", "mm", "addmm")
+
+
 def conv_flops(model: nn.Module, method, frame: Frame) -> int:
-    total = 0
-
-    def hook(module: nn.Conv2d, inputs: tuple, output: torch.Tensor) -> None:
-        nonlocal total
-        kh, kw = module.kernel_size
-        total += 2 * module.in_channels * module.out_channels * kh * kw * output[0, 0].numel() * output.shape[0]
-
-    handles = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, nn.Conv2d)]
-    with torch.no_grad():
+    """FLOPs (2 per multiply-add) of the network's convolutions and matrix products in one denoise() call."""
+    counter = FlopCounterMode(display=False)
+    with torch.no_grad(), counter:
         method.denoise(frame)
-    for handle in handles:
-        handle.remove()
     method.reset()
-    return total
+    counts = counter.get_flop_counts().get("Global", {})
+    return int(sum(count for op, count in counts.items() if op.__name__.split(".")[0] in NETWORK_OPS))
 
 
 def build_items(sizes: list[int], width: float, kpcn_width: float, spp: int, count: int, gemm_size: int) -> list[Item]:

@@ -223,6 +223,21 @@ def test_smape_and_temporal_loss_on_hand_computed_cases() -> None:
     assert math.isclose(float(total), reconstruction + 0.25 / 1.01, rel_tol=1e-6)
 
 
+def test_embedding_is_the_pointwise_network_averaged_over_samples() -> None:
+    """Eq. 1 by the definition: the embedding layers applied as 1 x 1 convolutions to every sample's image, then
+    the per-pixel mean over samples; 2 x 80 x 70 pixels cross the inference path's block boundaries."""
+    torch.manual_seed(3)
+    model = AFNNet(AFNConfig(width=0.25)).eval()
+    samples = torch.randn(2, 3, 18, 80, 70)
+    with torch.no_grad():
+        direct = model.embedding(samples.reshape(6, 18, 80, 70)).view(2, 3, -1, 80, 70).mean(dim=1)
+        embedded = model.embed(samples)
+    assert embedded.shape == (2, 32, 80, 70)
+    torch.testing.assert_close(embedded, direct, rtol=1e-5, atol=1e-6)
+    with torch.enable_grad():            # training takes the convolution path: the same values
+        torch.testing.assert_close(model.embed(samples), direct, rtol=1e-5, atol=1e-6)
+
+
 def test_full_width_network_has_the_papers_size() -> None:
     """Sec. 1: "a lightweight neural network (~940k parameters)"; at width 1 (K = 3, d = 8) ours has 942 240,
     and its output convolution has the 32 channels of the paper's last 'c32'."""
