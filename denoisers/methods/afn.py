@@ -56,7 +56,7 @@ class AFNDenoiser(Denoiser):
     @property
     def model(self) -> AFNNet:
         if self._model is None:
-            from denoisers.training.loop import load_model
+            from denoisers.training.checkpoints import load_model
 
             model = load_model(self.checkpoint)
             if not isinstance(model, AFNNet):

@@ -43,7 +43,7 @@ class KPCNDenoiser(Denoiser):
     @property
     def model(self) -> KPCNNet:
         if self._model is None:
-            from denoisers.training.loop import load_model
+            from denoisers.training.checkpoints import load_model
 
             model = load_model(self.checkpoint)
             if not isinstance(model, KPCNNet):

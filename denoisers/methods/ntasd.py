@@ -72,7 +72,7 @@ class NTASDDenoiser(Denoiser):
     @property
     def model(self) -> NTASDNet:
         if self._model is None:
-            from denoisers.training.loop import load_model
+            from denoisers.training.checkpoints import load_model
 
             model = load_model(self.checkpoint)
             self._check_variant(model)

@@ -64,7 +64,7 @@ class RecurrentAutoencoderDenoiser(Denoiser):
     @property
     def model(self) -> RecurrentAutoencoder:
         if self._model is None:
-            from denoisers.training.loop import load_model
+            from denoisers.training.checkpoints import load_model
 
             model = load_model(self.checkpoint)
             if not isinstance(model, RecurrentAutoencoder):

@@ -25,7 +25,6 @@ the file, as does a checkpoint written for a different configuration.
 from __future__ import annotations
 
 import copy
-import hashlib
 import io
 import json
 import math
@@ -41,12 +40,16 @@ import numpy as np
 import torch
 from torch import nn
 
+from denoisers.training.checkpoints import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, CheckpointError, fingerprint,
+                                            load_checkpoint, load_model, rng_state, save_atomic, set_rng_state)
 from denoisers.training.curves import plot_curves
 from denoisers.training.precision import log_choice, loss_model, prepare_model, resolve
+from denoisers.training.schedules import lr_factor
 from scenegen.atomic import write_text_atomic
 
-CHECKPOINT_FORMAT = "mcdenoise-checkpoint"
-CHECKPOINT_VERSION = 1
+__all__ = ["BatchSource", "CheckpointError", "NonFiniteLossError", "Trainer", "TrainerConfig", "TrainResult",
+           "TrainingTask", "load_checkpoint", "load_model", "lr_factor"]
+
 CHECKPOINT_NAME = "checkpoint.pt"
 BEST_NAME = "best.pt"
 CURVES_CSV = "curves.csv"
@@ -61,10 +64,6 @@ HIGHER_IS_BETTER: frozenset[str] = frozenset({"ssim", "psnr"})
 _NOT_FINGERPRINTED = frozenset({"max_steps", "max_seconds", "progress", "threads", "checkpoint_every",
                                 "checkpoint_seconds", "log_every",
                                 "precision", "channels_last"})  # fingerprinted as resolved ("compute")
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint cannot be used; the message names the file and why."""
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -89,39 +88,6 @@ class TrainingTask(Protocol):
 class BatchSource(Protocol):
     def batch(self, index: int, batch_size: int) -> Any: ...
     def describe(self) -> dict[str, Any]: ...
-
-
-# ------------------------------------------------------------------------------------- schedules
-def lr_factor(schedule: Mapping[str, Any], step: int) -> float:
-    """Multiplier of the base learning rate for optimiser step ``step`` (0-based).
-
-    * ``{"name": "constant"}``
-    * ``{"name": "ramp_inv_sqrt", "ramp_steps": R, "ramp_factor": k}`` -- Chaitanya et al. 2017 §5.3:
-      "ramped up tenfold using a geometric progression during the first 10 training epochs, and then
-      decreased according to 1/sqrt(t)": k^(step/R - 1) for step < R (1/k -> 1), then sqrt(R / step).
-      The base rate is the peak (0.001 in the paper); R is in steps here (the paper: 10 of 500 epochs).
-    * ``{"name": "cosine", "warmup_steps": W, "total_steps": S, "min_factor": m}`` -- linear warm-up,
-      then cosine decay from 1 to m at step S (m afterwards).
-    * ``{"name": "step", "every": n, "gamma": g}`` -- g^(step // n).
-    """
-    name = schedule.get("name", "constant")
-    if name == "constant":
-        return 1.0
-    if name == "ramp_inv_sqrt":
-        ramp, factor = int(schedule.get("ramp_steps", 100)), float(schedule.get("ramp_factor", 10.0))
-        if ramp < 1 or factor < 1:
-            raise ValueError(f"ramp_inv_sqrt needs ramp_steps >= 1 and ramp_factor >= 1, got {dict(schedule)}")
-        return factor ** (step / ramp - 1.0) if step < ramp else math.sqrt(ramp / step)
-    if name == "cosine":
-        warmup, total = int(schedule.get("warmup_steps", 0)), int(schedule["total_steps"])
-        minimum = float(schedule.get("min_factor", 0.0))
-        if step < warmup:
-            return (step + 1) / warmup
-        progress = min(1.0, (step - warmup) / max(1, total - warmup))
-        return minimum + (1.0 - minimum) * 0.5 * (1.0 + math.cos(math.pi * progress))
-    if name == "step":
-        return float(schedule.get("gamma", 0.1)) ** (step // int(schedule["every"]))
-    raise ValueError(f"unknown learning-rate schedule {name!r}; known: constant, ramp_inv_sqrt, cosine, step")
 
 
 # ---------------------------------------------------------------------------------------- config
@@ -196,79 +162,6 @@ class TrainResult:
     curves_png: Path
 
 
-# ----------------------------------------------------------------------------------- checkpoints
-def _save_atomic(obj: Any, path: Path) -> None:
-    """torch.save into a hidden temporary sibling, fsync, rename: ``path`` is always a complete file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    staging = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    buffer = io.BytesIO()
-    torch.save(obj, buffer)
-    with open(staging, "wb") as handle:
-        handle.write(buffer.getbuffer())
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(staging, path)
-
-
-def load_checkpoint(path: Path | str) -> dict[str, Any]:
-    """Read a checkpoint or model file written by the trainer; :class:`CheckpointError` naming the file if
-    it is missing, unreadable, truncated or not one of ours."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: checkpoint file not found")
-    try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # zip/pickle errors of a truncated or overwritten file
-        raise CheckpointError(f"{path}: corrupt or unreadable checkpoint ({type(error).__name__}: {error}); "
-                              f"delete it to train from scratch") from error
-    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")
-    if data.get("version") != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {data.get('version')}, this code reads {CHECKPOINT_VERSION}")
-    missing = [k for k in ("net", "model_state") if k not in data]
-    if data.get("kind") == "training":
-        missing += [k for k in ("optimizer_state", "step", "rng", "history", "fingerprint") if k not in data]
-    if missing:
-        raise CheckpointError(f"{path}: checkpoint lacks {missing}")
-    return data
-
-
-def load_model(path: Path | str) -> nn.Module:
-    """The network stored in a checkpoint or model file (architecture rebuilt from its spec), in eval mode."""
-    from denoisers.nets import build_net
-
-    data = load_checkpoint(path)
-    try:
-        model = build_net(data["net"]["name"], data["net"]["config"])
-        model.load_state_dict(data["model_state"])
-    except (KeyError, TypeError, ValueError, RuntimeError) as error:
-        raise CheckpointError(f"{path}: cannot rebuild the network from the checkpoint ({error})") from error
-    return model.eval()
-
-
-def _rng_state() -> dict[str, Any]:
-    version, mt_state, gauss = random.getstate()
-    name, keys, position, has_gauss, cached = np.random.get_state()
-    return {"torch": torch.get_rng_state(),
-            "numpy": {"name": name, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(position),
-                      "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
-            "python": {"version": version, "state": list(mt_state), "gauss": gauss}}
-
-
-def _set_rng_state(state: Mapping[str, Any]) -> None:
-    torch.set_rng_state(state["torch"])
-    numpy_state = state["numpy"]
-    np.random.set_state((numpy_state["name"], numpy_state["keys"].numpy().astype(np.uint32), numpy_state["pos"],
-                         numpy_state["has_gauss"], numpy_state["cached_gaussian"]))
-    python_state = state["python"]
-    random.setstate((python_state["version"], tuple(python_state["state"]), python_state["gauss"]))
-
-
-def _fingerprint(data: Mapping[str, Any]) -> str:
-    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
-
-
 # --------------------------------------------------------------------------------------- trainer
 class Trainer:
     """Trains ``task``'s model on ``train_data`` batches, validating on ``validation`` batches.
@@ -289,7 +182,7 @@ class Trainer:
             "validation": [getattr(b, "describe", lambda: repr(b))() for b in self.validation],
             "extra": dict(fingerprint_extra or {}), "compute": self.compute.fingerprint(),
         }
-        self.fingerprint = _fingerprint(self.fingerprint_data)
+        self.fingerprint = fingerprint(self.fingerprint_data)
         self.model: nn.Module | None = None
         self.ema: nn.Module | None = None                 # averaged weights (config.ema_decay), else None
         self._loss_model: nn.Module | None = None          # what task.loss calls (see _setup)
@@ -336,7 +229,7 @@ class Trainer:
             self.optimizer.load_state_dict(data["optimizer_state"])
             if self.ema is not None:
                 self.ema.load_state_dict(data["ema_state"])
-            _set_rng_state(data["rng"])
+            set_rng_state(data["rng"])
         except (KeyError, TypeError, ValueError, RuntimeError) as error:
             raise CheckpointError(f"{self.checkpoint_path}: cannot restore the training state ({error})") from error
         self.step = self._checkpoint_step = int(data["step"])
@@ -541,13 +434,13 @@ class Trainer:
 
     # ---------------------------------------------------------------------------------- files
     def _save_model(self, path: Path, metrics: Mapping[str, float]) -> None:
-        _save_atomic({"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "kind": "model",
+        save_atomic({"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "kind": "model",
                       "net": self.task.net_spec(), "model_state": self.evaluated_model.state_dict(),
                       "step": self.step, "metrics": dict(metrics)}, path)
 
     def save_checkpoint(self) -> None:
         """Write ``checkpoint.pt`` (atomically) and refresh the curves."""
-        _save_atomic({
+        save_atomic({
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "kind": "training",
             "fingerprint": self.fingerprint,
             "fingerprint_data": json.dumps(self.fingerprint_data, sort_keys=True, default=str),
@@ -558,7 +451,7 @@ class Trainer:
                           "next_lr": self.config.lr * lr_factor(self.config.schedule, self.step)},
             "step": self.step, "elapsed_seconds": self.elapsed,
             "sampler": {"next_batch": self.step, "batch_size": self.config.batch_size},
-            "rng": _rng_state(), "history": self.history, "accumulator": dict(self._accumulator),
+            "rng": rng_state(), "history": self.history, "accumulator": dict(self._accumulator),
             "best": self.best, "last_validation_step": self.last_validation_step,
         }, self.checkpoint_path)
         self._checkpoint_step = self.step
