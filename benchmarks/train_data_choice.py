@@ -27,7 +27,8 @@ Usage: python benchmarks/train_data_choice.py [--config config/config.yaml] [--m
 Arm syntax: key=value[,key=value...] over the training_data keys of the schema, e.g.
 ``crops=importance,importance_floor=0.1``; ``net.<key>=value`` overrides the network instead (a size
 comparison on identical data, e.g. ``net.width=0.5 net.width=0.25``), ``opt.<key>=value`` the optimiser
-(e.g. ``opt.ema_decay=null opt.ema_decay=0.99``), ``comp.<key>=value`` the step arithmetic (e.g.
+(e.g. ``opt.ema_decay=null opt.ema_decay=0.99``; dotted keys nest: ``opt.schedule.name=cosine,
+opt.schedule.total_steps=3000`` replaces the schedule), ``comp.<key>=value`` the step arithmetic (e.g.
 ``comp.precision=fp32 comp.precision=bf16``).
 """
 from __future__ import annotations
@@ -92,12 +93,18 @@ def split_arm(text: str) -> tuple[dict[str, str], str]:
 
 
 def prefixed_overrides(text: str, prefix: str = NET_PREFIX) -> dict[str, Any]:
-    """An arm's ``<prefix><key>=value`` parts (``net.``, ``opt.`` or ``comp.``) as {key: value}."""
-    out = {}
+    """An arm's ``<prefix><key>=value`` parts (``net.``, ``opt.`` or ``comp.``) as {key: value}; a dotted key
+    builds a nested value, e.g. ``opt.schedule.name=cosine,opt.schedule.total_steps=3000`` -> {'schedule':
+    {'name': 'cosine', 'total_steps': 3000}} (which replaces the whole base value of that key)."""
+    out: dict[str, Any] = {}
     for part in filter(None, split_arm(text)[1].split(",")):
         key, _, value = part.partition("=")
         if key.strip().startswith(prefix):
-            out[key.strip()[len(prefix):]] = yaml.safe_load(value)
+            *parents, leaf = key.strip()[len(prefix):].split(".")
+            target = out
+            for parent in parents:
+                target = target.setdefault(parent, {})
+            target[leaf] = yaml.safe_load(value)
     return out
 
 

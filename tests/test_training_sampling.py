@@ -199,6 +199,8 @@ def test_data_choice_arms_name_their_training_scenes(tmp_path) -> None:
     assert prefixed_overrides("net.width=0.25,layers=first,net.levels=4") == {"width": 0.25, "levels": 4}
     assert prefixed_overrides("net.width=0.25,opt.ema_decay=0.99", OPT_PREFIX) == {"ema_decay": 0.99}
     assert prefixed_overrides("comp.precision=fp32,layers=first", COMPUTE_PREFIX) == {"precision": "fp32"}
+    assert prefixed_overrides("opt.schedule.name=cosine,opt.schedule.total_steps=30,opt.lr=0.002", OPT_PREFIX) == {
+        "schedule": {"name": "cosine", "total_steps": 30}, "lr": 0.002}
     assert "precision" not in parse_arm("comp.precision=fp32", {"length": 3, "crop": 32, "spp": 1})
     base = {"length": 3, "crop": 32, "spp": 1}
     data = parse_arm("net.width=0.25,layers=first,opt.ema_decay=null", base)
