@@ -416,3 +416,11 @@ def test_learning_rate_schedules() -> None:
     with pytest.raises(ValueError, match="unknown learning-rate schedule"):
         lr_factor({"name": "linear"}, 0)
     assert math.isclose(TrainerConfig(max_steps=1).betas[1], 0.99)                # the paper's Adam decay rates
+    # A cosine schedule without total_steps decays over the step budget (and is fingerprinted that way).
+    budgeted = TrainerConfig(max_steps=200, schedule={"name": "cosine", "warmup_steps": 10})
+    assert budgeted.schedule["total_steps"] == 200
+    assert lr_factor(budgeted.schedule, 105) == pytest.approx(0.5) and lr_factor(budgeted.schedule, 200) == 0.0
+    longer = TrainerConfig(max_steps=300, schedule={"name": "cosine", "warmup_steps": 10})
+    assert budgeted.fingerprint_data() != longer.fingerprint_data()   # max_steps alone is not fingerprinted
+    with pytest.raises(ValueError, match="max_steps"):
+        TrainerConfig(max_seconds=5.0, schedule={"name": "cosine"})

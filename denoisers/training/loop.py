@@ -103,6 +103,7 @@ class TrainerConfig:
     (:func:`denoisers.training.precision.resolve`); validation always runs in fp32.
     ``ema_decay`` (None = off): validate and save an exponential moving average of the weights, updated after
     every step with decay min(ema_decay, (1 + step) / (10 + step)) (the early steps average over fewer steps).
+    A ``cosine`` schedule without ``total_steps`` decays over ``max_steps`` (the step budget).
     """
 
     seed: int = 0
@@ -136,6 +137,10 @@ class TrainerConfig:
             raise ValueError("training needs a budget: set max_steps and/or max_seconds")
         if self.batch_size < 1 or self.log_every < 1 or self.validate_every < 0 or self.checkpoint_every < 0:
             raise ValueError(f"need batch_size >= 1, log_every >= 1, validate_every >= 0, checkpoint_every >= 0: {self}")
+        if self.schedule.get("name") == "cosine" and self.schedule.get("total_steps") is None:
+            if self.max_steps is None:
+                raise ValueError("a cosine schedule without total_steps decays over max_steps: set max_steps")
+            self.schedule = {**self.schedule, "total_steps": int(self.max_steps)}   # fingerprinted as resolved
         lr_factor(self.schedule, 0)  # rejects unknown schedules early
         resolve(self.precision, self.channels_last)  # and unknown precisions
 

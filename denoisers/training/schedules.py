@@ -15,7 +15,8 @@ def lr_factor(schedule: Mapping[str, Any], step: int) -> float:
       decreased according to 1/sqrt(t)": k^(step/R - 1) for step < R (1/k -> 1), then sqrt(R / step).
       The base rate is the peak (0.001 in the paper); R is in steps here (the paper: 10 of 500 epochs).
     * ``{"name": "cosine", "warmup_steps": W, "total_steps": S, "min_factor": m}`` -- linear warm-up,
-      then cosine decay from 1 to m at step S (m afterwards).
+      then cosine decay from 1 to m at step S (m afterwards); the trainer sets S to its step budget when the
+      schedule leaves it out.
     * ``{"name": "step", "every": n, "gamma": g}`` -- g^(step // n).
     """
     name = schedule.get("name", "constant")
