@@ -62,8 +62,12 @@ AFFINITY_SOURCES = (Path(__file__).with_name("affinity.cpp"),)
 #: -O3 without -ffast-math: NaN/Inf semantics and results stay as written. -ffp-contract=off keeps
 #: FMA contraction out, so the baseline and AVX2 clones of each loop give identical results;
 #: -fno-trapping-math and -fno-math-errno only drop FP-exception and errno side effects, which lets
-#: GCC vectorise selects and sqrt. No -march: the build may be used on another CPU.
-CFLAGS = ("-O3", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno")
+#: GCC vectorise selects and sqrt. No -march: the build may be used on another CPU. -fopenmp (compile and
+#: link) is what makes at::parallel_for split rows across torch's threads: without _OPENMP the ATen header
+#: runs the loop serially whatever torch.set_num_threads says. The extension then needs libgomp.so.1, the
+#: soname of the runtime torch has already loaded, so both share one OpenMP thread pool.
+CFLAGS = ("-O3", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno", "-fopenmp")
+LDFLAGS = ("-fopenmp",)
 
 _lock = threading.Lock()
 _built: list[ModuleType | None] = []     # empty until the first build attempt, then [module or None]
@@ -138,7 +142,7 @@ def build_key(name: str | None = None, sources: tuple[Path, ...] | None = None) 
     digest = hashlib.sha256()
     for path in sources or SOURCES:
         digest.update(Path(path).read_bytes())
-    digest.update(repr((CFLAGS, name or EXTENSION_NAME, torch.__version__, sys.version_info[:2])).encode())
+    digest.update(repr((CFLAGS, LDFLAGS, name or EXTENSION_NAME, torch.__version__, sys.version_info[:2])).encode())
     return digest.hexdigest()[:16]
 
 
@@ -156,7 +160,8 @@ def _torch_load(directory: Path, name: str | None = None, sources: list[str] | N
 
     _put_ninja_on_path()
     return cpp_extension.load(name=name or EXTENSION_NAME, sources=sources or [str(path) for path in SOURCES],
-                              extra_cflags=list(cflags or CFLAGS), build_directory=str(directory), verbose=False)
+                              extra_cflags=list(cflags or CFLAGS), extra_ldflags=list(LDFLAGS),
+                              build_directory=str(directory), verbose=False)
 
 
 def _import_built(directory: Path, name: str | None = None) -> ModuleType:
