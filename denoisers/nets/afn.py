@@ -219,7 +219,10 @@ class AFNNet(nn.Module):
     def parameters_from(self, x: torch.Tensor) -> KernelParameters:
         c = self.config
         height, width = x.shape[-2:]
-        out = self.unet(pad_to(x, self.unet.multiple))[:, :, :height, :width].float()
+        # One float32, contiguous (NCHW) copy of the channels-last output: the kernels read per-channel planes,
+        # and slicing them out of channels-last memory cost one strided copy per kernel call.
+        out = self.unet(pad_to(x, self.unet.multiple))[:, :, :height, :width].to(
+            torch.float32, memory_format=torch.contiguous_format)
         features, bandwidth, center, logits = [], [], [], []
         for k in range(c.kernels):
             block = out[:, k * c.kernel_channels:(k + 1) * c.kernel_channels]
