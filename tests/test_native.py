@@ -400,3 +400,20 @@ def test_the_kernel_source_ships_in_a_wheel(tmp_path) -> None:
                     str(tmp_path / "wheel"), str(source)], check=True, capture_output=True, timeout=600)
     wheel = next((tmp_path / "wheel").glob("*.whl"))
     assert "denoisers/native/atrous.cpp" in zipfile.ZipFile(wheel).namelist()
+
+
+def test_native_loops_use_torchs_threads() -> None:
+    """The extensions are built with OpenMP: at::parallel_for only splits work under _OPENMP (without it every
+    native kernel ran on one thread whatever torch.set_num_threads said)."""
+    assert "-fopenmp" in native.CFLAGS and "-fopenmp" in native.LDFLAGS
+    module = native.load_affinity()
+    if module is None:
+        pytest.skip("native affinity extension unavailable")
+    previous = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert module.parallel_workers(64) == 2
+        torch.set_num_threads(1)
+        assert module.parallel_workers(64) == 1
+    finally:
+        torch.set_num_threads(previous)

@@ -521,8 +521,23 @@ std::tuple<MaybeTensor, MaybeTensor, MaybeTensor, MaybeTensor, MaybeTensor> affi
 
 }  // namespace
 
+// How many distinct workers at::parallel_for gives `tasks` one-item tasks: what the build's OpenMP setting does
+// with torch's thread count (1 when the extension was compiled without _OPENMP, whatever that count).
+int64_t parallel_workers(int64_t tasks) {
+    std::vector<int> used(static_cast<size_t>(std::max<int64_t>(1, at::get_num_threads())), 0);
+    at::parallel_for(0, tasks, 1, [&](int64_t, int64_t) {
+        const int id = at::get_thread_num();
+        if (id >= 0 && static_cast<size_t>(id) < used.size()) {
+            used[static_cast<size_t>(id)] = 1;
+        }
+    });
+    return std::count(used.begin(), used.end(), 1);
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "Affinity kernel sums of Isik et al. 2021 (denoisers/native/affinity.cpp).";
+    m.def("parallel_workers", &parallel_workers,
+          "distinct at::parallel_for workers over `tasks` one-item tasks (1 without OpenMP)", pybind11::arg("tasks"));
     m.def("affinity_sums", &affinity_sums,
           "(num, den): w_t = exp(-a ||f(p) - g(p+o_t)||^2) (center(p) at the centre tap if given), 0 outside; "
           "num = sum_t w_t image(p+o_t), den = sum_t w_t",
