@@ -25,10 +25,8 @@ the file, as does a checkpoint written for a different configuration.
 from __future__ import annotations
 
 import copy
-import io
 import json
 import math
-import os
 import random
 import time
 from collections.abc import Callable, Mapping, Sequence
