@@ -66,7 +66,8 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--model-id", required=True, help="model id (training.models or {ablation}_{variant})")
     train.add_argument("--render-root", type=Path, required=True, help="results/renders (one folder per scene)")
     train.add_argument("--out", type=Path, required=True, help="model directory results/models/{model} (atomic)")
-    train.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
+    train.add_argument("--threads", type=int, default=None,
+                       help="torch threads; default and only accepted value: training.threads (the weights depend on it)")
 
     tune = sub.add_parser("tune", help="grid-search a baseline's parameters on the training scenes (tuning.methods)")
     tune.add_argument("--config", type=Path, required=True, help="resolved config YAML")

@@ -142,6 +142,30 @@ def test_the_work_directory_ignores_the_budget_but_not_the_settings(tmp_path: Pa
     assert work_dir_for(tmp_path, cfg, spec) != work_dir_for(tmp_path, wider, model_spec(wider, "rae"))
 
 
+def test_the_training_thread_count_is_part_of_every_models_settings(tmp_path: Path) -> None:
+    """The weights depend on torch's thread count, so training.threads is a setting: every model (ablation
+    variants included) carries it, and changing it changes the digests, the work directory and retrains."""
+    from denoisers.experiment import Lineage
+
+    cfg = smoke_config()
+    two = copy.deepcopy(cfg)
+    two["training"]["threads"] = 2
+    assert {spec.threads for spec in model_specs(cfg)} == {1} and {spec.threads for spec in model_specs(two)} == {2}
+    for spec in model_specs(cfg):
+        assert Lineage(cfg).model(spec.id) != Lineage(two).model(spec.id), spec.id
+    assert work_dir_for(tmp_path, cfg, model_spec(cfg, "rae")) != work_dir_for(tmp_path, two, model_spec(two, "rae"))
+    # A variant equal to its base at one thread count is equal at the other too.
+    assert {s.id: same_training_as(cfg, s.id) for s in model_specs(cfg)} == \
+        {s.id: same_training_as(two, s.id) for s in model_specs(two)}
+
+
+def test_a_training_job_refuses_another_thread_count_than_the_configs(tmp_path: Path) -> None:
+    cfg = tiny_training_config()
+    with pytest.raises(ValueError, match="training.threads = 1"):
+        train_model(cfg, "rae", tmp_path / "renders", tmp_path / "models" / "rae", threads=2, progress=False)
+    assert not (tmp_path / "models").exists()
+
+
 # ---------------------------------------------------------------------------------------- the job
 def test_a_training_job_publishes_the_model_and_is_deterministic(tmp_path: Path, synthetic_renders) -> None:
     cfg = tiny_training_config()

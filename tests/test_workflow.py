@@ -611,6 +611,9 @@ def test_training_reruns_only_when_its_settings_or_data_change(stub_workflow: Pa
     volume = dry_run("train", "--configfile", variant("e.yaml", lambda c: c["volumes"].update(reference_spp=32)),
                      cwd=work)
     assert volume["train_denoiser"] == len(smoke) - len(surface_models) == 1
+    # The training thread count is a setting of every model (the weights depend on it): all retrain.
+    threads = dry_run("train", "--configfile", variant("f.yaml", lambda c: c["training"].update(threads=2)), cwd=work)
+    assert threads["train_denoiser"] == len(smoke)
 
 
 def rule_names() -> set[str]:

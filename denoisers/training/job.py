@@ -152,17 +152,24 @@ def publish_same_training(cfg: dict, model_id: str, source_dir: Path, out_dir: P
     return summary
 
 
-def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, threads: int = 2,
+def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, threads: int | None = None,
                 progress: bool = True) -> dict[str, Any]:
-    """Train model ``model_id`` of ``cfg`` on ``render_root/<scene>`` clips; write ``out_dir``; return the summary."""
+    """Train model ``model_id`` of ``cfg`` on ``render_root/<scene>`` clips; write ``out_dir``; return the summary.
+
+    The step runs on ``training.threads`` torch threads, which are part of the model's settings (the weights
+    depend on them); ``threads``, if given, must agree (ValueError otherwise)."""
     import torch
 
     from denoisers.training.data import fixed_batches, load_training_clips
     from denoisers.training.loop import Trainer, load_checkpoint
     from denoisers.training.tasks import task_builder
 
-    torch.set_num_threads(int(threads))
     spec = model_spec(cfg, model_id)
+    if threads is not None and int(threads) != spec.threads:
+        raise ValueError(f"model {model_id!r} trains on training.threads = {spec.threads} torch threads (its weights "
+                         f"depend on the count), but {threads} were asked for: change training.threads instead")
+    threads = spec.threads
+    torch.set_num_threads(threads)
     source = same_training_as(cfg, model_id)
     if source is not None:
         return publish_same_training(cfg, model_id, Path(out_dir).parent / source, Path(out_dir))

@@ -65,7 +65,8 @@ def _base_spec(cfg: dict, entry: Mapping[str, Any]) -> ModelSpec:
         data=_schema_defaults("training_data", entry.get("data")),
         optimizer=_schema_defaults("training_optimizer", entry.get("optimizer")),
         budget=_schema_defaults("training_budget", entry.get("budget")),
-        compute=_schema_defaults("training_compute", entry.get("compute")))
+        compute=_schema_defaults("training_compute", entry.get("compute")),
+        threads=int((cfg.get("training") or {}).get("threads") or 1))
 
 
 def model_specs(cfg: dict) -> list[ModelSpec]:
@@ -86,7 +87,8 @@ def model_specs(cfg: dict) -> list[ModelSpec]:
                 loss={**base.loss, **copy.deepcopy(variant.get("loss") or {})},
                 data=_schema_defaults("training_data", {**base.data, **(variant.get("data") or {})}),
                 optimizer=copy.deepcopy(base.optimizer), budget=copy.deepcopy(budget),
-                ablation=ablation["id"], variant=variant["id"], compute=copy.deepcopy(base.compute)))
+                ablation=ablation["id"], variant=variant["id"], compute=copy.deepcopy(base.compute),
+                threads=base.threads))
     return specs
 
 
@@ -100,7 +102,7 @@ def model_spec(cfg: dict, model_id: str) -> ModelSpec:
 
 
 #: What determines a model's weights besides its id and ablation labels (ModelSpec.settings() minus those).
-_TRAINING_KEYS = ("method", "seed", "net", "loss", "data", "optimizer", "budget", "compute")
+_TRAINING_KEYS = ("method", "seed", "net", "loss", "data", "optimizer", "budget", "compute", "threads")
 
 
 def same_training_as(cfg: dict, model_id: str) -> str | None:

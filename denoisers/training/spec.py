@@ -26,9 +26,12 @@ class ModelSpec:
     variant: str | None = None
     #: Step arithmetic as configured (precision auto / bf16 / fp32, channels_last; denoisers.training.precision).
     compute: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+    #: Torch threads of the training step (``training.threads``). Part of the settings: the trained weights
+    #: depend on it (oneDNN splits its reductions by thread, so 1 and 2 threads differ after a few steps).
+    threads: int = 1
 
     def settings(self) -> dict[str, Any]:
         """Everything that determines the trained weights (with the data), for digests and settings.json."""
         return {"id": self.id, "method": self.method, "seed": self.seed, "net": self.net, "loss": self.loss,
                 "data": self.data, "optimizer": self.optimizer, "budget": self.budget,
-                "ablation": self.ablation, "variant": self.variant, "compute": self.compute}
+                "ablation": self.ablation, "variant": self.variant, "compute": self.compute, "threads": self.threads}

@@ -23,10 +23,12 @@ rule train_denoiser:
         results_path("benchmarks/train/{model}.tsv")
     conda:
         "../envs/harness.yaml"
+    # training.threads: the job trains on exactly these (part of the model's settings), even when Snakemake
+    # scales the rule's threads down to --cores.
     threads: config["training"]["threads"]
     resources:
         mem_mb=8000,
         runtime=lambda wildcards: training_runtime_minutes(config, wildcards.model),  # from budget.max_seconds
     shell:
         "python -m denoisers train --config {params.config_file} --model-id {wildcards.model}"
-        " --render-root {params.render_root} --out {output.model_dir} --threads {threads} > {log} 2>&1"
+        " --render-root {params.render_root} --out {output.model_dir} > {log} 2>&1"
