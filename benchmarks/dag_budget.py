@@ -21,8 +21,9 @@ Nothing is rendered or trained; every figure is a measured rate times the work t
 * every other rule: the job count of ``snakemake -n --forceall`` times the median seconds per job of that
   rule in a finished run's ``benchmarks/`` (``--run``); rules the run never ran are listed as unmeasured.
 
-Render, training and timing jobs take every core (one at a time); the others run ``cores / threads`` at a
-time (evaluation.threads), so their wall time is their summed time divided by that.
+Render and timing jobs take every core (one at a time); training jobs run ``cores / training.threads`` at a
+time (an observed s/step is the rate the model had beside another training: what it will have again), the
+others ``cores / evaluation.threads``, so their wall time is their summed time divided by that.
 
 Usage: python benchmarks/dag_budget.py [--config config/config.yaml] --renders RESULTS/renders [...]
            --train-speed training.json [--run RESULTS [RESULTS ...]] [--cores 2] [--reference-speed reference_speed.json]
@@ -267,8 +268,9 @@ def main() -> None:
     observed = observed_step_seconds(args.run) if args.run and not args.step_only else {}
     training = training_work(cfg, json.loads(args.train_speed.read_text()), observed)
     print(training.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
-    stages.append(("train_denoiser", len(training), float(training["seconds"].sum()),
-                   "steps x s/step (observed: validation included; step records: not)"))
+    trainings_at_once = max(1, args.cores // int(cfg["training"].get("threads") or 1))
+    stages.append(("train_denoiser", len(training), float(training["seconds"].sum()) / trainings_at_once,
+                   f"steps x s/step (observed: validation included; step records: not), {trainings_at_once} at a time"))
     unmeasured = []
     if args.run is not None:
         counts, medians, source = dry_run_counts(args.config), {}, {}
