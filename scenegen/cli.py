@@ -34,6 +34,12 @@ def _parser() -> argparse.ArgumentParser:
     masks.add_argument("--out", type=Path, required=True, help="<output_dir>/stability/{scene}")
     masks.add_argument("--threads", type=int, default=None, help="Dr.Jit worker threads")
     sub.add_parser("scenarios", help="list the registered stability scenarios (config key stability.scenarios)")
+    share = sub.add_parser("share-renders", help="hard-link another experiment's scenes and renders into this "
+                                                 "config's output folder where both configs produce them identically")
+    share.add_argument("--from", dest="source", type=Path, required=True,
+                       help="config whose output folder holds the renders, e.g. config/config.yaml")
+    share.add_argument("--config", type=Path, required=True, help="config to share them with, e.g. config/isik2021.yaml")
+    share.add_argument("--dry-run", action="store_true", help="only list what would be shared")
     return parser
 
 
@@ -48,9 +54,20 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{scenario.name:18s} focus: {', '.join(scenario.focus) or '(events)':28s} {scenario.description}")
         return 0
     from scenegen.config import load_config
-    from scenegen import jobs
 
     cfg = load_config(args.config)
+    if args.command == "share-renders":
+        from scenegen.share import share_renders
+
+        result = share_renders(load_config(args.source), cfg, dry_run=args.dry_run)
+        for path, why in result.skipped:
+            print(f"kept   {path}: {why}")
+        for path in result.shared:
+            print(f"{'would share' if args.dry_run else 'shared'} {path}")
+        print(f"{len(result.shared)} folders {'to share' if args.dry_run else 'shared'}, {len(result.skipped)} left")
+        return 0
+    from scenegen import jobs
+
     if getattr(args, "threads", None):
         from scenegen.mitsuba_env import init_mitsuba, set_render_threads
 
