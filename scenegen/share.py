@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from scenegen.atomic import atomic_directory
 from scenegen.config import chunk_count, output_root, scene_ids, stability_scene_ids, volume_scene_ids
 from scenegen.digests import render_digest, scene_digest
 
@@ -53,16 +54,10 @@ def _link_or_copy(src: str, dst: str) -> None:
 
 def _copy_tree(src: Path, dst: Path) -> None:
     """Copy directory ``src`` to ``dst`` (absent) by hard links, times kept, appearing only when complete."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    staging = dst.parent / f".{dst.name}.share-{os.getpid()}"
-    shutil.rmtree(staging, ignore_errors=True)
-    try:
-        shutil.copytree(src, staging, copy_function=_link_or_copy,
-                        ignore=shutil.ignore_patterns(".*.tmp-*", ".*.share-*"))   # others' unfinished staging
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    os.replace(staging, dst)
+    with atomic_directory(dst) as staging:
+        # copytree ends with the root's copystat, so the staging folder takes src's times too.
+        shutil.copytree(src, staging, dirs_exist_ok=True, copy_function=_link_or_copy,
+                        ignore=shutil.ignore_patterns(".*.tmp-*"))   # unfinished staging of interrupted jobs
 
 
 def share_renders(source: dict[str, Any], target: dict[str, Any], dry_run: bool = False) -> ShareResult:
