@@ -18,7 +18,7 @@ by ``+``, or a range ``train_000..train_005``) and ``root`` -- e.g. the data-sca
 ``root=B,train=train_000..train_023`` (24 scenes with 256-spp references). Every arm prints the render time of
 its training data: the sum of the ``timing_s`` of the noisy and reference sidecars of its training clips.
 Runs go to ``--out``/<arm>/ (trainer directories: a rerun with the same settings resumes, and finishes at once
-when done). Training is slow on a CPU: the check in the README uses tiny settings only.
+when done). Training is slow on a CPU: the checks in docs/findings.md use tiny settings only.
 
 Usage: python benchmarks/train_data_choice.py [--config config/config.yaml] [--model rae]
            [--render-root results/smoke/renders] [--train-root DIR] [--train train_000] [--validate train_001]

@@ -66,7 +66,7 @@ def test_default_config_matches_the_shared_contract() -> None:
     assert cfg["scenes"]["frames"] == 16 and cfg["scenes"]["frames_per_chunk"] == 8
     assert cfg["render"]["width"] == cfg["render"]["height"] == 128
     assert cfg["render"]["spp"] == 8 and cfg["render"]["reference_spp"] == 1024
-    # Issue 11 §2, the data-scale measurement (README): many short training clips with 256-spp references.
+    # Issue 11 §2, the data-scale measurement (docs/findings.md): many short training clips with 256-spp references.
     assert cfg["scenes"]["train_frames"] == 8 and cfg["render"]["train_reference_spp"] == 256
 
 
