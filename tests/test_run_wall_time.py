@@ -1,0 +1,68 @@
+"""benchmarks/run_wall_time.py: job intervals from Snakemake logs, pauses and killed invocations, against
+hand-computed wall times."""
+from __future__ import annotations
+
+import sys
+from datetime import datetime
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
+try:
+    import run_wall_time as rwt
+finally:
+    sys.path.pop(0)
+
+
+def _t(hms: str) -> datetime:
+    return datetime.fromisoformat(f"2026-12-02T{hms}")
+
+
+def _job(stamp: str, rule: str, jobid: int) -> str:
+    return f"[Wed Dec  2 {stamp} 2026]\nlocalrule {rule}:\n    input: a\n    output: b\n    jobid: {jobid}\n" \
+           f"    wildcards: x=1\n\n"
+
+
+def _finish(stamp: str, jobid: int, rule: str) -> str:
+    return f"[Wed Dec  2 {stamp} 2026]\nFinished jobid: {jobid} (Rule: {rule})\n1 of 9 steps (11%) done\n"
+
+
+# Two overlapping jobs (10:00-10:10 and 10:05-10:20), a failed one (10:20-10:21), one killed (from 10:21).
+LOG = ("Using profile workflow/profiles/local for setting default command line arguments.\n"
+       + _job("10:00:00", "train_denoiser", 7) + _job("10:05:00", "denoise_clip", 8)
+       + _finish("10:10:00", 7, "train_denoiser") + _finish("10:20:00", 8, "denoise_clip")
+       + _job("10:20:00", "evaluate_clip", 9)
+       + "[Wed Dec  2 10:21:00 2026]\nError in rule evaluate_clip:\n    message: None\n    jobid: 9\n"
+       + _job("10:21:00", "train_denoiser", 10))
+
+
+def test_parse_log_reads_starts_finishes_errors_and_unfinished_jobs() -> None:
+    segment = rwt.parse_log(LOG, "a")
+    assert segment is not None
+    jobs = {job.jobid: job for job in segment.jobs}
+    assert (jobs[7].rule, jobs[7].start, jobs[7].end) == ("train_denoiser", _t("10:00:00"), _t("10:10:00"))
+    assert (jobs[8].start, jobs[8].end, jobs[8].failed) == (_t("10:05:00"), _t("10:20:00"), False)
+    assert (jobs[9].end, jobs[9].failed) == (_t("10:21:00"), True)
+    assert jobs[10].end is None and segment.last == _t("10:21:00")
+    assert rwt.parse_log("Using profile x\nNothing to be done.\n") is None
+
+
+def test_busy_wall_is_the_union_of_job_intervals_minus_pauses() -> None:
+    segment = rwt.parse_log(LOG, "a")
+    # killed at 10:40 (last heartbeat before the next invocation at 11:00; a later beat belongs to it)
+    later = rwt.parse_log(_job("11:00:00", "train_denoiser", 1) + _finish("11:30:00", 1, "train_denoiser"), "b")
+    rwt.close_segments([segment, later], [_t("10:30:00"), _t("10:40:00"), _t("11:10:00")])
+    assert segment.end == _t("10:40:00") and later.end == _t("11:30:00")
+    pauses = [(_t("10:15:00"), _t("10:25:00"))]
+    pieces = [piece for _, cut in rwt.job_intervals(segment, pauses) for piece in cut]
+    # union 10:00-10:40 = 40 min, minus the 10-minute pause
+    assert rwt.union_length(pieces) == 30 * 60
+    per_job = {job.jobid: sum((e - s).total_seconds() for s, e in cut) for job, cut in rwt.job_intervals(segment,
+                                                                                                         pauses)}
+    assert per_job == {7: 600, 8: 600, 9: 0, 10: 15 * 60}
+
+
+def test_segment_without_heartbeat_ends_at_its_last_stamp() -> None:
+    segment = rwt.parse_log(LOG, "a")
+    rwt.close_segments([segment], [])
+    assert segment.end == _t("10:21:00")
