@@ -11,10 +11,14 @@ pixels and frames, and the cast as in the report (``denoisers.report.color_balan
 input's own (is the noisy 1-spp divisor the cause?); colour-only models ignore it.
 
 ``--scenes`` names other scenes instead (training scenes: does a model show the cast on data it was trained on?);
-test scenes are refused.
+test scenes are refused. ``--rows`` adds untrained method rows (e.g. ``oidn svgf eaw`` with their registered
+defaults) for comparison. ``--brightness-bins`` adds, per model or row, the ratio of mean output to mean reference
+luminance (channel mean) within bins of the reference's per-pixel luminance (at most its median, median to 90th
+percentile, 90th to 99th, above the 99th; pixels of every frame): where the excess or deficit sits.
 
 Usage: python benchmarks/color_cast.py --results results --models results/models/rae results/models/rae_inputs_color
            [--config config/config.yaml] [--spp 1] [--albedo-layers 8] [--threads 2] [--scenes train_003 ...]
+           [--rows oidn svgf eaw] [--brightness-bins]
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from denoisers.methods.rae import RecurrentAutoencoderDenoiser  # noqa: E402
+from denoisers import registry  # noqa: E402
 from denoisers.registry import clip_frames  # noqa: E402
 from denoisers.report.color_balance import cast_of, channel_means  # noqa: E402
 from denoisers.training.models import training_split  # noqa: E402
@@ -48,6 +53,20 @@ def stream(method: RecurrentAutoencoderDenoiser, frames: list, albedo: list[torc
     return outputs
 
 
+#: Upper percentiles of the reference luminance bounding the bins of ``--brightness-bins``.
+BRIGHTNESS_PERCENTILES = (50.0, 90.0, 99.0)
+
+
+def brightness_bin_ratios(outputs: list[np.ndarray], references: np.ndarray) -> np.ndarray:
+    """(4,) mean output / mean reference luminance (channel mean) within bins of the reference's per-pixel
+    luminance: <= p50, p50-p90, p90-p99, > p99 of ``references`` (T, 3, H, W); outputs: T arrays (3, H, W)."""
+    reference = references.mean(axis=1)
+    output = np.stack(outputs).mean(axis=1)
+    edges = np.percentile(reference, BRIGHTNESS_PERCENTILES)
+    index = np.searchsorted(edges, reference, side="left")      # 0: <= p50, ..., 3: > p99
+    return np.array([output[index == b].mean() / reference[index == b].mean() for b in range(len(edges) + 1)])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--results", type=Path, required=True, help="results folder holding renders/<scene>")
@@ -58,6 +77,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--scenes", nargs="+", default=None,
                         help="scene ids instead of the validation scenes (e.g. training scenes: is it generalisation?)")
+    parser.add_argument("--rows", nargs="+", default=[], help="untrained method rows to compare (registered defaults)")
+    parser.add_argument("--brightness-bins", action="store_true",
+                        help="also print output / reference luminance per bin of reference luminance")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cfg = load_config(args.config)
@@ -70,7 +92,8 @@ def main() -> None:
         layers = max(args.spp, args.albedo_layers)
         clip = load_clip(args.results / "renders" / scene, buffers=RecurrentAutoencoderDenoiser.info.inputs,
                          spp=layers, reference=True)
-        reference = channel_means(list(clip.reference["radiance"]))
+        references = np.stack(list(clip.reference["radiance"]))
+        reference = channel_means(list(references))
         noisy = channel_means(list(clip.samples["radiance"][:, :args.spp].mean(axis=1)))
         print(f"{scene}  {'noisy input':34s} ratio {np.round(noisy / reference, 3)}  cast {cast_of(noisy / reference):.3f}")
         frames = list(clip_frames(clip, RecurrentAutoencoderDenoiser.info, args.spp))
@@ -84,9 +107,26 @@ def main() -> None:
             if wide_albedo is not None and method.model.config.demodulate:
                 variants.append((f"albedo of {args.albedo_layers} layers", wide_albedo))
             for label, albedo in variants:
-                ratio = channel_means(stream(method, frames, albedo)) / reference
-                name = f"{model_dir.name} ({label})"
-                print(f"{scene}  {name:34s} ratio {np.round(ratio, 3)}  cast {cast_of(ratio):.3f}", flush=True)
+                outputs = stream(method, frames, albedo)
+                report(scene, f"{model_dir.name} ({label})", outputs, reference, references, args.brightness_bins)
+        for row in args.rows:
+            method = registry.build(row)
+            row_clip = load_clip(args.results / "renders" / scene, buffers=method.info.inputs, spp=args.spp)
+            method.reset()
+            with torch.no_grad():
+                outputs = [method.denoise(frame).numpy() for frame in clip_frames(row_clip, method.info, args.spp)]
+            report(scene, row, outputs, reference, references, args.brightness_bins)
+
+
+def report(scene: str, name: str, outputs: list[np.ndarray], reference: np.ndarray, references: np.ndarray,
+           bins: bool) -> None:
+    """One line: per-channel ratios and cast (and the brightness-bin ratios when ``bins``)."""
+    ratio = channel_means(outputs) / reference
+    line = f"{scene}  {name:34s} ratio {np.round(ratio, 3)}  cast {cast_of(ratio):.3f}"
+    if bins:
+        line += f"  luminance ratio by reference bin (<=p50, p50-90, p90-99, >p99) " \
+                f"{np.round(brightness_bin_ratios(outputs, references), 3)}"
+    print(line, flush=True)
 
 
 if __name__ == "__main__":

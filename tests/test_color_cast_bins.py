@@ -1,0 +1,26 @@
+"""benchmarks/color_cast.py --brightness-bins: output / reference luminance per bin of reference luminance,
+against hand-built frames whose bins are known."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
+try:
+    import color_cast
+finally:
+    sys.path.pop(0)
+
+
+def test_bins_split_at_the_reference_percentiles() -> None:
+    # 2 frames of 10 x 10 grey pixels with luminance 1..200: p50 = 100.5, p90 = 180.1, p99 = 198.01.
+    luminance = np.arange(1, 201, dtype=np.float64).reshape(2, 1, 10, 10)
+    references = np.repeat(luminance, 3, axis=1)
+    output = references.copy()
+    output[references <= 100] *= 2.0          # the darker half doubled
+    output[references > 199] *= 0.5           # the brightest pixel (200) halved; p99 bin = {199, 200}
+    ratios = color_cast.brightness_bin_ratios(list(output), references)
+    np.testing.assert_allclose(ratios, [2.0, 1.0, 1.0, (199 + 100) / (199 + 200)])
