@@ -14,7 +14,9 @@ input's own (is the noisy 1-spp divisor the cause?); colour-only models ignore i
 test scenes are refused. ``--rows`` adds untrained method rows (e.g. ``oidn svgf eaw`` with their registered
 defaults) for comparison. ``--brightness-bins`` adds, per model or row, the ratio of mean output to mean reference
 luminance (channel mean) within bins of the reference's per-pixel luminance (at most its median, median to 90th
-percentile, 90th to 99th, above the 99th; pixels of every frame): where the excess or deficit sits.
+percentile, 90th to 99th, above the 99th; pixels of every frame): where the excess or deficit sits; and the
+darker half split by the mean albedo of the loaded layers (channel mean >= 0.1: lit surfaces in shadow or dim
+light; < 0.1: dark materials and the background).
 
 Usage: python benchmarks/color_cast.py --results results --models results/models/rae results/models/rae_inputs_color
            [--config config/config.yaml] [--spp 1] [--albedo-layers 8] [--threads 2] [--scenes train_003 ...]
@@ -67,6 +69,20 @@ def brightness_bin_ratios(outputs: list[np.ndarray], references: np.ndarray) -> 
     return np.array([output[index == b].mean() / reference[index == b].mean() for b in range(len(edges) + 1)])
 
 
+#: Channel-mean albedo below which a dark pixel counts as a dark material rather than a surface in shadow.
+DARK_ALBEDO = 0.1
+
+
+def dark_half_ratios(outputs: list[np.ndarray], references: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """(2,) mean output / mean reference luminance over the pixels at most the reference's median luminance with
+    channel-mean ``albedo`` (T, H, W) >= DARK_ALBEDO (surfaces in shadow), then < DARK_ALBEDO; NaN if empty."""
+    reference = references.mean(axis=1)
+    output = np.stack(outputs).mean(axis=1)
+    dark = reference <= np.median(reference)
+    groups = (dark & (albedo >= DARK_ALBEDO), dark & (albedo < DARK_ALBEDO))
+    return np.array([output[g].mean() / reference[g].mean() if g.any() else np.nan for g in groups])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--results", type=Path, required=True, help="results folder holding renders/<scene>")
@@ -94,6 +110,7 @@ def main() -> None:
                          spp=layers, reference=True)
         references = np.stack(list(clip.reference["radiance"]))
         reference = channel_means(list(references))
+        bins = (references, clip.samples["albedo"].mean(axis=(1, 2))) if args.brightness_bins else None
         noisy = channel_means(list(clip.samples["radiance"][:, :args.spp].mean(axis=1)))
         print(f"{scene}  {'noisy input':34s} ratio {np.round(noisy / reference, 3)}  cast {cast_of(noisy / reference):.3f}")
         frames = list(clip_frames(clip, RecurrentAutoencoderDenoiser.info, args.spp))
@@ -108,24 +125,27 @@ def main() -> None:
                 variants.append((f"albedo of {args.albedo_layers} layers", wide_albedo))
             for label, albedo in variants:
                 outputs = stream(method, frames, albedo)
-                report(scene, f"{model_dir.name} ({label})", outputs, reference, references, args.brightness_bins)
+                report(scene, f"{model_dir.name} ({label})", outputs, reference, bins)
         for row in args.rows:
             method = registry.build(row)
             row_clip = load_clip(args.results / "renders" / scene, buffers=method.info.inputs, spp=args.spp)
             method.reset()
             with torch.no_grad():
                 outputs = [method.denoise(frame).numpy() for frame in clip_frames(row_clip, method.info, args.spp)]
-            report(scene, row, outputs, reference, references, args.brightness_bins)
+            report(scene, row, outputs, reference, bins)
 
 
-def report(scene: str, name: str, outputs: list[np.ndarray], reference: np.ndarray, references: np.ndarray,
-           bins: bool) -> None:
-    """One line: per-channel ratios and cast (and the brightness-bin ratios when ``bins``)."""
+def report(scene: str, name: str, outputs: list[np.ndarray], reference: np.ndarray,
+           bins: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """One line: per-channel ratios and cast; with ``bins`` = (references (T, 3, H, W), albedo (T, H, W)) also
+    the luminance ratios per brightness bin and over the darker half by albedo."""
     ratio = channel_means(outputs) / reference
     line = f"{scene}  {name:34s} ratio {np.round(ratio, 3)}  cast {cast_of(ratio):.3f}"
-    if bins:
-        line += f"  luminance ratio by reference bin (<=p50, p50-90, p90-99, >p99) " \
-                f"{np.round(brightness_bin_ratios(outputs, references), 3)}"
+    if bins is not None:
+        references, albedo = bins
+        line += f"\n    luminance ratio by reference bin (<=p50, p50-90, p90-99, >p99) " \
+                f"{np.round(brightness_bin_ratios(outputs, references), 3)}; darker half, albedo >= {DARK_ALBEDO} / " \
+                f"< {DARK_ALBEDO}: {np.round(dark_half_ratios(outputs, references, albedo), 3)}"
     print(line, flush=True)
 
 

@@ -24,3 +24,13 @@ def test_bins_split_at_the_reference_percentiles() -> None:
     output[references > 199] *= 0.5           # the brightest pixel (200) halved; p99 bin = {199, 200}
     ratios = color_cast.brightness_bin_ratios(list(output), references)
     np.testing.assert_allclose(ratios, [2.0, 1.0, 1.0, (199 + 100) / (199 + 200)])
+
+
+def test_darker_half_is_split_by_albedo() -> None:
+    # 1 frame of 2 x 4 pixels: luminance 1..8; the darker half is 1..4, of which 1 and 2 have albedo 0.05.
+    references = np.repeat(np.arange(1, 9, dtype=np.float64).reshape(1, 1, 2, 4), 3, axis=1)
+    albedo = np.array([[[0.05, 0.05, 0.5, 0.5], [0.5, 0.5, 0.5, 0.5]]])
+    output = references.copy()
+    output[:, :, 0, 2:] *= 3.0                # pixels 3 and 4: a lit surface in shadow made 3x too bright
+    ratios = color_cast.dark_half_ratios(list(output), references, albedo)
+    np.testing.assert_allclose(ratios, [3.0, 1.0])
