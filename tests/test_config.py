@@ -255,3 +255,23 @@ def test_scene_ids_and_chunks() -> None:
     assert list(chunk_frames(cfg, "train_000", 2)) == [4]
     with pytest.raises(ValueError):
         chunk_frames(cfg, "train_000", 3)
+
+
+def test_definition_defaults_are_filled_without_sharing_the_schemas_objects() -> None:
+    from scenegen.config import fill_definition_defaults
+
+    first = fill_definition_defaults("training_budget", {})
+    second = fill_definition_defaults("training_budget", {})
+    assert first == second == {key: value["default"] for key, value in
+                               load_schema()["$defs"]["training_budget"]["properties"].items() if "default" in value}
+    schedule = fill_definition_defaults("training_optimizer", {})["schedule"]
+    schedule["mutated"] = True            # a filled default is a copy: the next fill must not see the change
+    assert "mutated" not in fill_definition_defaults("training_optimizer", {})["schedule"]
+
+
+def test_the_yaml_loader_reads_configs_as_pyyaml_safe_load_does() -> None:
+    from scenegen.config import yaml_load
+
+    for path in sorted((REPO_ROOT / "config").rglob("*.yaml")) + [REPO_ROOT / "workflow/schemas/config.schema.yaml"]:
+        text = path.read_text(encoding="utf-8")
+        assert yaml_load(text) == yaml.safe_load(text), path

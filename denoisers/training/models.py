@@ -28,7 +28,7 @@ from typing import Any
 
 from denoisers.training.spec import ModelSpec
 from denoisers.training.tasks import task_builder, task_problems
-from scenegen.config import SCENE_SPLITS, load_schema, output_root, training_scene_split, volume_training_split
+from scenegen.config import SCENE_SPLITS, output_root, training_scene_split, volume_training_split
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
 #: Files a finished model directory holds (the rule's output directory).
@@ -44,12 +44,9 @@ COMPARISON_KIND, CAPACITY_KIND = "comparison", "capacity"
 
 def _schema_defaults(definition: str, value: Mapping[str, Any] | None) -> dict[str, Any]:
     """``value`` with the defaults of ``$defs/<definition>`` of the config schema filled in."""
-    from scenegen.config import _DefaultFillingValidator
+    from scenegen.config import fill_definition_defaults
 
-    schema = load_schema()
-    filled = copy.deepcopy(dict(value or {}))
-    _DefaultFillingValidator(schema["$defs"][definition]).validate(filled)
-    return filled
+    return fill_definition_defaults(definition, copy.deepcopy(dict(value or {})))
 
 
 def _derived_seed(cfg: dict, model_id: str) -> int:
