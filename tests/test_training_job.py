@@ -250,3 +250,16 @@ def test_the_hasselgren_variants_share_data_seed_and_budget(config_name: str) ->
     direct = next(spec for spec in specs if spec.method == "ntasd_direct")
     assert direct.data["permute_channels"] is True and direct.data["grayscale_prob"] > 0
     assert not any(spec.data.get("permute_channels") for spec in specs if spec is not direct)
+
+
+def test_model_specs_are_rebuilt_when_the_training_section_changes_and_never_shared() -> None:
+    cfg = load_config(Path(__file__).resolve().parents[1] / "config/config.yaml")
+    first = model_specs(cfg)
+    first[0].net["width"] = 99.0                       # a caller mutating its copy
+    again = model_specs(cfg)
+    assert again[0].net["width"] != 99.0 and [s.id for s in again] == [s.id for s in first]
+    changed = copy.deepcopy(cfg)
+    changed["training"]["models"][0]["net"]["width"] = 0.25
+    assert model_specs(changed)[0].net["width"] == 0.25
+    reseeded = dict(cfg, seed=cfg["seed"] + 1)
+    assert model_specs(reseeded)[0].seed != model_specs(cfg)[0].seed

@@ -67,7 +67,25 @@ def _base_spec(cfg: dict, entry: Mapping[str, Any]) -> ModelSpec:
 
 
 def model_specs(cfg: dict) -> list[ModelSpec]:
-    """Every model the config trains: ``training.models`` in order, then every ablation variant."""
+    """Every model the config trains: ``training.models`` in order, then every ablation variant.
+
+    The specs depend on ``seed`` and ``training`` alone; they are built once per distinct pair (a Snakefile asks
+    for them for every job) and each call returns its own deep copy, so callers may mutate what they get."""
+    key = json.dumps([cfg.get("seed"), cfg.get("training")], sort_keys=True, default=repr)
+    specs = _SPECS_CACHE.pop(key, None)
+    if specs is None:
+        specs = _build_model_specs(cfg)
+    _SPECS_CACHE[key] = specs                   # most recently used last
+    while len(_SPECS_CACHE) > _SPECS_CACHE_SIZE:
+        _SPECS_CACHE.pop(next(iter(_SPECS_CACHE)))
+    return copy.deepcopy(specs)
+
+
+_SPECS_CACHE: dict[str, list[ModelSpec]] = {}
+_SPECS_CACHE_SIZE = 16
+
+
+def _build_model_specs(cfg: dict) -> list[ModelSpec]:
     training = cfg.get("training") or {}
     bases = {entry["id"]: _base_spec(cfg, entry) for entry in training.get("models", [])}
     specs = list(bases.values())
