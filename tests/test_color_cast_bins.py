@@ -2,17 +2,12 @@
 against hand-built frames whose bins are known."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
-try:
-    import color_cast
-finally:
-    sys.path.pop(0)
+from tests.benchmark_modules import load_benchmark
+
+color_cast = load_benchmark("color_cast")
 
 
 def test_bins_split_at_the_reference_percentiles() -> None:

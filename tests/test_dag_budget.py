@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -10,12 +9,10 @@ import yaml
 
 from scenegen.config import validate_config
 
+from tests.benchmark_modules import load_benchmark
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
-try:
-    import dag_budget
-finally:
-    sys.path.pop(0)
+dag_budget = load_benchmark("dag_budget")
 
 
 def smoke() -> dict:

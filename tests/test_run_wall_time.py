@@ -2,16 +2,11 @@
 hand-computed wall times."""
 from __future__ import annotations
 
-import sys
 from datetime import datetime
-from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
-try:
-    import run_wall_time as rwt
-finally:
-    sys.path.pop(0)
+from tests.benchmark_modules import load_benchmark
+
+rwt = load_benchmark("run_wall_time")
 
 
 def _t(hms: str) -> datetime:

@@ -187,14 +187,13 @@ def test_the_switches_flow_from_the_config_to_the_sequences() -> None:
 def test_data_choice_arms_name_their_training_scenes(tmp_path) -> None:
     """benchmarks/train_data_choice.py: an arm's scene keys (train, root) and its render time from the sidecars."""
     import json
-    import sys
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    try:
-        from train_data_choice import (COMPUTE_PREFIX, OPT_PREFIX, parse_arm, prefixed_overrides, render_seconds,
-                                       scene_list, split_arm)
-    finally:
-        sys.path.pop(0)
+    from tests.benchmark_modules import load_benchmark
+
+    choice = load_benchmark("train_data_choice")
+    COMPUTE_PREFIX, OPT_PREFIX, parse_arm, prefixed_overrides, render_seconds, scene_list, split_arm = (
+        choice.COMPUTE_PREFIX, choice.OPT_PREFIX, choice.parse_arm, choice.prefixed_overrides, choice.render_seconds,
+        choice.scene_list, choice.split_arm)
     # net.* keys override the network, opt.* the optimiser; both leave the data keys alone.
     assert prefixed_overrides("net.width=0.25,layers=first,net.levels=4") == {"width": 0.25, "levels": 4}
     assert prefixed_overrides("net.width=0.25,opt.ema_decay=0.99", OPT_PREFIX) == {"ema_decay": 0.99}
@@ -278,13 +277,7 @@ def test_benchmarks_and_the_job_build_one_sequence_config_per_task() -> None:
         assert sequences.mean_buffers == builder.mean_buffers and sequences.pixel_buffers == builder.pixel_buffers
         assert sequences.sample_buffers == builder.sample_buffers and sequences.reference_buffers == ("radiance",)
     assert task_builder("ntasd").mean_buffers == ("albedo",)
-    import sys
+    from tests.benchmark_modules import load_benchmark
 
-    sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
-    try:
-        import train_data_choice
-        import train_precision_quality
-    finally:
-        sys.path.pop(0)
-    for module in (train_data_choice, train_precision_quality):
+    for module in (load_benchmark("train_data_choice"), load_benchmark("train_precision_quality")):
         assert module.task_sequence_config is task_sequence_config and module.clip_buffers is clip_buffers
