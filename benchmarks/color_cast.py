@@ -36,14 +36,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from denoisers.methods.rae import RecurrentAutoencoderDenoiser  # noqa: E402
 from denoisers import registry  # noqa: E402
-from denoisers.registry import clip_frames  # noqa: E402
+from denoisers.registry import Denoiser, clip_frames  # noqa: E402
 from denoisers.report.color_balance import cast_of, channel_means  # noqa: E402
 from denoisers.training.models import training_split  # noqa: E402
 from scenegen.config import load_config  # noqa: E402
 from scenegen.dataset import load_clip  # noqa: E402
 
 
-def stream(method: RecurrentAutoencoderDenoiser, frames: list, albedo: list[torch.Tensor] | None) -> list[np.ndarray]:
+def stream(method: Denoiser, frames: list, albedo: list[torch.Tensor] | None) -> list[np.ndarray]:
     """(3, H, W) outputs of ``method`` over ``frames``; ``albedo`` (per frame (S, 3, H, W)) replaces the frames'."""
     method.reset()
     outputs = []
@@ -129,10 +129,8 @@ def main() -> None:
         for row in args.rows:
             method = registry.build(row)
             row_clip = load_clip(args.results / "renders" / scene, buffers=method.info.inputs, spp=args.spp)
-            method.reset()
-            with torch.no_grad():
-                outputs = [method.denoise(frame).numpy() for frame in clip_frames(row_clip, method.info, args.spp)]
-            report(scene, row, outputs, reference, bins)
+            report(scene, row, stream(method, list(clip_frames(row_clip, method.info, args.spp)), None), reference,
+                   bins)
 
 
 def report(scene: str, name: str, outputs: list[np.ndarray], reference: np.ndarray,
