@@ -12,8 +12,10 @@ job start / finish stamps of each invocation's log (``.snakemake/log/*.snakemake
 * the total busy wall time over all segments: the DAG's wall time if the segments had run back to back.
 
 A job still running when its invocation died (no ``Finished``/``Error`` line) ends at its segment's end: the
-last ``--heartbeat`` stamp before the next segment starts (a file of ISO times written every minute while the
-session lives), else the latest ``--alive`` time, else the log's last stamp (an underestimate, said in the output). Work lost at a kill (steps
+last ``--heartbeat`` stamp of the unbroken chain of beats after its last log stamp (a file of ISO times written
+every minute while the session lives; a gap longer than ``--max-gap`` minutes means the machine was down, and a
+beat after it belongs to the next session), or the latest ``--alive`` time before the next segment if later,
+else the log's last stamp (an underestimate, said in the output). Work lost at a kill (steps
 after a training's last checkpoint) is counted, as it was spent. ``--pause START/END`` (ISO times, repeatable)
 removes pause windows; ``--since`` drops segments that started earlier (e.g. before a code change superseded
 their work).
@@ -26,7 +28,8 @@ from __future__ import annotations
 import argparse
 import re
 from dataclasses import dataclass, field
-from datetime import datetime
+from collections.abc import Sequence
+from datetime import datetime, timedelta
 from pathlib import Path
 
 _STAMP = re.compile(r"^\[(\w{3} \w{3} +\d+ \d\d:\d\d:\d\d \d{4})\]\s*$")
@@ -127,14 +130,24 @@ def subtract(interval: Interval, pauses: list[Interval]) -> list[Interval]:
     return pieces
 
 
-def close_segments(segments: list[Segment], heartbeats: list[datetime]) -> None:
-    """Set each segment's ``end``: the last heartbeat before the next segment starts, if later than its
-    last stamp; else its last stamp."""
+def close_segments(segments: list[Segment], heartbeats: list[datetime], alive: Sequence[datetime] = (),
+                   max_gap: timedelta = timedelta(minutes=5)) -> None:
+    """Set each segment's ``end``: the last heartbeat of the chain that continues its last stamp with no gap
+    over ``max_gap`` (a longer gap: the machine was down), or the latest ``alive`` time before the next
+    segment if later; else its last stamp. Nothing past the next segment's start counts."""
     ordered = sorted(segments, key=lambda s: s.first)
+    beats = sorted(heartbeats)
     for index, segment in enumerate(ordered):
         limit = ordered[index + 1].first if index + 1 < len(ordered) else None
-        beats = [b for b in heartbeats if b >= segment.last and (limit is None or b <= limit)]
-        segment.end = max(beats) if beats else segment.last
+        end = segment.last
+        for beat in beats:
+            if beat <= end or (limit is not None and beat > limit):
+                continue
+            if beat - end > max_gap:
+                break
+            end = beat
+        known = [t for t in alive if t > end and (limit is None or t <= limit)]
+        segment.end = max(known) if known else end
 
 
 def job_intervals(segment: Segment, pauses: list[Interval]) -> list[tuple[Job, list[Interval]]]:
@@ -153,7 +166,9 @@ def main() -> None:
     parser.add_argument("--heartbeat", type=Path, default=None, help="file of ISO times, one per line")
     parser.add_argument("--alive", action="append", default=[], type=datetime.fromisoformat, metavar="TIME",
                         help="an ISO time known to lie inside a live session (e.g. a checkpoint's mtime), used "
-                             "like a heartbeat (repeatable)")
+                             "like a heartbeat but without the gap rule (repeatable)")
+    parser.add_argument("--max-gap", type=float, default=5.0,
+                        help="minutes between heartbeats beyond which the machine counts as down (default 5)")
     args = parser.parse_args()
 
     pauses = []
@@ -161,12 +176,12 @@ def main() -> None:
         start, _, end = window.partition("/")
         pauses.append((datetime.fromisoformat(start), datetime.fromisoformat(end)))
     heartbeats = ([datetime.fromisoformat(line.strip()) for line in args.heartbeat.read_text().splitlines()
-                   if line.strip()] if args.heartbeat else []) + list(args.alive)
+                   if line.strip()] if args.heartbeat else [])
     segments = [s for path in args.logs if (s := parse_log(path.read_text(errors="replace"), path.name))]
     segments = [s for s in segments if s.jobs and (args.since is None or s.first >= args.since)]
     if not segments:
         raise SystemExit("no invocation with jobs in the given logs")
-    close_segments(segments, heartbeats)
+    close_segments(segments, heartbeats, args.alive, timedelta(minutes=args.max_gap))
 
     per_rule: dict[str, list[float]] = {}
     total = 0.0

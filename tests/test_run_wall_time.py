@@ -44,9 +44,11 @@ def test_parse_log_reads_starts_finishes_errors_and_unfinished_jobs() -> None:
 
 def test_busy_wall_is_the_union_of_job_intervals_minus_pauses() -> None:
     segment = rwt.parse_log(LOG, "a")
-    # killed at 10:40 (last heartbeat before the next invocation at 11:00; a later beat belongs to it)
+    # killed at 10:40 (last beat of the minute-wise chain; the next invocation starts at 11:00 and its beats
+    # belong to it)
     later = rwt.parse_log(_job("11:00:00", "train_denoiser", 1) + _finish("11:30:00", 1, "train_denoiser"), "b")
-    rwt.close_segments([segment, later], [_t("10:30:00"), _t("10:40:00"), _t("11:10:00")])
+    beats = [_t(f"10:{minute}:30") for minute in range(21, 40)] + [_t("10:40:00"), _t("11:10:00")]
+    rwt.close_segments([segment, later], beats)
     assert segment.end == _t("10:40:00") and later.end == _t("11:30:00")
     pauses = [(_t("10:15:00"), _t("10:25:00"))]
     pieces = [piece for _, cut in rwt.job_intervals(segment, pauses) for piece in cut]
@@ -60,4 +62,19 @@ def test_busy_wall_is_the_union_of_job_intervals_minus_pauses() -> None:
 def test_segment_without_heartbeat_ends_at_its_last_stamp() -> None:
     segment = rwt.parse_log(LOG, "a")
     rwt.close_segments([segment], [])
+    assert segment.end == _t("10:21:00")
+
+
+def test_a_gap_in_the_heartbeats_ends_the_segment_where_the_machine_went_down() -> None:
+    segment = rwt.parse_log(LOG, "a")
+    later = rwt.parse_log(_job("11:00:00", "train_denoiser", 1) + _finish("11:30:00", 1, "train_denoiser"), "b")
+    # beats every minute to 10:30, the machine is down until 10:58, the heartbeat restarts before invocation b
+    beats = [_t(f"10:{minute}:10") for minute in range(22, 31)] + [_t("10:58:00"), _t("10:59:00")]
+    rwt.close_segments([segment, later], beats)
+    assert segment.end == _t("10:30:10")
+    # an --alive time is taken as given (no chain needed), but never past the next segment's start
+    rwt.close_segments([segment, later], beats, alive=[_t("10:45:00"), _t("11:05:00")])
+    assert segment.end == _t("10:45:00")
+    # a first beat more than max_gap after the last log stamp: no chain at all
+    rwt.close_segments([segment], [_t("10:40:00")])
     assert segment.end == _t("10:21:00")
