@@ -65,8 +65,12 @@ def test_ablation_variants_inherit_the_base_model_and_share_the_ablation_budget(
     assert "budget" not in inputs and color.seed == base.seed and color.budget == base.budget
     assert specs["rae_loss_spatial"].loss == {"spatial": 1.0, "gradient": 0.0, "temporal": 0.0}
     assert (color.ablation, color.variant) == ("rae_inputs", "color")
-    # Every input set of Fig. 3 and both losses of §4.4 are configured.
+    # The default has the Fig. 3 input sets that add demodulation, normals, then depth and roughness; the cluster
+    # config has all six. Both losses of §4.4 are configured.
     assert {s.variant for s in specs.values() if s.ablation == "rae_inputs"} == {
+        "color", "untextured", "normal", "all"}
+    cluster = {spec.id: spec for spec in model_specs(load_config(REPO_ROOT / "config" / "cluster.yaml"))}
+    assert {s.variant for s in cluster.values() if s.ablation == "rae_inputs"} == {
         "color", "untextured", "depth", "normal", "normal_depth", "all"}
     assert {s.variant for s in specs.values() if s.ablation == "rae_loss"} == {"spatial", "combined"}
 
