@@ -18,7 +18,8 @@ beat after it belongs to the next session), or the latest ``--alive`` time befor
 else the log's last stamp (an underestimate, said in the output). Work lost at a kill (steps
 after a training's last checkpoint) is counted, as it was spent. ``--pause START/END`` (ISO times, repeatable)
 removes pause windows; ``--since`` drops segments that started earlier (e.g. before a code change superseded
-their work).
+their work); ``--rule`` / ``--exclude-rule`` count one stage's jobs only (its busy wall time as if it had run
+alone; jobs of other stages running beside it in the same segment are not subtracted).
 
 Usage: python benchmarks/run_wall_time.py .snakemake/log/*.snakemake.log [--since 2026-12-02T03:29]
            [--pause 2026-12-02T03:37:35/2026-12-02T04:15:44 ...] [--heartbeat /path/heartbeat.log]
@@ -150,6 +151,12 @@ def close_segments(segments: list[Segment], heartbeats: list[datetime], alive: S
         segment.end = max(known) if known else end
 
 
+def keep_rules(segments: list[Segment], only: Sequence[str] = (), exclude: Sequence[str] = ()) -> None:
+    """Keep in each segment the jobs of the rules in ``only`` (all when empty) and not in ``exclude``."""
+    for segment in segments:
+        segment.jobs = [job for job in segment.jobs if (not only or job.rule in only) and job.rule not in exclude]
+
+
 def job_intervals(segment: Segment, pauses: list[Interval]) -> list[tuple[Job, list[Interval]]]:
     """Each job's interval in ``segment`` (unfinished ones end at the segment's end), pauses removed."""
     assert segment.end is not None
@@ -167,6 +174,10 @@ def main() -> None:
     parser.add_argument("--alive", action="append", default=[], type=datetime.fromisoformat, metavar="TIME",
                         help="an ISO time known to lie inside a live session (e.g. a checkpoint's mtime), used "
                              "like a heartbeat but without the gap rule (repeatable)")
+    parser.add_argument("--rule", action="append", default=[], metavar="NAME",
+                        help="count only jobs of this rule (repeatable; e.g. the training stage alone)")
+    parser.add_argument("--exclude-rule", action="append", default=[], metavar="NAME",
+                        help="leave out jobs of this rule (repeatable)")
     parser.add_argument("--max-gap", type=float, default=5.0,
                         help="minutes between heartbeats beyond which the machine counts as down (default 5)")
     args = parser.parse_args()
@@ -182,6 +193,7 @@ def main() -> None:
     if not segments:
         raise SystemExit("no invocation with jobs in the given logs")
     close_segments(segments, heartbeats, args.alive, timedelta(minutes=args.max_gap))
+    keep_rules(segments, args.rule, args.exclude_rule)   # after closing: the ends do not depend on the rules counted
 
     per_rule: dict[str, list[float]] = {}
     total = 0.0

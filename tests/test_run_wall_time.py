@@ -78,3 +78,16 @@ def test_a_gap_in_the_heartbeats_ends_the_segment_where_the_machine_went_down() 
     # a first beat more than max_gap after the last log stamp: no chain at all
     rwt.close_segments([segment], [_t("10:40:00")])
     assert segment.end == _t("10:21:00")
+
+
+def test_one_stage_alone_counts_only_its_jobs() -> None:
+    segment = rwt.parse_log(LOG, "a")
+    rules = {job.rule for job in segment.jobs}
+    assert len(rules) > 1
+    rwt.close_segments([segment], [])
+    end = segment.end
+    chosen = sorted(rules)[0]
+    rwt.keep_rules([segment], only=[chosen])
+    assert segment.jobs and {job.rule for job in segment.jobs} == {chosen} and segment.end == end
+    rwt.keep_rules([segment], exclude=[chosen])
+    assert segment.jobs == []
