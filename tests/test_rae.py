@@ -2,6 +2,7 @@
 evaluation method (denoisers/methods/rae.py), on tiny tensors."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -155,6 +156,26 @@ def test_inputs_are_demodulated_and_raised_to_the_power_0_2() -> None:
     torch.testing.assert_close(colour_only, torch.full((3, 4, 4), 0.32**0.2))
     linear = torch.rand(3, 4, 4) * 10
     torch.testing.assert_close(decode_color(encode_color(linear, divisor, 0.2), divisor, 0.2), linear)
+
+
+def test_depth_enters_in_metres_or_as_log1p() -> None:
+    shape = (1, 2, 2)
+    radiance, albedo = torch.full((3, 2, 2), 0.5), torch.full((3, 2, 2), 0.5)
+    normal = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 2, 2)
+    depth = torch.tensor([[0.0, 1.0], [84.5, float("inf")]]).view(shape)
+    roughness = torch.zeros(shape)
+    metres, _ = prepare_inputs(RAEConfig(features=("depth",)), radiance, albedo, normal, depth, roughness,
+                               torch.eye(3))
+    torch.testing.assert_close(metres[3], torch.tensor([[0.0, 1.0], [84.5, 0.0]]))   # non-finite -> 0
+    logged, _ = prepare_inputs(RAEConfig(features=("depth",), depth_encoding="log1p"), radiance, albedo, normal,
+                               depth, roughness, torch.eye(3))
+    torch.testing.assert_close(logged[3], torch.tensor([[0.0, math.log(2.0)], [math.log(85.5), 0.0]]))
+    with pytest.raises(ValueError, match="depth_encoding"):
+        RAEConfig(depth_encoding="inverse")
+    # Checkpoints written before the key existed load with the old behaviour.
+    old = RAEConfig().to_dict()
+    del old["depth_encoding"]
+    assert RAEConfig.from_dict(old).depth_encoding == "metres"
 
 
 # ------------------------------------------------------------------------------------------ losses

@@ -49,6 +49,8 @@ from denoisers.losses import RAE_LOSS_WEIGHTS, rae_loss
 PAPER_PARAMETER_COUNT = 3_200_000
 #: Auxiliary features the network can take, in channel order, with their channel counts.
 AUX_FEATURES: dict[str, int] = {"normal": 2, "depth": 1, "roughness": 1}
+#: Encodings of the depth feature (RAEConfig.depth_encoding), metres -> network input.
+DEPTH_ENCODINGS: dict[str, Any] = {"metres": lambda depth: depth, "log1p": lambda depth: torch.log1p(depth.clamp_min(0))}
 #: Mitsuba's camera frame has +x to the image's left and +z forward; view space here is x right, y up,
 #: z towards the viewer (OpenGL convention): view = diag(-1, 1, -1) @ camera.
 MITSUBA_CAMERA_TO_VIEW = np.diag([-1.0, 1.0, -1.0])
@@ -64,7 +66,10 @@ class RAEConfig:
     levels: pooling stages (5 in the paper; 4 and 6 are Fig. 4's "AE small" and "AE large");
     demodulate: divide colour by max(albedo, albedo_floor) and multiply the output back (§3.2);
     features: auxiliary inputs, a subset of normal / depth / roughness (Fig. 3's ablation);
-    exponent: the power applied to colour inputs and targets (0.2, §4.4).
+    exponent: the power applied to colour inputs and targets (0.2, §4.4);
+    depth_encoding: how the depth feature enters: "metres" (view distance as rendered; 0-85 m in the open
+    scenes) or "log1p" (log(1 + metres): 0-4.5, the range of the other inputs). §3.2 only says the depth is
+    "linearized"; the scale is ours.
     """
 
     width: float = 1.0
@@ -77,6 +82,7 @@ class RAEConfig:
     features: tuple[str, ...] = ("normal", "depth", "roughness")
     exponent: float = 0.2
     albedo_floor: float = 0.01
+    depth_encoding: str = "metres"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "features", tuple(self.features))
@@ -86,6 +92,8 @@ class RAEConfig:
             raise ValueError(f"rae: features must be distinct names among {list(AUX_FEATURES)}, got {list(self.features)}")
         if not self.width > 0 or self.levels < 1 or not 0 < self.exponent <= 1 or not self.albedo_floor > 0:
             raise ValueError(f"rae: need width > 0, levels >= 1, 0 < exponent <= 1, albedo_floor > 0; got {self}")
+        if self.depth_encoding not in DEPTH_ENCODINGS:
+            raise ValueError(f"rae: depth_encoding must be one of {list(DEPTH_ENCODINGS)}, got {self.depth_encoding!r}")
         if len(self.final_features) != 2:
             raise ValueError(f"rae: final_features needs two counts, got {self.final_features}")
 
@@ -328,7 +336,7 @@ def prepare_inputs(config: RAEConfig, radiance: torch.Tensor, albedo: torch.Tens
             rotation = sanitize(view_rotation)[..., :2, :]
             channels.append(torch.einsum("...ij,...jhw->...ihw", rotation, sanitize(normal)))
         elif feature == "depth":
-            channels.append(sanitize(depth))
+            channels.append(DEPTH_ENCODINGS[config.depth_encoding](sanitize(depth)))
         else:
             channels.append(sanitize(roughness))
     return torch.cat(channels, dim=-3), divisor
