@@ -50,7 +50,8 @@ PAPER_PARAMETER_COUNT = 3_200_000
 #: Auxiliary features the network can take, in channel order, with their channel counts.
 AUX_FEATURES: dict[str, int] = {"normal": 2, "depth": 1, "roughness": 1}
 #: Encodings of the depth feature (RAEConfig.depth_encoding), metres -> network input.
-DEPTH_ENCODINGS: dict[str, Any] = {"metres": lambda depth: depth, "log1p": lambda depth: torch.log1p(depth.clamp_min(0))}
+DEPTH_ENCODINGS: dict[str, Any] = {"metres": lambda depth: depth,
+                                   "log1p": lambda depth: torch.log1p(depth.clamp_min(0))}
 #: Mitsuba's camera frame has +x to the image's left and +z forward; view space here is x right, y up,
 #: z towards the viewer (OpenGL convention): view = diag(-1, 1, -1) @ camera.
 MITSUBA_CAMERA_TO_VIEW = np.diag([-1.0, 1.0, -1.0])
