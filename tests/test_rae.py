@@ -172,10 +172,13 @@ def test_depth_enters_in_metres_or_as_log1p() -> None:
     torch.testing.assert_close(logged[3], torch.tensor([[0.0, math.log(2.0)], [math.log(85.5), 0.0]]))
     with pytest.raises(ValueError, match="depth_encoding"):
         RAEConfig(depth_encoding="inverse")
-    # Checkpoints written before the key existed load with the old behaviour.
-    old = RAEConfig().to_dict()
-    del old["depth_encoding"]
-    assert RAEConfig.from_dict(old).depth_encoding == "metres"
+    # Checkpoints written before the key existed keep their fingerprint (the default is not serialised) and
+    # load with the old behaviour; a non-default encoding round-trips.
+    default = RAEConfig().to_dict()
+    assert "depth_encoding" not in default
+    assert RAEConfig.from_dict(default).depth_encoding == "metres"
+    logged_config = RAEConfig(depth_encoding="log1p")
+    assert RAEConfig.from_dict(logged_config.to_dict()) == logged_config
 
 
 # ------------------------------------------------------------------------------------------ losses

@@ -121,6 +121,10 @@ class RAEConfig:
         data = asdict(self)
         data["features"] = list(self.features)
         data["final_features"] = list(self.final_features)
+        if self.depth_encoding == "metres":
+            # The default is left out so that checkpoints and model files written before the key existed keep
+            # their fingerprint (a resumed training would otherwise refuse its own checkpoint).
+            del data["depth_encoding"]
         return data
 
     @classmethod
