@@ -229,8 +229,12 @@ def _run(args: argparse.Namespace) -> int:
         record[DIGEST_KEY] = Lineage(cfg).timing(args.scene, runs)
         write_text_atomic(args.out, json.dumps(record, indent=1) + "\n")
         for row in record["rows"]:
-            log.info("%-16s %2d spp: %8.2f ms/frame [%.2f, %.2f] (%.3g Mpix/s)", row["method_id"], row["spp"],
-                     row["ms_per_frame"], row["ms_per_frame_min"], row["ms_per_frame_max"], row["mpix_per_s"])
+            share = (f", {row['gflops_per_s']:.1f} GFLOP/s = {row['fraction_of_sgemm']:.0%} of sgemm"
+                     if row["fraction_of_sgemm"] is not None else "")
+            log.info("%-16s %2d spp: %8.2f ms/frame [%.2f, %.2f] (%.3g Mpix/s%s)", row["method_id"], row["spp"],
+                     row["ms_per_frame"], row["ms_per_frame_min"], row["ms_per_frame_max"], row["mpix_per_s"], share)
+        log.info("sgemm %d^3: %.1f GFLOP/s (median of rounds)", record["sgemm"]["size"],
+                 record["sgemm"]["gflops_per_s_median"])
         for scene, rate in record["renderers"].items():
             log.info("renderer on %s: %.3g M samples/s with %d thread(s)", scene, rate["samples_per_s"] / 1e6,
                      args.threads)

@@ -13,6 +13,13 @@ A pass's time is the median of its per-frame seconds, the first frame excluded (
 temporal state); a row's time is the median over rounds, its spread the smallest and largest pass.
 Speed claims compare two rows by their per-round ratios (:func:`speed_ratios`).
 
+Every round ends with a float32 sgemm (n x n x n, the faster of MKL ``torch.mm`` and oneDNN) at the same
+threads, so the record says how fast the machine was while the rows ran (this host's sgemm rate has varied
+about 2x between days). A row whose ``denoise()`` runs torch matrix products or convolutions (the learned
+rows) gets its FLOPs per frame, counted by ``torch.utils.flop_counter`` on one extra untimed pass (native
+kernels, e.g. kernel application, are not counted), and from them GFLOP/s and the per-round fraction of
+that round's sgemm rate.
+
 In the same job, the renderer's rate is measured with the same thread count for every evaluated scene
 (scenes differ in cost): its first frame rendered as ``render.spp`` full-feature 1-spp layers (the noisy
 data every method reads), once as a warm-up (kernel compilation), then ``repeats`` times; samples/s =
@@ -25,14 +32,16 @@ import json
 import logging
 import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-TIMING_SCHEMA = 3
+TIMING_SCHEMA = 4
+#: Side of the square sgemm timed in every round.
+SGEMM_SIZE = 1024
 #: Where the timing job writes, below the experiment folder.
 TIMING_JOB_FILE = "timing/timing.json"
 
@@ -65,6 +74,7 @@ class TimedRun:
     frames: list
     frame_ids: list[int]
     passes: list[float] = field(default_factory=list)     # seconds per frame, one per round
+    flops_per_frame: int = 0                               # torch FLOPs of denoise() (count_flops), 0 if none
 
     @property
     def pixels(self) -> int:
@@ -75,10 +85,34 @@ class TimedRun:
 
         return pass_seconds(run_method(self.method, self.frames, threads).seconds)
 
-    def record(self, threads: int) -> dict[str, Any]:
-        return {"method_id": self.spec.id, "method": self.spec.method, "spp": int(self.spp), "threads": int(threads),
-                "frames": self.frame_ids, "width": int(self.frames[0].width), "height": int(self.frames[0].height),
-                **summarise_passes(self.passes, self.pixels)}
+    def count_flops(self, threads: int) -> int:
+        """FLOPs per frame of one extra, untimed pass (torch operators only), stored in ``flops_per_frame``."""
+        from torch.utils.flop_counter import FlopCounterMode
+
+        from denoisers.denoise_job import run_method
+
+        counter = FlopCounterMode(display=False)
+        with counter:
+            run_method(self.method, self.frames, threads)
+        self.flops_per_frame = int(counter.get_total_flops()) // len(self.frames)
+        return self.flops_per_frame
+
+    def record(self, threads: int, sgemm_gflops: Sequence[float] = ()) -> dict[str, Any]:
+        """The row's timing; with the per-round sgemm rates, its GFLOP/s and fraction of sgemm (None without
+        counted FLOPs)."""
+        out = {"method_id": self.spec.id, "method": self.spec.method, "spp": int(self.spp), "threads": int(threads),
+               "frames": self.frame_ids, "width": int(self.frames[0].width), "height": int(self.frames[0].height),
+               **summarise_passes(self.passes, self.pixels), "gflop_per_frame": self.flops_per_frame / 1e9,
+               "gflops_per_s": None, "fraction_of_sgemm": None, "fraction_of_sgemm_min": None,
+               "fraction_of_sgemm_max": None}
+        if self.flops_per_frame and self.passes:
+            rates = [self.flops_per_frame / 1e9 / s for s in self.passes]
+            out["gflops_per_s"] = float(np.median(rates))
+            if len(sgemm_gflops) == len(rates):
+                fractions = [r / g for r, g in zip(rates, sgemm_gflops)]   # same round
+                out.update(fraction_of_sgemm=float(np.median(fractions)), fraction_of_sgemm_min=min(fractions),
+                           fraction_of_sgemm_max=max(fractions))
+        return out
 
 
 def prepare_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: int,
@@ -94,16 +128,45 @@ def prepare_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames
     return TimedRun(spec, int(spp), method, frame_list, [int(t) for t in clip.frames[:frames]])
 
 
-def time_interleaved(runs: Sequence[TimedRun], *, repeats: int, threads: int) -> None:
-    """A warm-up pass of every run, then ``repeats`` rounds of one pass per run (appended to run.passes)."""
+def sgemm_probe(n: int = SGEMM_SIZE) -> Callable[[int], float]:
+    """A callable(threads) -> GFLOP/s of one float32 n x n x n sgemm, the faster of MKL ``torch.mm`` and
+    oneDNN (as the training-speed job measures it)."""
+    import torch
+
+    from denoisers.training.speed import gemm_timers
+
+    timers = [t for t in gemm_timers(n) if t.key.startswith("sgemm")]
+
+    def rate(threads: int) -> float:
+        torch.set_num_threads(max(1, int(threads)))
+        best = 0.0
+        for timer in timers:
+            start = time.perf_counter()
+            timer.run()
+            best = max(best, timer.flops / (time.perf_counter() - start) / 1e9)
+        return best
+
+    return rate
+
+
+def time_interleaved(runs: Sequence[TimedRun], *, repeats: int, threads: int,
+                     sgemm: Callable[[int], float] | None = None) -> list[float]:
+    """A warm-up pass of every run (and of ``sgemm``), then ``repeats`` rounds of one pass per run (appended
+    to run.passes), each round ending with one ``sgemm(threads)``; returns its GFLOP/s per round ([] without)."""
     if repeats < 1:
         raise ValueError(f"timing needs repeats >= 1, got {repeats}")
     for run in runs:
         run.run_pass(threads)                      # caches, native kernels, allocator
+    if sgemm is not None:
+        sgemm(threads)
+    rates = []
     for round_index in range(repeats):
         for run in runs:
             run.passes.append(run.run_pass(threads))
+        if sgemm is not None:
+            rates.append(sgemm(threads))
         log.info("timing round %d/%d done", round_index + 1, repeats)
+    return rates
 
 
 def time_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: int, repeats: int, threads: int,
@@ -150,9 +213,12 @@ def time_methods(cfg: dict, scene: str, render_dir: Path, scene_dirs: dict[str, 
                 for method_id, spp in runs]
     log.info("timing %d (row, spp) on %s: %d frame(s), %d round(s), %d thread(s)", len(prepared), scene, frames,
              repeats, threads)
-    time_interleaved(prepared, repeats=repeats, threads=threads)
+    for run in prepared:
+        run.count_flops(threads)
+    sgemm = time_interleaved(prepared, repeats=repeats, threads=threads, sgemm=sgemm_probe())
     return {"schema": TIMING_SCHEMA, "scene": scene, "frames": frames, "repeats": repeats, "threads": threads,
-            "rows": [run.record(threads) for run in prepared],
+            "sgemm": {"size": SGEMM_SIZE, "gflops_per_s": sgemm, "gflops_per_s_median": float(np.median(sgemm))},
+            "rows": [run.record(threads, sgemm) for run in prepared],
             "renderers": {name: render_rate(cfg, json.loads((Path(folder) / "manifest.json").read_text()), folder,
                                             repeats=repeats, threads=threads)
                           for name, folder in scene_dirs.items()},

@@ -21,7 +21,7 @@ from denoisers import evaluate
 from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED, Part, claims_table,
                                      evaluate_claim)
 from denoisers.report.collect import Results
-from denoisers.timing import TimingJob
+from denoisers.timing import TIMING_SCHEMA, TimingJob
 from denoisers.reproductions import all_claims, all_reproductions
 from scenegen.config import validate_config
 
@@ -82,7 +82,8 @@ def timing_job(cfg: dict, ratios: dict[tuple[str, int], list[float]] | None = No
                          "pass_ms_per_frame": passes, "ms_per_frame": float(np.median(passes)),
                          "ms_per_frame_min": min(passes), "ms_per_frame_max": max(passes), "repeats": len(passes),
                          "mpix_per_s": 64 * 64 / float(np.median(passes)) / 1e3})
-    return TimingJob({"schema": 3, "scene": "test_000", "frames": 4, "repeats": rounds, "threads": 2, "rows": rows,
+    return TimingJob({"schema": TIMING_SCHEMA, "scene": "test_000", "frames": 4, "repeats": rounds, "threads": 2,
+                      "rows": rows,
                       "renderers": {"test_000": {"samples_per_s": 1e6, "repeats": rounds, "layers": 8}}})
 
 

@@ -23,6 +23,7 @@ from denoisers.report.claims import claims_table
 from denoisers.report.collect import collect
 from denoisers.report.stats import HIGHER_IS_BETTER, mean_ci
 from denoisers.reproductions import all_claims
+from denoisers.timing import TIMING_SCHEMA
 from tests.test_evaluate import smoke_config, synthetic_reference, write_synthetic_scene
 
 SCENES = ("test_000", "test_001", "test_002")
@@ -111,7 +112,8 @@ def write_timing_job(root: Path, cfg: dict, scenes: list[str]) -> None:
                              "spread": 0.3, "mpix_per_s": SIZE[0] * SIZE[1] / (MS[spec["id"]] / 1e3) / 1e6})
     (root / "timing").mkdir(parents=True, exist_ok=True)
     (root / "timing" / "timing.json").write_text(json.dumps({
-        "schema": 3, "scene": "test_000", "frames": FRAMES, "repeats": 3, "threads": 2, "rows": rows,
+        "schema": TIMING_SCHEMA, "scene": "test_000", "frames": FRAMES, "repeats": 3, "threads": 2, "rows": rows,
+        "sgemm": {"size": 1024, "gflops_per_s": [100.0, 90.0, 110.0], "gflops_per_s_median": 100.0},
         "renderers": {scene: {"samples_per_s": 1.0e6, "samples_per_s_min": 0.9e6, "samples_per_s_max": 1.1e6,
                               "repeats": 3, "layers": layers, "threads": 2} for scene in scenes}}))
 

@@ -32,6 +32,20 @@ class Sleeper(Denoiser):
 CALLS: list[float] = []     # the ms of every denoise() call, in order
 
 
+class Products(Denoiser):
+    """Test only: ``count`` float32 (n x n) @ (n x n) products per frame (2 n^3 FLOPs each), then the mean."""
+
+    def __init__(self, n: int = 64, count: int = 3) -> None:
+        super().__init__()
+        self.n, self.count = int(n), int(count)
+
+    def denoise(self, frame: Frame) -> torch.Tensor:
+        a = torch.ones(self.n, self.n)
+        for _ in range(self.count):
+            a = torch.mm(a, a) / self.n
+        return frame.samples["radiance"].mean(0) * a[0, 0]
+
+
 @pytest.fixture
 def sleeper() -> Iterator[str]:
     registry.register("test_sleeper", inputs=("radiance",), description="test only: sleeps")(Sleeper)
@@ -85,6 +99,30 @@ def test_rounds_interleave_the_rows_and_ratios_pair_rounds(tmp_path: Path, sleep
                                    / np.asarray(job.row("slow", 1)["pass_ms_per_frame"]))
     with pytest.raises(KeyError, match="nope @ 1 spp"):
         speed_ratios(job, ("nope", 1), ("slow", 1))
+
+
+def test_flops_and_fraction_of_sgemm_per_round(tmp_path: Path, sleeper: str) -> None:
+    """A row of known matrix products gets its analytic FLOPs per frame and per-round fractions of the round's
+    sgemm rate; a row without torch products gets none."""
+    registry.register("test_products", inputs=("radiance",), description="test only: products")(Products)
+    try:
+        write_synthetic_scene(tmp_path / "test_000")
+        cfg = smoke_config(methods=[{"id": "mm", "method": "test_products", "params": {"n": 96, "count": 3}},
+                                    {"id": "sleep", "method": sleeper, "params": {"ms": 1.0}}])
+        runs = [prepare_run(cfg, row, 1, tmp_path / "test_000", frames=2, results=tmp_path) for row in ("mm", "sleep")]
+        assert [run.count_flops(1) for run in runs] == [3 * 2 * 96**3, 0]
+        rates = iter([50.0, 100.0])
+        sgemm = time_interleaved(runs, repeats=2, threads=1, sgemm=lambda threads: next(rates, 80.0))
+        assert sgemm == [100.0, 80.0]           # the warm-up call took the first value
+        products, sleeping = (run.record(1, sgemm) for run in runs)
+        per_round = [3 * 2 * 96**3 / 1e9 / s / g for s, g in zip(runs[0].passes, sgemm)]
+        assert products["gflop_per_frame"] == pytest.approx(3 * 2 * 96**3 / 1e9)
+        assert products["fraction_of_sgemm"] == pytest.approx(float(np.median(per_round)))
+        assert products["fraction_of_sgemm_min"] == pytest.approx(min(per_round))
+        assert sleeping["gflop_per_frame"] == 0 and sleeping["fraction_of_sgemm"] is None
+        assert sleeping["gflops_per_s"] is None
+    finally:
+        registry._REGISTRY.pop("test_products", None)
 
 
 def test_the_timing_job_times_the_configured_rows_on_the_first_evaluated_scene() -> None:

@@ -72,9 +72,10 @@ def summary_markdown(res: Results, summary: pd.DataFrame) -> str:
 
 
 def timing_table(res: Results) -> pd.DataFrame:
-    """Per row and spp: the timing job's ms/frame (median over rounds, min, max, spread = range / median) and
-    Mpix/s, the denoise jobs' peak memory (mean with CI over scenes) and the summed non-finite / out-of-range
-    counts."""
+    """Per row and spp: the timing job's ms/frame (median over rounds, min, max, spread = range / median),
+    Mpix/s and, for rows running torch products, GFLOP per frame, GFLOP/s and its fraction of the same
+    round's sgemm (NaN otherwise), the denoise jobs' peak memory (mean with CI over scenes) and the summed
+    non-finite / out-of-range counts."""
     import pandas as pd
 
     rows = []
@@ -87,7 +88,8 @@ def timing_table(res: Results) -> pd.DataFrame:
         speed = res.speed(run["id"], run["spp"]) or {}
         rows.append({"method_id": run["id"], "spp": run["spp"],
                      **{key: speed.get(key, math.nan) for key in
-                        ("ms_per_frame", "ms_per_frame_min", "ms_per_frame_max", "spread", "mpix_per_s")},
+                        ("ms_per_frame", "ms_per_frame_min", "ms_per_frame_max", "spread", "mpix_per_s",
+                         "gflop_per_frame", "gflops_per_s", "fraction_of_sgemm")},
                      "timing_rounds": speed.get("repeats", 0), "timing_threads": speed.get("threads", math.nan),
                      **{f"{c}_{part}": value for c in TIMING_COLUMNS
                         for part, value in zip(("mean", "ci_low", "ci_high"), mean_ci(values[c].to_numpy(float))[:3])},

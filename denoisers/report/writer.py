@@ -82,7 +82,12 @@ def _timing_line(res: Results) -> str:
             "is the median seconds per `denoise()` call without the first frame, a row's ms/frame the median over "
             "rounds with [min, max]; Mpix/s = pixels / median. Renderer in the same job and threads, on every "
             f"evaluated scene: {min(rates, default=math.nan):.3g}-{max(rates, default=math.nan):.3g} M samples/s "
-            f"(median of {renderer['repeats']} renders of {renderer['layers']} full-feature layers per scene).")
+            f"(median of {renderer['repeats']} renders of {renderer['layers']} full-feature layers per scene). "
+            f"Every round ended with a float32 sgemm at the same threads: {job['sgemm']['gflops_per_s_median']:.0f} "
+            f"GFLOP/s (median; range {min(job['sgemm']['gflops_per_s']):.0f}-{max(job['sgemm']['gflops_per_s']):.0f}), "
+            "the machine's speed while the rows ran; rows running torch products or convolutions show their GFLOP per "
+            "frame (torch's flop counter; native kernels not counted), GFLOP/s and its fraction of the same round's "
+            "sgemm in the [timing table](tables/timing.md).")
 
 
 def _claims_section(claims: pd.DataFrame) -> list[str]:
@@ -251,7 +256,8 @@ def _core_tables(res: Results, tables: Path) -> dict[str, str]:
                     "clip_ms_per_frame": "ms_per_frame"})))
     timing = tab.timing_table(res)
     speed = {"ms_per_frame": "ms_per_frame", "ms_per_frame_min": "ms_per_frame", "ms_per_frame_max": "ms_per_frame",
-             "spread": "", "mpix_per_s": "mpix_per_s"}
+             "spread": "", "mpix_per_s": "mpix_per_s", "gflop_per_frame": "", "gflops_per_s": "",
+             "fraction_of_sgemm": ""}
     tab.write_table(timing, tables, "timing", frame_to_markdown(formatted(
         timing, {**{c: c.rsplit("_", 1)[0].replace("_ci", "") for c in timing.columns
                     if c.endswith(("_mean", "_low", "_high")) and c not in speed}, **speed})))
