@@ -87,11 +87,9 @@ class TimedRun:
 
     def count_flops(self, threads: int) -> int:
         """FLOPs per frame of one extra, untimed pass (torch operators only), stored in ``flops_per_frame``."""
-        from torch.utils.flop_counter import FlopCounterMode
-
         from denoisers.denoise_job import run_method
 
-        counter = FlopCounterMode(display=False)
+        counter = flop_counter()
         with counter:
             run_method(self.method, self.frames, threads)
         self.flops_per_frame = int(counter.get_total_flops()) // len(self.frames)
@@ -113,6 +111,26 @@ class TimedRun:
                 out.update(fraction_of_sgemm=float(np.median(fractions)), fraction_of_sgemm_min=min(fractions),
                            fraction_of_sgemm_max=max(fractions))
         return out
+
+
+def _fused_conv_flops(x_shape: Sequence[int], w_shape: Sequence[int], *_: Any, out_shape: Sequence[int],
+                      **__: Any) -> int:
+    """FLOPs of oneDNN's convolution with a fused activation: those of the plain convolution."""
+    from torch.utils.flop_counter import conv_flop_count
+
+    return conv_flop_count(list(x_shape), list(w_shape), list(out_shape))
+
+
+def flop_counter() -> Any:
+    """torch's FlopCounterMode, also counting the fused oneDNN convolution the RAE's inference path calls
+    (``torch.ops.mkldnn._convolution_pointwise``; torch's counter knows only aten's convolutions)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    mapping = {}
+    if hasattr(torch.ops.mkldnn, "_convolution_pointwise"):
+        mapping[torch.ops.mkldnn._convolution_pointwise] = _fused_conv_flops
+    return FlopCounterMode(display=False, custom_mapping=mapping)
 
 
 def prepare_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: int,

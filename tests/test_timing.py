@@ -125,6 +125,27 @@ def test_flops_and_fraction_of_sgemm_per_round(tmp_path: Path, sleeper: str) -> 
         registry._REGISTRY.pop("test_products", None)
 
 
+def test_the_raes_fused_inference_convolutions_are_counted() -> None:
+    """The RAE's inference path calls oneDNN's fused convolution, which torch's flop counter does not know: the
+    timing job's counter gives it the FLOPs torch counts for the same network's plain (aten) step."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from denoisers.nets import for_inference
+    from denoisers.nets.rae import RAEConfig, RecurrentAutoencoder
+    from denoisers.timing import flop_counter
+
+    config = RAEConfig(features=("normal", "depth", "roughness"), width=0.25)
+    model = RecurrentAutoencoder(config).eval()
+    x = torch.rand(1, config.in_channels, 32, 48)
+    with torch.no_grad(), FlopCounterMode(display=False) as plain:
+        model.step(x, None)
+    fast = flop_counter()
+    with fast:
+        for_inference(model).inference_step(x, None)
+    assert plain.get_total_flops() > 0
+    assert fast.get_total_flops() == plain.get_total_flops()
+
+
 def test_the_timing_job_times_the_configured_rows_on_the_first_evaluated_scene() -> None:
     cfg = smoke_config(methods=[{"id": "noisy", "method": "noisy"}, {"id": "eaw", "method": "eaw"}], spp=[1, 2])
     assert timing_scene(cfg) == "test_000"
