@@ -178,29 +178,6 @@ def test_every_variant_trains_a_few_steps_and_lowers_the_loss(method: str) -> No
         assert model.sampler_head.weight.grad is not None and model.sampler_head.weight.grad.abs().sum() > 0
 
 
-@pytest.mark.parametrize("fused", [True, False], ids=["onednn-fused", "fallback"])
-def test_inference_without_autograd_matches_the_training_forward(fused: bool, monkeypatch) -> None:
-    """Without autograd (inference) the U-Nets fuse the leaky ReLU into oneDNN's convolution (or fall back
-    without the fused op): the same denoised frame and sample logits as the autograd forward, up to the
-    summation order of channels-last kernels (atol 2e-5 + rtol 1e-4, as the RAE's fast path)."""
-    from denoisers.nets import for_inference
-    from denoisers.nets import rae as rae_net
-
-    monkeypatch.setattr(rae_net, "_FUSED_CONV", fused and rae_net.fused_conv_available())
-    torch.manual_seed(2)
-    model = NTASDNet(NTASDConfig())
-    x = torch.rand(1, model.config.denoiser_in_channels, 37, 50)
-    s = torch.rand(1, model.config.sampler_in_channels, 37, 50)
-    noisy, history = torch.rand(1, 3, 37, 50), torch.rand(1, 3, 37, 50)
-    plain, logits = model.denoise(x, noisy, history).detach(), model.sample_logits(s).detach()
-    assert torch.is_grad_enabled()
-    fast_model = for_inference(model)
-    with torch.no_grad():
-        fast, fast_logits = fast_model.denoise(x, noisy, history), fast_model.sample_logits(s)
-    torch.testing.assert_close(fast, plain, rtol=1e-4, atol=2e-5)
-    torch.testing.assert_close(fast_logits, logits, rtol=1e-4, atol=2e-5)
-
-
 def test_kernel_variants_have_the_papers_heads() -> None:
     """Fig. 3: 51 per-pixel outputs at the finest level of the temporal denoiser (two 5 x 5 kernels + alpha'),
     26 at the two coarser ones (a kernel + alpha); 25 at the finest for the per-frame KPN."""

@@ -33,7 +33,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoisers import kernels
-from denoisers.nets.rae import conv_act
 
 #: Sec. 2.2: inputs clamped to [0, 65535], then log(x + 1)^(1/2.2).
 CLAMP_MAX = 65535.0
@@ -173,19 +172,16 @@ class UNet(nn.Module):
         return 2 ** (len(self.features) - 1)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
-        # Without autograd or autocast (inference), the leaky ReLU is fused into oneDNN's convolution
-        # (denoisers.nets.rae.conv_act): the same values up to float rounding, one pass less over memory.
-        fast = not torch.is_grad_enabled() and not torch.is_autocast_enabled("cpu")
         skips = []
         for level, (first, second) in enumerate(self.encoder):
             if level:
                 x = F.avg_pool2d(x, 2)
-            x = conv_act(second, conv_act(first, x, NEGATIVE_SLOPE, fast), NEGATIVE_SLOPE, fast)
+            x = F.leaky_relu(second(F.leaky_relu(first(x), NEGATIVE_SLOPE)), NEGATIVE_SLOPE)
             skips.append(x)
         outputs = [x]
         for (first, second), skip in zip(self.decoder, reversed(skips[:-1])):
             x = torch.cat([F.interpolate(x, scale_factor=2, mode="nearest"), skip], dim=1)
-            x = conv_act(second, conv_act(first, x, NEGATIVE_SLOPE, fast), NEGATIVE_SLOPE, fast)
+            x = F.leaky_relu(second(F.leaky_relu(first(x), NEGATIVE_SLOPE)), NEGATIVE_SLOPE)
             outputs.append(x)
         return outputs[::-1]
 
