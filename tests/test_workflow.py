@@ -633,6 +633,26 @@ def config_threaded_rules() -> set[str]:
     return names
 
 
+def rule_priorities() -> dict[str, int]:
+    """``priority:`` of every rule that sets one."""
+    found = {}
+    for rule_file in (REPO_ROOT / "workflow/rules").glob("*.smk"):
+        for rule, body in re.findall(r"^rule (\w+):(.*?)(?=^rule |\Z)", rule_file.read_text(), flags=re.M | re.S):
+            match = re.search(r"^\s+priority: (\d+)", body, flags=re.M)
+            if match:
+                found[rule] = int(match.group(1))
+    return found
+
+
+def test_renders_then_trainings_come_first() -> None:
+    """On two cores a 2-thread render waits until no 1-thread job runs; renders therefore outrank every other
+    rule (a late render stalled the training that needed it), and trainings outrank the short jobs."""
+    priorities = rule_priorities()
+    others = rule_names() - {"render_noisy", "render_reference", "train_denoiser"}
+    assert priorities["render_noisy"] == priorities["render_reference"] > priorities["train_denoiser"]
+    assert priorities["train_denoiser"] > max((priorities.get(rule, 0) for rule in others), default=0)
+
+
 def test_training_runtime_follows_the_budget() -> None:
     from denoisers.training.models import (DEFAULT_TRAINING_RUNTIME_MIN, TRAINING_RUNTIME_MARGIN_MIN,
                                            training_runtime_minutes)

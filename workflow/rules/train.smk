@@ -26,6 +26,9 @@ rule train_denoiser:
     # training.threads: the job trains on exactly these (part of the model's settings), even when Snakemake
     # scales the rule's threads down to --cores.
     threads: config["training"]["threads"]
+    # After the renders, before the evaluation jobs: the long trainings keep both cores busy and the short
+    # denoise/evaluate jobs fill a core whenever fewer than two trainings are ready.
+    priority: 5
     resources:
         mem_mb=8000,
         runtime=lambda wildcards: training_runtime_minutes(config, wildcards.model),  # from budget.max_seconds
