@@ -644,12 +644,14 @@ def rule_priorities() -> dict[str, int]:
     return found
 
 
-def test_renders_then_trainings_come_first() -> None:
-    """On two cores a 2-thread render waits until no 1-thread job runs; renders therefore outrank every other
-    rule (a late render stalled the training that needed it), and trainings outrank the short jobs."""
+def test_scenes_and_renders_then_trainings_come_first() -> None:
+    """On two cores a 2-thread render waits until no 1-thread job runs; scenes and renders therefore outrank
+    every other rule (a late render stalled the training that needed it), and trainings the short jobs."""
     priorities = rule_priorities()
-    others = rule_names() - {"render_noisy", "render_reference", "train_denoiser"}
-    assert priorities["render_noisy"] == priorities["render_reference"] > priorities["train_denoiser"]
+    first = {"generate_scene", "render_noisy", "render_reference"}
+    others = rule_names() - first - {"train_denoiser"}
+    assert {priorities[rule] for rule in first} == {priorities["render_noisy"]}
+    assert priorities["render_noisy"] > priorities["train_denoiser"]
     assert priorities["train_denoiser"] > max((priorities.get(rule, 0) for rule in others), default=0)
 
 

@@ -20,10 +20,11 @@ rule render_noisy:
         results_path("benchmarks/render_noisy/{scene}/chunk_{chunk}.tsv")
     conda:
         "../envs/harness.yaml"
-    # Renders first (priority above every other rule): a 2-thread render starts only when both cores are
-    # free, which seldom happens once 1-thread trainings run, so a render left for later held back the
-    # training that needed it (in the default run of 2026-12-02 rae_volume's volumetric renders came last and
-    # it trained alone for 45 min with one core idle).
+    # Scenes and renders first (priority above every other rule): a 2-thread render starts only when both
+    # cores are free, which seldom happens once 1-thread trainings run (Snakemake's greedy scheduler fills a
+    # free core and reserves none), so a render left for later held back the training that needed it (in the
+    # default run of 2026-12-02 rae_volume's volumetric renders came last and it trained alone for 45 min with
+    # one core idle). Once every scene exists, a finished render frees both cores for the next one.
     priority: 10
     threads: 2
     resources:
@@ -50,10 +51,11 @@ rule render_reference:
         results_path("benchmarks/render_reference/{scene}/chunk_{chunk}.tsv")
     conda:
         "../envs/harness.yaml"
-    # Renders first (priority above every other rule): a 2-thread render starts only when both cores are
-    # free, which seldom happens once 1-thread trainings run, so a render left for later held back the
-    # training that needed it (in the default run of 2026-12-02 rae_volume's volumetric renders came last and
-    # it trained alone for 45 min with one core idle).
+    # Scenes and renders first (priority above every other rule): a 2-thread render starts only when both
+    # cores are free, which seldom happens once 1-thread trainings run (Snakemake's greedy scheduler fills a
+    # free core and reserves none), so a render left for later held back the training that needed it (in the
+    # default run of 2026-12-02 rae_volume's volumetric renders came last and it trained alone for 45 min with
+    # one core idle). Once every scene exists, a finished render frees both cores for the next one.
     priority: 10
     threads: 2
     resources:

@@ -16,6 +16,9 @@ rule generate_scene:
         results_path("benchmarks/generate_scene/{scene}.tsv")
     conda:
         "../envs/harness.yaml"
+    # With the renders, ahead of every other rule: every scene exists before the renders start, so they
+    # run back to back on both cores (see render.smk).
+    priority: 10
     threads: 1
     resources:
         mem_mb=4000,
