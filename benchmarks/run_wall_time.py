@@ -10,6 +10,9 @@ job start / finish stamps of each invocation's log (``.snakemake/log/*.snakemake
   removed), i.e. the time the machine spent on this DAG;
 * per rule: jobs started, finished, and the summed job time with pauses removed;
 * the total busy wall time over all segments: the DAG's wall time if the segments had run back to back.
+* core use (``--cores``, each job holding its ``threads:``): core-minutes used, core-minutes left idle while
+  some job ran (e.g. one 1-thread training alone on two cores), and the wall time of the same work packed
+  onto every core, a floor no job order can beat.
 
 A job still running when its invocation died (no ``Finished``/``Error`` line) ends at its segment's end: the
 last ``--heartbeat`` stamp of the unbroken chain of beats after its last log stamp (a file of ISO times written
@@ -38,6 +41,7 @@ _RULE = re.compile(r"^(?:local)?(?:checkpoint|rule) (\w+):\s*$")
 _JOBID = re.compile(r"^\s+jobid: (\d+)\s*$")
 _FINISHED = re.compile(r"^Finished job(?:id:)? (\d+)")
 _ERROR = re.compile(r"^Error in rule (\w+):\s*$")
+_THREADS = re.compile(r"^\s+threads: (\d+)\s*$")
 
 Interval = tuple[datetime, datetime]
 
@@ -50,6 +54,7 @@ class Job:
     start: datetime
     end: datetime | None = None
     failed: bool = False
+    threads: int = 1                 # Snakemake prints "threads: N" for N > 1 only
 
 
 @dataclass
@@ -68,6 +73,7 @@ def parse_log(text: str, name: str = "log") -> Segment | None:
     first = last = None
     jobs: dict[int, Job] = {}
     pending_rule: tuple[str, datetime] | None = None
+    announced: Job | None = None     # the job whose announcement block is being read
     in_error = False
     for line in text.splitlines():
         match = _STAMP.match(line)
@@ -75,7 +81,7 @@ def parse_log(text: str, name: str = "log") -> Segment | None:
             stamp = datetime.strptime(" ".join(match.group(1).split()), "%a %b %d %H:%M:%S %Y")
             first = first or stamp
             last = stamp
-            pending_rule, in_error = None, False
+            pending_rule, in_error, announced = None, False, None
             continue
         if stamp is None:
             continue
@@ -89,7 +95,10 @@ def parse_log(text: str, name: str = "log") -> Segment | None:
                 jobs[jobid].end, jobs[jobid].failed = stamp, True
             elif pending_rule is not None and jobid not in jobs:
                 jobs[jobid] = Job(pending_rule[0], jobid, pending_rule[1])
+                announced = jobs[jobid]
             pending_rule = None
+        elif (match := _THREADS.match(line)) is not None and announced is not None:
+            announced.threads = int(match.group(1))
         elif (match := _FINISHED.match(line)) is not None:
             jobid = int(match.group(1))
             if jobid in jobs and jobs[jobid].end is None:
@@ -163,6 +172,22 @@ def job_intervals(segment: Segment, pauses: list[Interval]) -> list[tuple[Job, l
     return [(job, subtract((job.start, job.end or segment.end), pauses)) for job in segment.jobs]
 
 
+def core_use(intervals: list[tuple[Job, list[Interval]]], cores: int) -> tuple[float, float]:
+    """(core-seconds the jobs used, core-seconds left idle while at least one job ran) on ``cores`` cores; a
+    job holds min(its threads, cores) cores over its intervals."""
+    events = sorted((time, sign * min(job.threads, cores)) for job, pieces in intervals for start, end in pieces
+                    for time, sign in ((start, 1), (end, -1)))
+    used = idle = 0.0
+    load, previous = 0, None
+    for time, change in events:
+        if previous is not None and load > 0:
+            seconds = (time - previous).total_seconds()
+            used += min(load, cores) * seconds
+            idle += max(cores - load, 0) * seconds
+        load, previous = load + change, time
+    return used, idle
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("logs", nargs="+", type=Path, help="Snakemake logs, one per invocation")
@@ -178,6 +203,8 @@ def main() -> None:
                         help="count only jobs of this rule (repeatable; e.g. the training stage alone)")
     parser.add_argument("--exclude-rule", action="append", default=[], metavar="NAME",
                         help="leave out jobs of this rule (repeatable)")
+    parser.add_argument("--cores", type=int, default=2,
+                        help="cores of the machine the run used (for the core-use line; default 2)")
     parser.add_argument("--max-gap", type=float, default=5.0,
                         help="minutes between heartbeats beyond which the machine counts as down (default 5)")
     args = parser.parse_args()
@@ -196,12 +223,14 @@ def main() -> None:
     keep_rules(segments, args.rule, args.exclude_rule)   # after closing: the ends do not depend on the rules counted
 
     per_rule: dict[str, list[float]] = {}
-    total = 0.0
+    total = used = idle = 0.0
     print("segment | first stamp | end | jobs (unfinished) | busy wall min | end from")
     for segment in sorted(segments, key=lambda s: s.first):
         intervals = job_intervals(segment, pauses)
         busy = union_length([piece for _, pieces in intervals for piece in pieces])
         total += busy
+        segment_used, segment_idle = core_use(intervals, args.cores)
+        used, idle = used + segment_used, idle + segment_idle
         unfinished = sum(job.end is None for job in segment.jobs)
         source = "heartbeat" if segment.end > segment.last else "last stamp"
         print(f"{segment.name} | {segment.first:%m-%d %H:%M:%S} | {segment.end:%m-%d %H:%M:%S} | "
@@ -216,6 +245,9 @@ def main() -> None:
         print(f"{rule} | {started} | {finished} | {seconds / 60:.1f}")
     print(f"\nbusy wall time over {len(segments)} segments: {total / 3600:.2f} h ({total / 60:.0f} min); "
           f"{len(pauses)} pause window(s) removed")
+    print(f"core use on {args.cores} cores (each job holds min(threads, cores)): {used / 60:.0f} core-min used, "
+          f"{idle / 60:.0f} core-min idle while jobs ran; the same work packed onto every core: "
+          f"{used / args.cores / 60:.0f} min of wall")
 
 
 if __name__ == "__main__":

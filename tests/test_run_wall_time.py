@@ -91,3 +91,21 @@ def test_one_stage_alone_counts_only_its_jobs() -> None:
     assert segment.jobs and {job.rule for job in segment.jobs} == {chosen} and segment.end == end
     rwt.keep_rules([segment], exclude=[chosen])
     assert segment.jobs == []
+
+
+def test_threads_are_read_and_core_use_counts_idle_cores() -> None:
+    """A 2-thread render 10:00-10:10, then a 1-thread training alone 10:10-10:30 beside a 1-thread evaluation
+    10:10-10:15: on 2 cores, 20 + 20 + 5 = 45 core-min used, 15 core-min idle (10:15-10:30), packed 22.5 min."""
+    log = (_job("10:00:00", "render_reference", 1).replace("    wildcards: x=1\n", "    wildcards: x=1\n"
+                                                             "    threads: 2\n")
+           + _finish("10:10:00", 1, "render_reference")
+           + _job("10:10:00", "train_denoiser", 2) + _job("10:10:00", "evaluate_clip", 3)
+           + _finish("10:15:00", 3, "evaluate_clip") + _finish("10:30:00", 2, "train_denoiser"))
+    segment = rwt.parse_log(log, "a")
+    assert {job.rule: job.threads for job in segment.jobs} == {"render_reference": 2, "train_denoiser": 1,
+                                                               "evaluate_clip": 1}
+    rwt.close_segments([segment], [])
+    used, idle = rwt.core_use(rwt.job_intervals(segment, []), cores=2)
+    assert (used, idle) == (45 * 60, 15 * 60)
+    # A job asking for more threads than there are cores holds every core, no more.
+    assert rwt.core_use(rwt.job_intervals(segment, []), cores=1) == (30 * 60, 0)
