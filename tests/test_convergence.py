@@ -106,3 +106,23 @@ def _converged_column(cfg: dict, model: TrainedModel) -> str:
     models = TrainedModels(model_specs(cfg))
     models.models[model.spec.id] = model
     return training_table(models, cfg).set_index("model").loc[model.spec.id, "converged"]
+
+
+def test_step_minutes_leave_out_pauses_and_validations() -> None:
+    """Logged every 10 steps at 0.5 s/step; a validation adds 20 s to the rows that end with it and a 600-s stop
+    of the run falls into one interval: the median step time stays 0.5 s, the elapsed time does not."""
+    steps = np.arange(10, 1010, 10)
+    elapsed = steps * 0.5 + 20.0 * (steps // 100) + np.where(steps >= 450, 600.0, 0.0)
+    val = np.where(steps % 100 == 0, 0.5, np.nan)
+    frame = pd.DataFrame({"step": steps, "elapsed_s": elapsed, "train_loss": 1.0, "val_loss": val})
+    cfg = claims_config()
+    spec = next(s for s in model_specs(cfg) if s.id == "rae")
+    model = TrainedModel(spec, {"steps": 1000, "elapsed_seconds": float(elapsed[-1])}, frame,
+                         pd.DataFrame({"loss": [0.5]}))
+    assert model.median_step_seconds() == pytest.approx(0.5)
+    models = TrainedModels([spec], {"rae": model})
+    row = training_table(models, cfg).iloc[0]
+    assert row["step_minutes"] == pytest.approx(1000 * 0.5 / 60)
+    assert row["train_minutes"] == pytest.approx(float(elapsed[-1]) / 60) and row["train_minutes"] > 20
+    no_times = TrainedModel(spec, {"steps": 1000}, frame.drop(columns=["elapsed_s"]), pd.DataFrame())
+    assert math.isnan(no_times.median_step_seconds())

@@ -76,6 +76,18 @@ class TrainedModel:
         tail = max(1, int(math.ceil(len(rows) * FINAL_FRACTION)))
         return float(rows["train_loss"].iloc[-tail:].mean())
 
+    def median_step_seconds(self) -> float:
+        """Median seconds per step between consecutive logged rows of curves.csv without validation (a
+        stretch in which the job was stopped or a validation ran is one outlier among many; NaN if unknown)."""
+        if not {"step", "elapsed_s"} <= set(self.curves):
+            return math.nan
+        rows = self.curves[["step", "elapsed_s"]].assign(
+            validated=self.curves["val_loss"].notna() if "val_loss" in self.curves else False)
+        steps, seconds = rows["step"].diff(), rows["elapsed_s"].diff()
+        clean = (steps > 0) & ~rows["validated"] & ~rows["validated"].shift(1, fill_value=True)
+        rates = (seconds[clean] / steps[clean]).dropna()
+        return float(rates.median()) if len(rates) else math.nan
+
     def validation_improvement(self, window_fraction: float) -> float:
         """Relative fall of the best validation loss over the last ``window_fraction`` of the steps run:
         (best before the window - best overall) / best before the window; NaN when no validation lies

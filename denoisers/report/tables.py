@@ -282,6 +282,7 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
                         "width": s.get("net", {}).get("config", {}).get("width"),
                         "steps": s.get("steps"), "stopped_by": s.get("stopped_by"),
                         "train_minutes": s.get("elapsed_seconds", math.nan) / 60.0,
+                        "step_minutes": model.median_step_seconds() * (s.get("steps") or math.nan) / 60.0,
                         "seconds_per_step": s.get("seconds_per_step"), "best_step": s.get("best_step"),
                         "final_train_loss": model.final_training_loss(),
                         "val_loss_fall_in_window": model.validation_improvement(rule["window_fraction"]),

@@ -25,8 +25,8 @@ from scenegen.config import output_root
 if TYPE_CHECKING:
     import pandas as pd
 
-TRAINING_COLUMNS = ("train_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim", "val_psnr",
-                    "val_rmse")
+TRAINING_COLUMNS = ("train_minutes", "step_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim",
+                    "val_psnr", "val_rmse")
 CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "mean_diff_ci_95", "parts", "measured", "facts", "flags", "note"]
 
 
@@ -184,7 +184,10 @@ def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
              "distribution scenes. Sizes, budgets and validation metrics of each model's best (lowest validation "
              "loss) checkpoint. `converged` = no when the best validation loss still fell by more than "
              f"{conv['min_improvement']:.0%} (relative) over the last {conv['window_fraction']:.0%} of the steps run "
-             "(`val_loss_fall_in_window`); claims that use such a model say so.", "", markdown, "![Training curves](figures/training_curves.png)", ""]
+             "(`val_loss_fall_in_window`); claims that use such a model say so. `train_minutes`: the job's "
+             "elapsed wall time (any stop of the run while it trained included); `step_minutes`: the median time "
+             "per step between logged rows of its curves.csv (validation left out) times its steps, which a stopped "
+             "or briefly crowded job does not inflate.", "", markdown, "![Training curves](figures/training_curves.png)", ""]
     if res.models.missing:
         lines += [f"Not trained (no complete model directory): {', '.join(res.models.missing)}", ""]
     return lines + _training_speed_lines(res, tables)
