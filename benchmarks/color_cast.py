@@ -16,11 +16,12 @@ defaults) for comparison. ``--brightness-bins`` adds, per model or row, the rati
 luminance (channel mean) within bins of the reference's per-pixel luminance (at most its median, median to 90th
 percentile, 90th to 99th, above the 99th; pixels of every frame): where the excess or deficit sits; and the
 darker half split by the mean albedo of the loaded layers (channel mean >= 0.1: lit surfaces in shadow or dim
-light; < 0.1: dark materials and the background).
+light; < 0.1: dark materials and the background). ``--psnr`` adds each line's mean per-frame PSNR (the
+evaluation's ``denoisers.metrics.psnr``): what a cast or a noisy divisor costs in the metric.
 
 Usage: python benchmarks/color_cast.py --results results --models results/models/rae results/models/rae_inputs_color
            [--config config/config.yaml] [--spp 1] [--albedo-layers 8] [--threads 2] [--scenes train_003 ...]
-           [--rows oidn svgf eaw] [--brightness-bins]
+           [--rows oidn svgf eaw] [--brightness-bins] [--psnr]
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from denoisers.methods.rae import RecurrentAutoencoderDenoiser  # noqa: E402
 from denoisers import registry  # noqa: E402
 from denoisers.registry import Denoiser, clip_frames  # noqa: E402
+from denoisers.metrics import psnr  # noqa: E402
 from denoisers.report.color_balance import cast_of, channel_means  # noqa: E402
 from denoisers.training.models import training_split  # noqa: E402
 from scenegen.config import load_config  # noqa: E402
@@ -96,6 +98,7 @@ def main() -> None:
     parser.add_argument("--rows", nargs="+", default=[], help="untrained method rows to compare (registered defaults)")
     parser.add_argument("--brightness-bins", action="store_true",
                         help="also print output / reference luminance per bin of reference luminance")
+    parser.add_argument("--psnr", action="store_true", help="also print the mean per-frame PSNR of every line")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cfg = load_config(args.config)
@@ -111,6 +114,7 @@ def main() -> None:
         references = np.stack(list(clip.reference["radiance"]))
         reference = channel_means(list(references))
         bins = (references, clip.samples["albedo"].mean(axis=(1, 2))) if args.brightness_bins else None
+        scored = references if args.psnr else None
         noisy = channel_means(list(clip.samples["radiance"][:, :args.spp].mean(axis=1)))
         print(f"{scene}  {'noisy input':34s} ratio {np.round(noisy / reference, 3)}  cast {cast_of(noisy / reference):.3f}")
         frames = list(clip_frames(clip, RecurrentAutoencoderDenoiser.info, args.spp))
@@ -125,20 +129,23 @@ def main() -> None:
                 variants.append((f"albedo of {args.albedo_layers} layers", wide_albedo))
             for label, albedo in variants:
                 outputs = stream(method, frames, albedo)
-                report(scene, f"{model_dir.name} ({label})", outputs, reference, bins)
+                report(scene, f"{model_dir.name} ({label})", outputs, reference, bins, scored)
         for row in args.rows:
             method = registry.build(row)
             row_clip = load_clip(args.results / "renders" / scene, buffers=method.info.inputs, spp=args.spp)
             report(scene, row, stream(method, list(clip_frames(row_clip, method.info, args.spp)), None), reference,
-                   bins)
+                   bins, scored)
 
 
 def report(scene: str, name: str, outputs: list[np.ndarray], reference: np.ndarray,
-           bins: tuple[np.ndarray, np.ndarray] | None) -> None:
+           bins: tuple[np.ndarray, np.ndarray] | None, scored: np.ndarray | None = None) -> None:
     """One line: per-channel ratios and cast; with ``bins`` = (references (T, 3, H, W), albedo (T, H, W)) also
-    the luminance ratios per brightness bin and over the darker half by albedo."""
+    the luminance ratios per brightness bin and over the darker half by albedo; with ``scored`` (the references
+    (T, 3, H, W)) the mean per-frame PSNR."""
     ratio = channel_means(outputs) / reference
     line = f"{scene}  {name:34s} ratio {np.round(ratio, 3)}  cast {cast_of(ratio):.3f}"
+    if scored is not None:
+        line += f"  PSNR {np.mean([psnr(out, ref) for out, ref in zip(outputs, scored)]):.2f} dB"
     if bins is not None:
         references, albedo = bins
         line += f"\n    luminance ratio by reference bin (<=p50, p50-90, p90-99, >p99) " \

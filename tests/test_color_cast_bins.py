@@ -29,3 +29,18 @@ def test_darker_half_is_split_by_albedo() -> None:
     output[:, :, 0, 2:] *= 3.0                # pixels 3 and 4: a lit surface in shadow made 3x too bright
     ratios = color_cast.dark_half_ratios(list(output), references, albedo)
     np.testing.assert_allclose(ratios, [3.0, 1.0])
+
+
+def test_psnr_line_is_the_mean_per_frame_psnr(capsys) -> None:
+    """--psnr: the mean over frames of the evaluation's own PSNR (two frames with different errors); no PSNR
+    without the references."""
+    from denoisers.metrics import psnr
+
+    references = np.ones((2, 3, 4, 4))
+    outputs = [references[0] + 0.1, references[1] + 0.01]
+    color_cast.report("train_024", "model", outputs, np.ones(3), None, references)
+    line = capsys.readouterr().out
+    expected = (psnr(outputs[0], references[0]) + psnr(outputs[1], references[1])) / 2
+    assert f"PSNR {expected:.2f} dB" in line
+    color_cast.report("train_024", "model", outputs, np.ones(3), None)
+    assert "PSNR" not in capsys.readouterr().out
