@@ -187,7 +187,8 @@ def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
              "(`val_loss_fall_in_window`); claims that use such a model say so. `train_minutes`: the job's "
              "elapsed wall time (any stop of the run while it trained included); `step_minutes`: the median time "
              "per step between logged rows of its curves.csv (validation left out) times its steps, which a stopped "
-             "or briefly crowded job does not inflate.", "", markdown, "![Training curves](figures/training_curves.png)", ""]
+             "or briefly crowded job does not inflate.", "", markdown,
+             "![Training curves](figures/training_curves.png)", ""]
     if res.models.missing:
         lines += [f"Not trained (no complete model directory): {', '.join(res.models.missing)}", ""]
     return lines + _training_speed_lines(res, tables)
