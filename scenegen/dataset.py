@@ -61,9 +61,11 @@ PIXEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "gbuffer.normal": ("gbuffer.normal.X", "gbuffer.normal.Y", "gbuffer.normal.Z"),
     "gbuffer.depth": ("gbuffer.depth.Z",),
     "gbuffer.object": ("gbuffer.object.Y",),
+    "gbuffer.albedo": ("gbuffer.albedo.R", "gbuffer.albedo.G", "gbuffer.albedo.B"),
+    "gbuffer.roughness": ("gbuffer.roughness.Y",),
 }
 #: Per-pixel buffers stored as HALF.
-HALF_PIXEL_BUFFERS: frozenset[str] = frozenset({"valid", "gbuffer.normal"})
+HALF_PIXEL_BUFFERS: frozenset[str] = frozenset({"valid", "gbuffer.normal", "gbuffer.albedo", "gbuffer.roughness"})
 GBUFFER_PREFIX = "gbuffer."
 
 #: Reference frame buffers (all FLOAT): buffer -> channel suffixes; EXR channel ``<buffer>.<suffix>``.
@@ -234,8 +236,8 @@ def pixel_channels(motion: np.ndarray, valid: np.ndarray,
     """Per-pixel data -> (EXR channels {'motion.X': (H, W), ...}, names to store as HALF).
 
     motion: (2, H, W) pixels; valid: (1, H, W) bool or 0/1; gbuffer: {'position': (3, H, W),
-    'normal': (3, H, W), 'depth': (1, H, W), 'object': (1, H, W)}. Other G-buffer keys (e.g. the
-    integrator's 'rgb') are not part of the format and are dropped.
+    'normal': (3, H, W), 'depth': (1, H, W), 'object': (1, H, W), 'albedo': (3, H, W), 'roughness':
+    (1, H, W)}. Other G-buffer keys (e.g. the integrator's 'rgb') are not part of the format and are dropped.
     """
     buffers = {"motion": np.asarray(motion), "valid": np.asarray(valid, dtype=np.float32)}
     for buffer in PIXEL_BUFFERS:

@@ -45,7 +45,8 @@ attributes written by ``scenegen.mitsuba_scene.attach_face_attributes``: ``face_
 source: 0 none / 1 ``face_albedo`` / 2 quadrature) and ``face_albedo`` (RGB).
 
 With ``mode="gbuffer"`` the integrator returns only the primary hit (position, shading normal,
-depth, shape index; -1 on a miss) and no light transport, for motion vectors.
+depth, shape index; -1 on a miss; and the hit's own albedo and roughness, as a rasterised G-buffer
+holds them) and no light transport, for motion vectors and per-pixel features.
 
 ``hide_emitters`` (read by ``mi.SamplingIntegrator``) has the meaning of Mitsuba's ``path``: camera
 rays pass through area emitters to the first surface behind them, and a camera ray that escapes
@@ -71,6 +72,8 @@ GBUFFER_AOVS: tuple[tuple[str, int], ...] = (
     ("normal", 3),
     ("depth", 1),
     ("object", 1),
+    ("albedo", 3),
+    ("roughness", 1),
 )
 MATERIAL_ATTRIBUTE = "face_material"
 IDENT_ATTRIBUTE = "face_ident"
@@ -189,7 +192,11 @@ class FeatureIntegrator(mi.SamplingIntegrator):
         p = dr.select(hit, si.p, 0.0)
         n = dr.select(hit, si.sh_frame.n, 0.0)
         depth = dr.select(hit, offset + si.t, 0.0)
-        aovs = [p.x, p.y, p.z, n.x, n.y, n.z, depth, obj]
+        # The primary hit's own albedo and roughness (a rasterised G-buffer's, Chaitanya et al. 2017 §3.1-3.2):
+        # no specular chain is followed, unlike the per-sample features.
+        albedo = feature_albedo(si.bsdf(mi.RayDifferential3f(ray)), si, ident.z, hit)
+        roughness = dr.select(hit, si.shape.eval_attribute_3(MATERIAL_ATTRIBUTE, si, hit).x, 0.0)
+        aovs = [p.x, p.y, p.z, n.x, n.y, n.z, depth, obj, albedo.x, albedo.y, albedo.z, roughness]
         return mi.Spectrum(0.0), hit, aovs
 
     @dr.syntax

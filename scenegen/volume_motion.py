@@ -36,8 +36,10 @@ OBJECT_ENVIRONMENT, OBJECT_SURFACE, OBJECT_MEDIUM = -1.0, 0.0, 1.0
 
 
 def closest_collision_gbuffer(samples: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Per-pixel G-buffer {position (3,H,W), normal (3,H,W), depth (1,H,W), object (1,H,W)} from per-sample
-    ``depth`` (S,1,H,W), ``position`` (S,3,H,W) and ``medium`` (S,1,H,W) of the volumetric integrator."""
+    """Per-pixel G-buffer {position (3,H,W), normal (3,H,W), depth (1,H,W), object (1,H,W), albedo (3,H,W),
+    roughness (1,H,W)} from per-sample ``depth`` (S,1,H,W), ``position`` (S,3,H,W), ``medium`` (S,1,H,W) and
+    ``albedo`` (S,3,H,W) of the volumetric integrator: the nearest collision's values (its albedo a medium's
+    single-scattering albedo or a surface's); normal and roughness are 0, as the clips have neither."""
     depth, position, medium = samples["depth"], samples["position"], samples["medium"]
     collided = depth[:, 0] > 0.0                                             # (S, H, W)
     nearest = np.argmin(np.where(collided, depth[:, 0], np.inf), axis=0)     # (H, W)
@@ -50,7 +52,8 @@ def closest_collision_gbuffer(samples: dict[str, np.ndarray]) -> dict[str, np.nd
     is_medium = pick(medium) > 0.5
     object_code = np.where(any_hit[None], np.where(is_medium, OBJECT_MEDIUM, OBJECT_SURFACE), OBJECT_ENVIRONMENT)
     return {"position": pick(position), "normal": np.zeros_like(position[0], dtype=np.float32),
-            "depth": pick(depth), "object": object_code.astype(np.float32)}
+            "depth": pick(depth), "object": object_code.astype(np.float32), "albedo": pick(samples["albedo"]),
+            "roughness": np.zeros_like(depth[0], dtype=np.float32)}
 
 
 def camera_moved(manifest: dict, frame: int) -> bool:

@@ -159,7 +159,8 @@ def test_pixel_and_reference_channels() -> None:
     channels, half = pixel_channels(pixel["motion"], pixel["valid"] > 0.5, gbuffer)
     assert set(channels) == {name for names in PIXEL_BUFFERS.values() for name in names}
     assert half == {name for name in channels if is_half_channel(name)} == \
-        {"motion.valid", "gbuffer.normal.X", "gbuffer.normal.Y", "gbuffer.normal.Z"}
+        {"motion.valid", "gbuffer.normal.X", "gbuffer.normal.Y", "gbuffer.normal.Z", "gbuffer.albedo.R",
+         "gbuffer.albedo.G", "gbuffer.albedo.B", "gbuffer.roughness.Y"}
     np.testing.assert_array_equal(channels["motion.Y"], pixel["motion"][1])
     np.testing.assert_array_equal(channels["gbuffer.depth.Z"], pixel["gbuffer.depth"][0])
     assert channels["motion.valid"].dtype == np.float32 and channels["motion.valid"].max() == 1.0
@@ -186,7 +187,7 @@ def test_load_clip_shapes_and_values(clip_dir: Path) -> None:
     assert clip.motion.shape == (n_frames, 2, H, W) and clip.motion.dtype == np.float32
     assert clip.valid.shape == (n_frames, 1, H, W) and clip.valid.dtype == np.bool_
     assert not clip.valid[0].any() and clip.valid[1:].all()
-    assert set(clip.gbuffer) == {"position", "normal", "depth", "object"}
+    assert set(clip.gbuffer) == {"position", "normal", "depth", "object", "albedo", "roughness"}
     assert clip.gbuffer["normal"].shape == (n_frames, 3, H, W)
     assert clip.reference is not None and clip.reference["radiance_half0"].shape == (n_frames, 3, H, W)
     assert [m["frame"] for m in clip.meta] == clip.frames

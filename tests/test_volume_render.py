@@ -85,14 +85,19 @@ def test_closest_collision_gbuffer_picks_the_nearest_collided_sample() -> None:
     depth = np.array([[0.0, 3.0], [2.0, 0.0], [5.0, 0.0]], np.float32).reshape(3, 1, 1, 2)   # (S, 1, H=1, W=2)
     position = np.arange(3 * 3 * 2, dtype=np.float32).reshape(3, 3, 1, 2)
     medium = np.array([[0, 1], [1, 0], [0, 0]], np.float32).reshape(3, 1, 1, 2)
-    g = closest_collision_gbuffer({"depth": depth, "position": position, "medium": medium})
+    albedo = position[::-1] / 20.0
+    g = closest_collision_gbuffer({"depth": depth, "position": position, "medium": medium, "albedo": albedo})
     assert g["depth"][0, 0].tolist() == [2.0, 3.0]                 # pixel 0: layer 1; pixel 1: layer 0
     np.testing.assert_array_equal(g["position"][:, 0, 0], position[1, :, 0, 0])
     np.testing.assert_array_equal(g["position"][:, 0, 1], position[0, :, 0, 1])
+    np.testing.assert_array_equal(g["albedo"][:, 0, 0], albedo[1, :, 0, 0])      # the same collision's albedo
+    np.testing.assert_array_equal(g["albedo"][:, 0, 1], albedo[0, :, 0, 1])
     assert g["object"][0, 0].tolist() == [OBJECT_MEDIUM, OBJECT_MEDIUM]
-    nothing = closest_collision_gbuffer({"depth": np.zeros_like(depth), "position": position, "medium": medium})
+    nothing = closest_collision_gbuffer({"depth": np.zeros_like(depth), "position": position, "medium": medium,
+                                         "albedo": albedo})
     assert (nothing["object"] == OBJECT_ENVIRONMENT).all() and not nothing["position"].any()
-    assert not g["normal"].any()
+    assert not nothing["albedo"].any()
+    assert not g["normal"].any() and not g["roughness"].any()
 
 
 # --- rendered clips --------------------------------------------------------------------------------------------
