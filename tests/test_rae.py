@@ -287,6 +287,45 @@ def test_method_matches_the_training_path() -> None:
     torch.testing.assert_close(streamed, trained, rtol=1e-5, atol=1e-6)
 
 
+def test_gbuffer_rae_reads_the_gbuffer_and_matches_its_training_path() -> None:
+    """``rae_gbuffer``: per-sample radiance, albedo and features from the pixel-centre G-buffer. Its streamed
+    output equals the training task's prediction on the same clip; it follows the G-buffer albedo and ignores
+    the per-sample one; each method refuses the other's models; features_from round-trips (default left out)."""
+    from denoisers.methods.rae import GBufferRecurrentAutoencoderDenoiser
+    from denoisers.nets.rae import GBUFFER_FEATURE_BUFFERS
+
+    config = RAEConfig(width=0.125, levels=2, features_from="gbuffer")
+    assert RAEConfig.from_dict(config.to_dict()) == config and "features_from" not in TINY.to_dict()
+    model = tiny_model(config=config)
+    clip = synthetic_clip(frames=3, height=12, width=10)
+    sequence = SequenceConfig(length=3, crop=None, spp=1, sample_buffers=("radiance",),
+                              pixel_buffers=GBUFFER_FEATURE_BUFFERS).without_augmentation()
+    batch = SequenceDataset([clip], sequence).sequence(
+        SequencePlan(clip=0, scene=clip.scene, frames=(0, 1, 2), layers=((0,), (0,), (0,)), crop=(0, 0)))
+    task = RAETask(config, name="rae_gbuffer", buffers=("radiance",))
+    with torch.no_grad():
+        trained = task.predict(model, {k: v[None] for k, v in batch.items()})[0]
+    info = registry.get("rae_gbuffer").info
+    assert info.inputs == ("radiance",) and info.pixel_inputs == GBUFFER_FEATURE_BUFFERS
+    frames = list(registry.clip_frames(clip, info, 1))
+    method = GBufferRecurrentAutoencoderDenoiser.from_model(model)
+    method.reset()
+    streamed = torch.stack([method.denoise(f) for f in frames])
+    torch.testing.assert_close(streamed, trained, rtol=1e-5, atol=1e-6)
+    # The G-buffer albedo is the divisor: halving it changes the output; the samples carry no albedo at all.
+    assert "albedo" not in frames[0].samples
+    halved = registry.Frame(**{**frames[0].__dict__, "pixel": {**frames[0].pixel,
+                                                              "gbuffer.albedo": frames[0].pixel["gbuffer.albedo"] / 2}})
+    method.reset()
+    assert not torch.allclose(method.denoise(halved), streamed[0])
+    with pytest.raises(ValueError, match="rae_gbuffer"):
+        RecurrentAutoencoderDenoiser.from_model(model)
+    with pytest.raises(ValueError, match="features_from gbuffer"):
+        GBufferRecurrentAutoencoderDenoiser.from_model(tiny_model())
+    with pytest.raises(ValueError, match="radiance alone"):
+        RAETask(config)
+
+
 def test_method_output_is_finite_for_nan_inf_and_spikes() -> None:
     frame = clip_frames(synthetic_clip(frames=1, height=8, width=8), spp=2)[0]
     frame.samples["radiance"][0, 0, 1, 1] = float("nan")

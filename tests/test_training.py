@@ -65,7 +65,7 @@ def synthetic_clip(frames: int = 6, layers: int = 4, height: int = 16, width: in
     if cut is not None:
         valid[cut] = False
     gbuffer = {"depth": depth, "normal": normal, "position": np.zeros((frames, 3, height, width), np.float32),
-               "object": np.zeros((frames, 1, height, width), np.float32)}
+               "object": np.zeros((frames, 1, height, width), np.float32), "albedo": albedo, "roughness": roughness}
     return Clip(scene=scene, frames=list(range(frames)), samples=samples, motion=motion, valid=valid, gbuffer=gbuffer,
                 reference={"radiance": reference, "albedo": albedo}, meta=meta)
 

@@ -8,8 +8,9 @@ import torch
 
 from denoisers.filters import check_sizes
 from denoisers.nets import for_inference
-from denoisers.nets.rae import (COLOR_INPUT_BUFFERS, INPUT_BUFFERS, RecurrentAutoencoder, State, buffer_means,
-                                check_color_only, decode_color, prepare_inputs, world_to_view)
+from denoisers.nets.rae import (COLOR_INPUT_BUFFERS, GBUFFER_FEATURE_BUFFERS, INPUT_BUFFERS, RecurrentAutoencoder,
+                                State, buffer_means, check_color_only, decode_color, gbuffer_features,
+                                prepare_inputs, world_to_view)
 from denoisers.registry import Denoiser, Frame, register
 
 
@@ -57,6 +58,7 @@ class RecurrentAutoencoderDenoiser(Denoiser):
         Denoiser.__init__(method)
         method.checkpoint = None
         method.reset_state_every_frame = bool(reset_state_every_frame)
+        method.check_model(model, f"method {cls.info.name!r}")
         method._model = for_inference(model)
         method._state = None
         return method
@@ -69,10 +71,19 @@ class RecurrentAutoencoderDenoiser(Denoiser):
             model = load_model(self.checkpoint)
             if not isinstance(model, RecurrentAutoencoder):
                 raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not an RAE")
-            if self.info.inputs != INPUT_BUFFERS:
-                check_color_only(model.config, f"method {self.info.name!r} ({self.checkpoint})")
+            self.check_model(model, f"method {self.info.name!r} ({self.checkpoint})")
             self._model = for_inference(model)
         return self._model
+
+    def check_model(self, model: RecurrentAutoencoder, where: str) -> None:
+        """ValueError unless ``model`` reads its features where this method gives them (the samples)."""
+        if model.config.features_from != "samples":
+            raise ValueError(f"{where}: the model reads its features from the {model.config.features_from} "
+                             "(net features_from); evaluate it with method 'rae_gbuffer'")
+
+    def features(self, frame: Frame) -> dict[str, torch.Tensor]:
+        """Per-pixel radiance, albedo, normal, depth and roughness (C, H, W) of ``frame``: means over its samples."""
+        return buffer_means(frame.samples, self.info.inputs, sample_dim=0)
 
     def reset(self) -> None:
         self._state = None
@@ -86,7 +97,7 @@ class RecurrentAutoencoderDenoiser(Denoiser):
         model = self.model
         if self.reset_state_every_frame or frame.camera_cut:
             self._state = None
-        means = buffer_means(frame.samples, self.info.inputs, sample_dim=0)
+        means = self.features(frame)
         x, divisor = prepare_inputs(model.config, means["radiance"], means["albedo"], means["normal"],
                                     means["depth"], means["roughness"], world_to_view(camera["to_world"]))
         out, self._state = model.inference_step(x[None], self._state)
@@ -99,3 +110,25 @@ class RecurrentAutoencoderDenoiser(Denoiser):
 class ColorRecurrentAutoencoderDenoiser(RecurrentAutoencoderDenoiser):
     """The RAE reading the noisy colour alone: its model must be colour-only (net demodulate false, features []),
     as Iglesias-Guitian et al. 2022 retrain it for volumes, whose clips have no normals. Parameters as ``rae``."""
+
+    def check_model(self, model: RecurrentAutoencoder, where: str) -> None:
+        check_color_only(model.config, where)
+
+
+@register("rae_gbuffer", inputs=COLOR_INPUT_BUFFERS, pixel_inputs=GBUFFER_FEATURE_BUFFERS, trainable=True,
+          temporal=True, description="the RAE with its albedo and features from the pixel-centre G-buffer, as the "
+                                     "paper's rasterised G-buffer (Chaitanya et al. 2017 §3.1-3.2)")
+class GBufferRecurrentAutoencoderDenoiser(RecurrentAutoencoderDenoiser):
+    """The RAE reading the noisy colour per sample and its albedo, normal, depth and roughness from the frame's
+    pixel-centre G-buffer (noise-free at any spp; ``gbuffer.*`` per-pixel buffers): its model must have net
+    features_from gbuffer (trained with task ``rae_gbuffer``). Parameters as ``rae``."""
+
+    def check_model(self, model: RecurrentAutoencoder, where: str) -> None:
+        if model.config.features_from != "gbuffer":
+            raise ValueError(f"{where}: method 'rae_gbuffer' needs a model trained on G-buffer features (net "
+                             f"features_from gbuffer, task rae_gbuffer); this one reads {model.config.features_from}")
+
+    def features(self, frame: Frame) -> dict[str, torch.Tensor]:
+        means = buffer_means(frame.samples, self.info.inputs, sample_dim=0)
+        means.update(gbuffer_features(frame.pixel))
+        return means

@@ -49,6 +49,10 @@ from denoisers.losses import RAE_LOSS_WEIGHTS, rae_loss
 PAPER_PARAMETER_COUNT = 3_200_000
 #: Auxiliary features the network can take, in channel order, with their channel counts.
 AUX_FEATURES: dict[str, int] = {"normal": 2, "depth": 1, "roughness": 1}
+#: Where an RAE's albedo and auxiliary features come from (RAEConfig.features_from).
+FEATURE_SOURCES: tuple[str, ...] = ("samples", "gbuffer")
+#: Per-pixel G-buffer buffers a ``features_from: gbuffer`` RAE reads (scenegen.dataset.PIXEL_BUFFERS names).
+GBUFFER_FEATURE_BUFFERS: tuple[str, ...] = ("gbuffer.albedo", "gbuffer.normal", "gbuffer.depth", "gbuffer.roughness")
 #: Encodings of the depth feature (RAEConfig.depth_encoding), metres -> network input.
 DEPTH_ENCODINGS: dict[str, Any] = {"metres": lambda depth: depth,
                                    "log1p": lambda depth: torch.log1p(depth.clamp_min(0))}
@@ -70,7 +74,10 @@ class RAEConfig:
     exponent: the power applied to colour inputs and targets (0.2, §4.4);
     depth_encoding: how the depth feature enters: "metres" (view distance as rendered; 0-85 m in the open
     scenes) or "log1p" (log(1 + metres): 0-4.5, the range of the other inputs). §3.2 only says the depth is
-    "linearized"; the scale is ours.
+    "linearized"; the scale is ours;
+    features_from: where the albedo and the auxiliary features come from: "samples" (the mean of the frame's
+    per-sample buffers, one jittered sample per pixel at 1 spp) or "gbuffer" (the pixel-centre G-buffer pass,
+    noise-free: the paper's rasterised G-buffer, §3.1-3.2; methods and tasks ``rae_gbuffer``).
     """
 
     width: float = 1.0
@@ -84,6 +91,7 @@ class RAEConfig:
     exponent: float = 0.2
     albedo_floor: float = 0.01
     depth_encoding: str = "metres"
+    features_from: str = "samples"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "features", tuple(self.features))
@@ -95,6 +103,8 @@ class RAEConfig:
             raise ValueError(f"rae: need width > 0, levels >= 1, 0 < exponent <= 1, albedo_floor > 0; got {self}")
         if self.depth_encoding not in DEPTH_ENCODINGS:
             raise ValueError(f"rae: depth_encoding must be one of {list(DEPTH_ENCODINGS)}, got {self.depth_encoding!r}")
+        if self.features_from not in FEATURE_SOURCES:
+            raise ValueError(f"rae: features_from must be one of {list(FEATURE_SOURCES)}, got {self.features_from!r}")
         if len(self.final_features) != 2:
             raise ValueError(f"rae: final_features needs two counts, got {self.final_features}")
 
@@ -121,10 +131,11 @@ class RAEConfig:
         data = asdict(self)
         data["features"] = list(self.features)
         data["final_features"] = list(self.final_features)
-        if self.depth_encoding == "metres":
-            # The default is left out so that checkpoints and model files written before the key existed keep
-            # their fingerprint (a resumed training would otherwise refuse its own checkpoint).
-            del data["depth_encoding"]
+        # Defaults of keys added later are left out, so that checkpoints and model files written before the key
+        # existed keep their fingerprint (a resumed training would otherwise refuse its own checkpoint).
+        for key, default in (("depth_encoding", "metres"), ("features_from", "samples")):
+            if data[key] == default:
+                del data[key]
         return data
 
     @classmethod
@@ -362,6 +373,16 @@ def check_color_only(config: RAEConfig, where: str) -> None:
                          f"{config.demodulate}, features {list(config.features)}")
 
 
+def gbuffer_features(pixel: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """{albedo, normal, depth, roughness} of :func:`prepare_inputs` from the per-pixel G-buffer buffers
+    ``gbuffer.*`` ((..., C, H, W) each); KeyError naming a missing one."""
+    missing = [name for name in GBUFFER_FEATURE_BUFFERS if name not in pixel]
+    if missing:
+        raise KeyError(f"rae (features_from gbuffer): per-pixel buffers {missing} are missing; render with a G-buffer "
+                       "pass that stores them (scenegen.dataset.PIXEL_BUFFERS)")
+    return {name.split(".", 1)[1]: pixel[name] for name in GBUFFER_FEATURE_BUFFERS}
+
+
 def buffer_means(samples: Mapping[str, torch.Tensor], buffers: tuple[str, ...], sample_dim: int
                  ) -> dict[str, torch.Tensor]:
     """Per-pixel means over ``sample_dim`` of every RAE input buffer; buffers outside ``buffers`` (the colour-only
@@ -379,10 +400,12 @@ def buffer_means(samples: Mapping[str, torch.Tensor], buffers: tuple[str, ...], 
 class RAETask:
     """How the trainer (``denoisers.training.loop``) trains an RAE on ``denoisers.training.data`` batches.
 
-    A batch holds per-sample buffers (N, T, S, C, H, W) of :data:`INPUT_BUFFERS`, ``reference.radiance``
-    (N, T, 3, H, W) and ``world_to_view`` (N, T, 3, 3). The target is the reference demodulated by the
-    same divisor as the input (the frame's noisy mean albedo, since this renderer's albedo is per sample
-    rather than rasterised), raised to the power 0.2; the loss is :func:`denoisers.losses.rae_loss`.
+    A batch holds per-sample buffers (N, T, S, C, H, W) of :data:`INPUT_BUFFERS` (only radiance with
+    ``config.features_from == "gbuffer"``, which reads the per-pixel (N, T, C, H, W)
+    :data:`GBUFFER_FEATURE_BUFFERS` instead), ``reference.radiance`` (N, T, 3, H, W) and ``world_to_view``
+    (N, T, 3, 3). The target is the reference demodulated by the same divisor as the input (the frame's mean
+    sample albedo, or its G-buffer albedo), raised to the power 0.2; the loss is
+    :func:`denoisers.losses.rae_loss`.
     """
 
     config: RAEConfig = field(default_factory=RAEConfig)
@@ -392,7 +415,11 @@ class RAETask:
     buffers: tuple[str, ...] = INPUT_BUFFERS        # COLOR_INPUT_BUFFERS for the colour-only RAE
 
     def __post_init__(self) -> None:
-        if self.buffers != INPUT_BUFFERS:
+        if self.config.features_from == "gbuffer":
+            if self.buffers != COLOR_INPUT_BUFFERS:
+                raise ValueError(f"{self.name}: an RAE with features_from gbuffer reads radiance alone per sample, "
+                                 f"got {list(self.buffers)}")
+        elif self.buffers != INPUT_BUFFERS:
             check_color_only(self.config, self.name)
 
     def build_model(self) -> RecurrentAutoencoder:
@@ -408,6 +435,8 @@ class RAETask:
     def inputs(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """(x (N, T, in_channels, H, W), divisor (N, T, 3, H, W)) of a batch."""
         means = buffer_means(batch, self.buffers, sample_dim=2)
+        if self.config.features_from == "gbuffer":
+            means.update(gbuffer_features(batch))
         return prepare_inputs(self.config, means["radiance"], means["albedo"], means["normal"], means["depth"],
                               means["roughness"], batch["world_to_view"])
 

@@ -71,7 +71,7 @@ OPTIONAL_OFF: dict[str, Any] = {"permute_channels": False, "grayscale_prob": 0.0
 COLOUR_AUGMENTATION_KEYS: tuple[str, ...] = ("permute_channels", "grayscale_prob")
 #: Per-pixel buffers a sequence can carry.
 PIXEL_KEYS: tuple[str, ...] = ("motion", "valid", "gbuffer.position", "gbuffer.normal", "gbuffer.depth",
-                               "gbuffer.object")
+                               "gbuffer.object", "gbuffer.albedo", "gbuffer.roughness")
 #: Mitsuba camera frame -> view space (x right, y up, z towards the viewer).
 _CAMERA_TO_VIEW = np.diag([-1.0, 1.0, -1.0])
 #: One counter-clockwise quarter turn of the image (np.rot90 on (row, column)) in view space (x right, y up).
@@ -403,6 +403,8 @@ class SequenceDataset:
                 data = np.where(stopped[:, None, None, None], True, clip.valid[:, :, rows, columns][frames])
             else:
                 data = clip.gbuffer[key.split(".", 1)[1]][:, :, rows, columns][frames]
+                if key == "gbuffer.albedo":           # permuted and greyed like the per-sample albedo
+                    data = recolour("albedo", data)
             out[key] = data.astype(np.float32)
         out = {key: _orient(value, plan.rotation, plan.flip) for key, value in out.items()}
         if "motion" in out:

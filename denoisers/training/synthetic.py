@@ -30,7 +30,7 @@ def synthetic_batch(spec: ModelSpec, buffers: tuple[str, ...], seed: int = 0, *,
     """(N, T, S, C, crop, crop) per-sample ``buffers`` of a procedural clip (boxes and a bump, panning half a
     pixel per frame, heavy-tailed noise on radiance), (N, T, 3, crop, crop) clean reference radiance and
     identity world-to-view rotations (N, T, 3, 3); N = batch_size, T = length, S = spp. ``pixel_buffers``
-    (motion: the pan, +0.5 px in x; valid; gbuffer.normal / gbuffer.depth) and ``mean_buffers``
+    (motion: the pan, +0.5 px in x; valid; gbuffer.normal / depth / albedo / roughness) and ``mean_buffers``
     (``mean.{buffer}``, (N, T, C, crop, crop)) as denoisers.training.data batches carry them."""
     n, t, crop, spp = spec.optimizer["batch_size"], spec.data["length"], spec.data["crop"], spec.data["spp"]
     generator = torch.Generator().manual_seed(seed)
@@ -47,7 +47,7 @@ def synthetic_batch(spec: ModelSpec, buffers: tuple[str, ...], seed: int = 0, *,
     depth = (3.0 - torch.sqrt(bump)).unsqueeze(2)
     clean = albedo * torch.clamp(normal[:, :, 2:3] * 0.8 + 0.2, min=0.0) * 2.0
     noise = -torch.log1p(-torch.rand(n, t, spp, 1, crop, crop, generator=generator))     # Exp(1) per sample
-    per_pixel = {"albedo": albedo, "normal": normal, "depth": depth,
+    per_pixel = {"albedo": albedo, "normal": normal, "depth": depth, "roughness": torch.ones_like(depth),
                  "position": torch.stack([u * 4.0, v * 4.0, -depth[:, :, 0]], dim=2)}
     samples: dict[str, torch.Tensor] = {}
     for name in buffers:

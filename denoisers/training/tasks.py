@@ -94,6 +94,23 @@ def _rae_color_task(spec: ModelSpec) -> Any:
     return RAETask(config=task.config, loss_weights=task.loss_weights, name="rae_color", buffers=COLOR_INPUT_BUFFERS)
 
 
+@register_task("rae_gbuffer", sample_buffers=("radiance",),
+               pixel_buffers=("gbuffer.albedo", "gbuffer.normal", "gbuffer.depth", "gbuffer.roughness"))
+def _rae_gbuffer_task(spec: ModelSpec) -> Any:
+    """The RAE reading its albedo and auxiliary features from the pixel-centre G-buffer, as the paper's rasterised
+    G-buffer (Chaitanya et al. 2017 §3.1-3.2): the RAE's keys; net features_from is set to gbuffer."""
+    import dataclasses
+
+    from denoisers.nets.rae import COLOR_INPUT_BUFFERS, RAETask
+
+    task = _rae_task(spec)
+    if task.config.features_from not in ("samples", "gbuffer") or "features_from" in spec.net and \
+            spec.net["features_from"] != "gbuffer":
+        raise ValueError(f"rae_gbuffer: net features_from must be gbuffer (or left out), got {spec.net['features_from']!r}")
+    config = dataclasses.replace(task.config, features_from="gbuffer")
+    return RAETask(config=config, loss_weights=task.loss_weights, name="rae_gbuffer", buffers=COLOR_INPUT_BUFFERS)
+
+
 # ------------------------------------------------------------------------------------------- NTASD
 #: Registry method -> (net.variant, net.sampling) of the Hasselgren et al. 2020 rows (Fig. 7, Table 1).
 NTASD_VARIANTS: dict[str, tuple[str, str]] = {
