@@ -17,6 +17,9 @@ from scenegen.config import (STABILITY_CONTROL_SUFFIX, STABILITY_PREFIX, VOLUME_
 #: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
 SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
 NOISY_ONLY_KEYS = frozenset({"spp", "extra_radiance_spp"})
+#: Version of the noisy frames' channel layout (docs/data-format.md), part of every noisy render's digest so that
+#: renders of an older layout are redone rather than read: 2 added gbuffer.albedo and gbuffer.roughness.
+NOISY_FORMAT_VERSION = 2
 #: render.* keys only the references depend on; train_reference_spp enters a reference digest as the scene's
 #: effective reference_spp (scenegen.config.scene_reference_spp), so null or absent changes no digest.
 REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp", "train_reference_spp",
@@ -68,6 +71,7 @@ def render_digest(cfg: dict, scene: str, kind: str) -> str:
     """Rules render_noisy (``kind`` 'noisy') and render_reference ('reference')."""
     if kind == "noisy":   # stability scenes: their own spp (scene_render_config)
         own = {key: scene_render_config(cfg, scene)[key] for key in sorted(NOISY_ONLY_KEYS)}
+        own["format"] = NOISY_FORMAT_VERSION
     else:   # the spp this scene's references are rendered with, under the key reference_spp
         own = {"reference_batch_spp": cfg["render"]["reference_batch_spp"],
                "reference_spp": scene_reference_spp(cfg, scene),

@@ -18,7 +18,7 @@ from denoisers.experiment import Lineage
 from denoisers.training.models import training_split
 from scenegen.config import (ConfigError, config_digest, extra_scene, load_config, scene_frame_count,
                              scene_ids, scene_reference_spp, validate_config)
-from scenegen.digests import render_digest, scene_digest
+from scenegen.digests import NOISY_FORMAT_VERSION, render_digest, scene_digest
 from scenegen.exr import read_exr
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -118,9 +118,11 @@ def _legacy_render_digest(cfg: dict, scene: str, kind: str) -> str:
     shared = [f"render.{key}" for key in cfg["render"] if key not in noisy | reference]
     settings = {"seed": cfg["seed"], "scenes": procedural, "render_shared": config_digest(cfg, *shared)}
     own = noisy if kind == "noisy" else reference
+    render = {key: cfg["render"][key] for key in sorted(own)}
+    if kind == "noisy":            # the channel layout's version, bumped with the layout since
+        render["format"] = NOISY_FORMAT_VERSION
     return config_digest({"scene": settings, "frames": scene_frame_count(cfg, scene),
-                          "frames_per_chunk": cfg["scenes"]["frames_per_chunk"],
-                          "render": {key: cfg["render"][key] for key in sorted(own)}})
+                          "frames_per_chunk": cfg["scenes"]["frames_per_chunk"], "render": render})
 
 
 @pytest.mark.parametrize("name", CONFIGS)
