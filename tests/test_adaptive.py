@@ -205,7 +205,7 @@ def _write_clip(render_dir: Path, seed: int = 0) -> np.ndarray:
         samples = {"radiance": radiance, "albedo": np.full((FULL, 3, HEIGHT, WIDTH), 0.5, np.float32)}
         channels, half = noisy_channels(samples)
         gbuffer = {"position": np.concatenate([ones] * 3), "normal": np.concatenate([0 * ones, 0 * ones, ones]),
-                   "depth": ones, "object": ones}
+                   "depth": ones, "object": ones, "albedo": np.concatenate([0.5 * ones] * 3), "roughness": ones}
         pixel, pixel_half = pixel_channels(np.zeros((2, HEIGHT, WIDTH), np.float32),
                                            np.full((1, HEIGHT, WIDTH), t > 0), gbuffer)
         channels.update(pixel)

@@ -61,7 +61,8 @@ def write_synthetic_scene(render_dir: Path, *, scene: str = "test_000", frames: 
         }
         samples = {b: a for b, a in samples.items() if b not in omit}
         channels, half = noisy_channels(samples)
-        gbuffer = {"position": position, "normal": normal, "depth": ones, "object": ones}
+        gbuffer = {"position": position, "normal": normal, "depth": ones, "object": ones,
+                   "albedo": np.concatenate([0.5 * ones] * 3), "roughness": ones}
         pixel, pixel_half = pixel_channels(np.zeros((2, height, width), np.float32),
                                            np.full((1, height, width), t > 0), gbuffer)
         channels.update(pixel)
