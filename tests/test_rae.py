@@ -244,7 +244,8 @@ def test_combined_loss_weights_terms_and_frames_as_the_paper() -> None:
 
 # ------------------------------------------------------------------------------------------ method
 def clip_frames(clip, spp: int = 1):
-    return list(registry.clip_frames(clip, registry.get("rae").info, spp))
+    """Frames as method ``rae_samples`` reads them (features averaged over the samples)."""
+    return list(registry.clip_frames(clip, registry.get("rae_samples").info, spp))
 
 
 def test_method_streams_frames_and_reset_clears_the_state() -> None:
@@ -288,7 +289,7 @@ def test_method_matches_the_training_path() -> None:
 
 
 def test_gbuffer_rae_reads_the_gbuffer_and_matches_its_training_path() -> None:
-    """``rae_gbuffer``: per-sample radiance, albedo and features from the pixel-centre G-buffer. Its streamed
+    """``rae`` (the paper's): per-sample radiance, albedo and features from the pixel-centre G-buffer. Its streamed
     output equals the training task's prediction on the same clip; it follows the G-buffer albedo and ignores
     the per-sample one; each method refuses the other's models; features_from round-trips (default left out)."""
     from denoisers.methods.rae import GBufferRecurrentAutoencoderDenoiser
@@ -302,10 +303,10 @@ def test_gbuffer_rae_reads_the_gbuffer_and_matches_its_training_path() -> None:
                               pixel_buffers=GBUFFER_FEATURE_BUFFERS).without_augmentation()
     batch = SequenceDataset([clip], sequence).sequence(
         SequencePlan(clip=0, scene=clip.scene, frames=(0, 1, 2), layers=((0,), (0,), (0,)), crop=(0, 0)))
-    task = RAETask(config, name="rae_gbuffer", buffers=("radiance",))
+    task = RAETask(config, name="rae", buffers=("radiance",))
     with torch.no_grad():
         trained = task.predict(model, {k: v[None] for k, v in batch.items()})[0]
-    info = registry.get("rae_gbuffer").info
+    info = registry.get("rae").info
     assert info.inputs == ("radiance",) and info.pixel_inputs == GBUFFER_FEATURE_BUFFERS
     frames = list(registry.clip_frames(clip, info, 1))
     method = GBufferRecurrentAutoencoderDenoiser.from_model(model)
@@ -318,9 +319,9 @@ def test_gbuffer_rae_reads_the_gbuffer_and_matches_its_training_path() -> None:
                                                               "gbuffer.albedo": frames[0].pixel["gbuffer.albedo"] / 2}})
     method.reset()
     assert not torch.allclose(method.denoise(halved), streamed[0])
-    with pytest.raises(ValueError, match="rae_gbuffer"):
+    with pytest.raises(ValueError, match="method 'rae'"):
         RecurrentAutoencoderDenoiser.from_model(model)
-    with pytest.raises(ValueError, match="features_from gbuffer"):
+    with pytest.raises(ValueError, match="rae_samples"):
         GBufferRecurrentAutoencoderDenoiser.from_model(tiny_model())
     with pytest.raises(ValueError, match="radiance alone"):
         RAETask(config)
@@ -340,14 +341,18 @@ def test_method_output_is_finite_for_nan_inf_and_spikes() -> None:
 
 
 def test_method_registration_checkpoint_and_errors(tmp_path: Path) -> None:
-    info = registry.get("rae").info
+    info = registry.get("rae_samples").info
     assert info.trainable and info.temporal
     assert info.inputs == ("radiance", "albedo", "normal", "depth", "roughness")
-    with pytest.raises(ValueError, match="needs params.checkpoint"):
-        registry.build("rae")
+    paper = registry.get("rae").info
+    assert paper.trainable and paper.temporal and paper.inputs == ("radiance",)
+    assert paper.pixel_inputs == ("gbuffer.albedo", "gbuffer.normal", "gbuffer.depth", "gbuffer.roughness")
+    for name in ("rae", "rae_samples"):
+        with pytest.raises(ValueError, match=f"method '{name}' needs params.checkpoint"):
+            registry.build(name)
     frame = clip_frames(synthetic_clip(frames=1, height=8, width=8))[0]
     missing = tmp_path / "nowhere" / "best.pt"
-    method = registry.build("rae", {"checkpoint": str(missing)})                  # lazy: building does not read it
+    method = registry.build("rae_samples", {"checkpoint": str(missing)})          # lazy: building does not read it
     with pytest.raises(CheckpointError, match=str(missing)):
         method.denoise(frame)
     no_camera = clip_frames(synthetic_clip(frames=1, height=8, width=8))[0]
@@ -366,7 +371,7 @@ def test_a_trained_checkpoint_drives_the_method(tmp_path: Path) -> None:
                                                                checkpoint_seconds=None), tmp_path)
     result = trainer.run()
     frames = clip_frames(synthetic_clip(frames=2, height=12, width=10))
-    from_file = registry.build("rae", {"checkpoint": str(result.best)})
+    from_file = registry.build("rae_samples", {"checkpoint": str(result.best)})
     from_memory = RecurrentAutoencoderDenoiser.from_model(load_model(result.best))
     for method in (from_file, from_memory):
         method.reset()

@@ -1,9 +1,8 @@
-"""The RAE on G-buffer features (task and method ``rae_gbuffer``; Chaitanya et al. 2017 §3.1-3.2 demodulate by a
-rasterised G-buffer's albedo): rendered frames carry the pixel-centre albedo and roughness, a model trains on
-them, and the method denoises a rendered clip with them."""
+"""The RAE on G-buffer features (task and method ``rae``; Chaitanya et al. 2017 §3.1-3.2 demodulate by a
+rasterised G-buffer's albedo): rendered frames carry the pixel-centre albedo and roughness, the smoke config's
+model trains on them, and the method denoises a rendered clip with them."""
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 
 import numpy as np
@@ -20,18 +19,16 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _config() -> dict:
-    cfg = load_config(ROOT / "config/smoke.yaml")
-    rae = next(m for m in cfg["training"]["models"] if m["id"] == "rae")
-    cfg["training"]["models"].append({**copy.deepcopy(rae), "id": "rae_gb", "method": "rae_gbuffer"})
-    return cfg
+    return load_config(ROOT / "config/smoke.yaml")
 
 
 def test_the_gbuffer_model_is_a_valid_training_entry() -> None:
     cfg = _config()
-    assert not [p for p in training_problems(cfg) if "rae_gb" in p]
+    assert next(m for m in cfg["training"]["models"] if m["id"] == "rae")["method"] == "rae"
+    assert not [p for p in training_problems(cfg) if "rae" in p]
     bad = _config()
-    next(m for m in bad["training"]["models"] if m["id"] == "rae_gb")["net"]["features_from"] = "samples"
-    assert any("rae_gb" in p and "features_from" in p for p in training_problems(bad))
+    next(m for m in bad["training"]["models"] if m["id"] == "rae")["net"]["features_from"] = "samples"
+    assert any("rae" in p and "features_from" in p for p in training_problems(bad))
 
 
 @pytest.mark.slow
@@ -60,9 +57,9 @@ def test_rae_gbuffer_trains_on_rendered_frames_and_denoises_a_clip(tmp_path: Pat
     assert agree.mean() > 0.3
     np.testing.assert_allclose(np.moveaxis(albedo, 1, -1)[agree], np.moveaxis(samples[:, 0], 1, -1)[agree],
                                atol=2e-3)                                       # HALF storage
-    summary = train_model(cfg, "rae_gb", renders, tmp_path / "models" / "rae_gb", threads=1, progress=False)
+    summary = train_model(cfg, "rae", renders, tmp_path / "models" / "rae", threads=1, progress=False)
     assert summary["steps"] == 4
-    method = registry.build("rae_gbuffer", {"checkpoint": str(tmp_path / "models/rae_gb/best.pt")})
+    method = registry.build("rae", {"checkpoint": str(tmp_path / "models/rae/best.pt")})
     clip = load_clip(renders / "test_000", buffers=method.info.inputs, spp=1)
     outputs = [method.denoise(frame) for frame in registry.clip_frames(clip, method.info, 1)]
     assert len(outputs) == 4 and all(out.shape == (3, 48, 48) and torch.isfinite(out).all() for out in outputs)

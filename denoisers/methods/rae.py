@@ -16,8 +16,9 @@ from denoisers.registry import Denoiser, Frame, register
 
 
 
-@register("rae", inputs=INPUT_BUFFERS, trainable=True, temporal=True,
-          description="recurrent denoising autoencoder (Chaitanya et al. 2017), trained")
+@register("rae_samples", inputs=INPUT_BUFFERS, trainable=True, temporal=True,
+          description="the RAE with its albedo and features averaged over the frame's samples (one jittered sample "
+                      "per pixel at 1 spp) instead of the paper's G-buffer; trained")
 class RecurrentAutoencoderDenoiser(Denoiser):
     """A trained RAE applied to a stream of frames.
 
@@ -41,7 +42,7 @@ class RecurrentAutoencoderDenoiser(Denoiser):
     def __init__(self, checkpoint: str | None = None, reset_state_every_frame: bool = False) -> None:
         super().__init__()
         if not checkpoint:
-            raise ValueError("method 'rae' needs params.checkpoint: the path of a trained RAE model "
+            raise ValueError(f"method {self.info.name!r} needs params.checkpoint: the path of a trained RAE model "
                              "(best.pt written by the trainer); in a config, name a trained model instead with "
                              "params {model: <id in training.models>}; no checkpoint was given")
         self.checkpoint = Path(checkpoint)
@@ -79,7 +80,7 @@ class RecurrentAutoencoderDenoiser(Denoiser):
         """ValueError unless ``model`` reads its features where this method gives them (the samples)."""
         if model.config.features_from != "samples":
             raise ValueError(f"{where}: the model reads its features from the {model.config.features_from} "
-                             "(net features_from); evaluate it with method 'rae_gbuffer'")
+                             "(net features_from); evaluate it with method 'rae'")
 
     def features(self, frame: Frame) -> dict[str, torch.Tensor]:
         """Per-pixel radiance, albedo, normal, depth and roughness (C, H, W) of ``frame``: means over its samples."""
@@ -109,24 +110,26 @@ class RecurrentAutoencoderDenoiser(Denoiser):
           description="the RAE on colour alone (trained colour-only, e.g. on volumetric clips; Iglesias-Guitian 2022)")
 class ColorRecurrentAutoencoderDenoiser(RecurrentAutoencoderDenoiser):
     """The RAE reading the noisy colour alone: its model must be colour-only (net demodulate false, features []),
-    as Iglesias-Guitian et al. 2022 retrain it for volumes, whose clips have no normals. Parameters as ``rae``."""
+    as Iglesias-Guitian et al. 2022 retrain it for volumes, whose clips have no normals. Parameters as
+    ``rae_samples``."""
 
     def check_model(self, model: RecurrentAutoencoder, where: str) -> None:
         check_color_only(model.config, where)
 
 
-@register("rae_gbuffer", inputs=COLOR_INPUT_BUFFERS, pixel_inputs=GBUFFER_FEATURE_BUFFERS, trainable=True,
-          temporal=True, description="the RAE with its albedo and features from the pixel-centre G-buffer, as the "
-                                     "paper's rasterised G-buffer (Chaitanya et al. 2017 §3.1-3.2)")
+@register("rae", inputs=COLOR_INPUT_BUFFERS, pixel_inputs=GBUFFER_FEATURE_BUFFERS, trainable=True, temporal=True,
+          description="recurrent denoising autoencoder (Chaitanya et al. 2017), trained; albedo and features from "
+                      "the pixel-centre G-buffer, as the paper's rasterised G-buffer (§3.1-3.2)")
 class GBufferRecurrentAutoencoderDenoiser(RecurrentAutoencoderDenoiser):
     """The RAE reading the noisy colour per sample and its albedo, normal, depth and roughness from the frame's
     pixel-centre G-buffer (noise-free at any spp; ``gbuffer.*`` per-pixel buffers): its model must have net
-    features_from gbuffer (trained with task ``rae_gbuffer``). Parameters as ``rae``."""
+    features_from gbuffer (trained with task ``rae``). Parameters as ``rae_samples``."""
 
     def check_model(self, model: RecurrentAutoencoder, where: str) -> None:
         if model.config.features_from != "gbuffer":
-            raise ValueError(f"{where}: method 'rae_gbuffer' needs a model trained on G-buffer features (net "
-                             f"features_from gbuffer, task rae_gbuffer); this one reads {model.config.features_from}")
+            raise ValueError(f"{where}: method 'rae' needs a model trained on G-buffer features (net features_from "
+                             f"gbuffer, task rae); this one reads {model.config.features_from}: use method "
+                             "'rae_samples'")
 
     def features(self, frame: Frame) -> dict[str, torch.Tensor]:
         means = buffer_means(frame.samples, self.info.inputs, sample_dim=0)

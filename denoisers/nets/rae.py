@@ -77,7 +77,8 @@ class RAEConfig:
     "linearized"; the scale is ours;
     features_from: where the albedo and the auxiliary features come from: "samples" (the mean of the frame's
     per-sample buffers, one jittered sample per pixel at 1 spp) or "gbuffer" (the pixel-centre G-buffer pass,
-    noise-free: the paper's rasterised G-buffer, §3.1-3.2; methods and tasks ``rae_gbuffer``).
+    noise-free: the paper's rasterised G-buffer, §3.1-3.2; method and task ``rae``; ``rae_samples`` reads the
+    samples).
     """
 
     width: float = 1.0
@@ -411,8 +412,8 @@ class RAETask:
     config: RAEConfig = field(default_factory=RAEConfig)
     loss_weights: dict[str, float] = field(default_factory=lambda: dict(RAE_LOSS_WEIGHTS))
 
-    name: str = "rae"
-    buffers: tuple[str, ...] = INPUT_BUFFERS        # COLOR_INPUT_BUFFERS for the colour-only RAE
+    name: str = "rae_samples"
+    buffers: tuple[str, ...] = INPUT_BUFFERS        # COLOR_INPUT_BUFFERS for the colour-only and G-buffer RAEs
 
     def __post_init__(self) -> None:
         if self.config.features_from == "gbuffer":

@@ -69,9 +69,10 @@ def task_problems(spec: ModelSpec) -> list[str]:
 RAE_BUFFERS = ("radiance", "albedo", "normal", "depth", "roughness")
 
 
-@register_task("rae", sample_buffers=RAE_BUFFERS)
+@register_task("rae_samples", sample_buffers=RAE_BUFFERS)
 def _rae_task(spec: ModelSpec) -> Any:
-    """RAE (Chaitanya et al. 2017): net keys of RAEConfig, loss weights spatial / gradient / temporal."""
+    """RAE (Chaitanya et al. 2017) on features averaged over the samples: net keys of RAEConfig, loss weights
+    spatial / gradient / temporal."""
     from denoisers.losses import RAE_LOSS_WEIGHTS
     from denoisers.nets.rae import RAEConfig, RAETask
 
@@ -94,11 +95,11 @@ def _rae_color_task(spec: ModelSpec) -> Any:
     return RAETask(config=task.config, loss_weights=task.loss_weights, name="rae_color", buffers=COLOR_INPUT_BUFFERS)
 
 
-@register_task("rae_gbuffer", sample_buffers=("radiance",),
+@register_task("rae", sample_buffers=("radiance",),
                pixel_buffers=("gbuffer.albedo", "gbuffer.normal", "gbuffer.depth", "gbuffer.roughness"))
 def _rae_gbuffer_task(spec: ModelSpec) -> Any:
-    """The RAE reading its albedo and auxiliary features from the pixel-centre G-buffer, as the paper's rasterised
-    G-buffer (Chaitanya et al. 2017 §3.1-3.2): the RAE's keys; net features_from is set to gbuffer."""
+    """RAE (Chaitanya et al. 2017) reading its albedo and auxiliary features from the pixel-centre G-buffer, as
+    the paper's rasterised G-buffer (§3.1-3.2): the keys of ``rae_samples``; net features_from is set to gbuffer."""
     import dataclasses
 
     from denoisers.nets.rae import COLOR_INPUT_BUFFERS, RAETask
@@ -106,9 +107,9 @@ def _rae_gbuffer_task(spec: ModelSpec) -> Any:
     task = _rae_task(spec)
     if task.config.features_from not in ("samples", "gbuffer") or "features_from" in spec.net and \
             spec.net["features_from"] != "gbuffer":
-        raise ValueError(f"rae_gbuffer: net features_from must be gbuffer (or left out), got {spec.net['features_from']!r}")
+        raise ValueError(f"rae: net features_from must be gbuffer (or left out), got {spec.net['features_from']!r}")
     config = dataclasses.replace(task.config, features_from="gbuffer")
-    return RAETask(config=config, loss_weights=task.loss_weights, name="rae_gbuffer", buffers=COLOR_INPUT_BUFFERS)
+    return RAETask(config=config, loss_weights=task.loss_weights, name="rae", buffers=COLOR_INPUT_BUFFERS)
 
 
 # ------------------------------------------------------------------------------------------- NTASD
