@@ -139,7 +139,7 @@ def test_bf16_step_runs_convolutions_in_bf16_and_keeps_fp32_state(monkeypatch: p
     runner = make_trainer(tmp_path / "run", steps=2, validate_every=2, precision="bf16", channels_last=True)
     with caplog.at_level(logging.INFO, logger=precision.__name__):
         outcome = runner.run()
-    assert [r.getMessage() for r in caplog.records].count(f"train rae: {runner.compute.describe()}") == 1
+    assert [r.getMessage() for r in caplog.records].count(f"train rae_samples: {runner.compute.describe()}") == 1
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["compute"]["precision"] == "bf16" and summary["compute"]["channels_last"] is True
     assert loss_inputs[-1] == torch.float32 and outcome.steps == 2

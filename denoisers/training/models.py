@@ -237,6 +237,17 @@ def _sample_buffers(spec: ModelSpec) -> tuple[str, ...]:
         return ()           # reported by task_problems
 
 
+def _pixel_buffers(spec: ModelSpec) -> tuple[str, ...]:
+    try:
+        return task_builder(spec.method).pixel_buffers
+    except KeyError:
+        return ()           # reported by task_problems
+
+
+#: Per-pixel buffers a volumetric clip stores only as zeros (no surfaces: docs/data-format.md).
+VOLUME_ZERO_PIXEL_BUFFERS: tuple[str, ...] = ("gbuffer.normal", "gbuffer.roughness")
+
+
 def training_problems(cfg: dict) -> list[str]:
     """Constraints of the ``training`` section the JSON schema cannot express (schema-valid cfg)."""
     training = cfg.get("training") or {}
@@ -318,6 +329,7 @@ def _volume_data_problems(cfg: dict, spec: ModelSpec) -> list[str]:
     from scenegen.dataset import VOLUME_BUFFERS
 
     missing = [buffer for buffer in _sample_buffers(spec) if buffer not in VOLUME_BUFFERS]
+    missing += [buffer for buffer in _pixel_buffers(spec) if buffer in VOLUME_ZERO_PIXEL_BUFFERS]
     if missing:
         problems.append(f"method {spec.method!r} reads {', '.join(missing)}, which volumetric clips do not have "
                         f"(they hold {', '.join(VOLUME_BUFFERS)}); e.g. method rae_color trains on volumes")
