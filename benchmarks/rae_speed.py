@@ -79,8 +79,9 @@ class Item:
 
 
 def rae_frames(size: int, spp: int, count: int) -> list[Frame]:
-    """The synthetic clip restricted to the RAE's buffers, with the camera it needs."""
-    info = registry.get("rae").info
+    """The synthetic clip restricted to the buffers of the sample-feature RAE (``rae_samples``: the same network
+    as ``rae``, which reads its features from the G-buffer instead), with the camera it needs."""
+    info = RecurrentAutoencoderDenoiser.info
     frames = []
     for frame in synthetic_frames(size, spp, count):
         restricted = only_declared(frame, info)

@@ -76,6 +76,6 @@ def test_rae_color_trains_on_volumetric_clips_and_denoises_one(tmp_path) -> None
     clip = load_clip(renders / "vol_test_camera_000", buffers=method.info.inputs, spp=2)
     outputs = [method.denoise(frame) for frame in registry.clip_frames(clip, method.info, 2)]
     assert len(outputs) == 3 and all(out.shape == (3, 24, 24) and torch.isfinite(out).all() for out in outputs)
-    # The surface RAE method refuses the colour-only checkpoint's missing buffers at load time, by name.
+    # The sample-feature RAE reads buffers the clips do not have: the loader refuses them by name.
     with pytest.raises(Exception, match="normal|albedo"):
-        load_clip(renders / "vol_test_camera_000", buffers=registry.get("rae").info.inputs, spp=2)
+        load_clip(renders / "vol_test_camera_000", buffers=registry.get("rae_samples").info.inputs, spp=2)
