@@ -15,10 +15,10 @@ Speed claims compare two rows by their per-round ratios (:func:`speed_ratios`).
 
 Every round ends with a float32 sgemm (n x n x n, the faster of MKL ``torch.mm`` and oneDNN) at the same
 threads, so the record says how fast the machine was while the rows ran (on this shared host one row's time
-varied about 2x between runs of the same day). A row whose ``denoise()`` runs torch matrix products or convolutions (the learned
-rows) gets its FLOPs per frame, counted by ``torch.utils.flop_counter`` on one extra untimed pass (native
-kernels, e.g. kernel application, are not counted), and from them GFLOP/s and the per-round fraction of
-that round's sgemm rate.
+varied about 2x between runs of the same day). A row whose ``denoise()`` runs torch matrix products or
+convolutions (the learned rows) gets its FLOPs per frame, counted by ``torch.utils.flop_counter`` on one
+extra untimed pass (native kernels, e.g. kernel application, are not counted), and from them GFLOP/s and
+the per-round fraction of that round's sgemm rate.
 
 In the same job, the renderer's rate is measured with the same thread count for every evaluated scene
 (scenes differ in cost): its first frame rendered as ``render.spp`` full-feature 1-spp layers (the noisy

@@ -132,6 +132,4 @@ class GBufferRecurrentAutoencoderDenoiser(RecurrentAutoencoderDenoiser):
                              "'rae_samples'")
 
     def features(self, frame: Frame) -> dict[str, torch.Tensor]:
-        means = buffer_means(frame.samples, self.info.inputs, sample_dim=0)
-        means.update(gbuffer_features(frame.pixel))
-        return means
+        return {**super().features(frame), **gbuffer_features(frame.pixel)}

@@ -104,10 +104,9 @@ def _rae_gbuffer_task(spec: ModelSpec) -> Any:
 
     from denoisers.nets.rae import COLOR_INPUT_BUFFERS, RAETask
 
-    task = _rae_task(spec)
-    if task.config.features_from not in ("samples", "gbuffer") or "features_from" in spec.net and \
-            spec.net["features_from"] != "gbuffer":
+    if spec.net.get("features_from", "gbuffer") != "gbuffer":
         raise ValueError(f"rae: net features_from must be gbuffer (or left out), got {spec.net['features_from']!r}")
+    task = _rae_task(spec)
     config = dataclasses.replace(task.config, features_from="gbuffer")
     return RAETask(config=config, loss_weights=task.loss_weights, name="rae", buffers=COLOR_INPUT_BUFFERS)
 
