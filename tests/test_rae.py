@@ -214,6 +214,23 @@ def test_hfen_gradient_loss() -> None:
     torch.testing.assert_close(gradient_l1(impulse, torch.zeros_like(impulse)), kernel.abs().sum().view(1) / 1024)
 
 
+@pytest.mark.parametrize("shape", [(2, 3, 3, 64, 64), (1, 1, 1, 5, 9), (3, 20, 33)])
+def test_separable_log_equals_the_direct_convolution(shape: tuple[int, ...]) -> None:
+    # Reference: torch's own 2-D correlation of the replicate-padded image with the 15 x 15 kernel (the
+    # LoG's former implementation); values and the input gradient must agree, borders and tiny frames included.
+    torch.manual_seed(3)
+    x = torch.randn(shape, dtype=torch.float64, requires_grad=True)
+    flat = x.reshape(-1, 1, shape[-2], shape[-1])
+    reference = torch.nn.functional.conv2d(torch.nn.functional.pad(flat, (7, 7, 7, 7), mode="replicate"),
+                                           log_kernel().double()[None, None]).reshape(shape)
+    ours = laplacian_of_gaussian(x)
+    torch.testing.assert_close(ours, reference, atol=1e-6, rtol=1e-6)
+    weights = torch.randn(shape, dtype=torch.float64)
+    grad_ours, = torch.autograd.grad((ours * weights).sum(), x)
+    grad_reference, = torch.autograd.grad((reference * weights).sum(), x)
+    torch.testing.assert_close(grad_ours, grad_reference, atol=1e-6, rtol=1e-6)
+
+
 def test_temporal_loss() -> None:
     # Identical frames over time (but pred != target): the temporal derivatives agree, no temporal loss.
     pred = torch.rand(1, 1, 3, 6, 6).expand(1, 4, 3, 6, 6)
