@@ -117,15 +117,22 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def load_evaluation_config(path: Path) -> dict:
-    """Load and validate a config, including the cross-key checks of the evaluation section."""
+#: Commands that never build a model: their config check skips the networks' keys (which imports torch, about
+#: 1.7 s of each of several hundred short jobs); the workflow checks the whole config when it parses it.
+TORCH_FREE_COMMANDS = frozenset({"evaluate", "score-scenario"})
+
+
+def load_evaluation_config(path: Path, build_models: bool = True) -> dict:
+    """Load and validate a config, including the cross-key checks of the evaluation section
+    (``build_models`` False: without the checks that build methods or networks, see TORCH_FREE_COMMANDS)."""
     from denoisers.evaluate import evaluation_problems
     from denoisers.training.models import training_problems
     from denoisers.tuning import tuning_problems
     from scenegen.config import ConfigError, load_config
 
     cfg = load_config(path)
-    problems = evaluation_problems(cfg) + training_problems(cfg) + tuning_problems(cfg)
+    problems = (evaluation_problems(cfg) + training_problems(cfg, build_models)
+                + (tuning_problems(cfg) if build_models else []))      # the registry's checks import torch
     if problems:
         raise ConfigError(f"{path}: invalid configuration:\n  - " + "\n  - ".join(problems))
     return cfg
@@ -138,8 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     from denoisers.clean import CleanError
     from denoisers.evaluate import EvaluationError
     from denoisers.experiment import SettingsMismatchError
-    from denoisers.registry import MissingInputError
-    from denoisers.training.loop import CheckpointError, NonFiniteLossError
+    from denoisers.errors import CheckpointError, MissingInputError, NonFiniteLossError
     from denoisers.tuning import TuningError
     from scenegen.config import ConfigError
     from scenegen.dataset import DatasetError
@@ -169,7 +175,7 @@ def _run(args: argparse.Namespace) -> int:
             print(f"{'':16s} parameters: {params or 'none'}")
         return 0
 
-    cfg = load_evaluation_config(args.config)
+    cfg = load_evaluation_config(args.config, build_models=args.command not in TORCH_FREE_COMMANDS)
     from denoisers import evaluate
 
     if args.command == "clean":

@@ -22,12 +22,23 @@ the bad values, so the evaluation can count and report them.
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
-ArrayLike = np.ndarray | torch.Tensor
+if TYPE_CHECKING:
+    import torch
+
+# torch is not imported here: the scoring jobs never hold a tensor, and its import costs about 1.7 s per job.
+ArrayLike = Any   # np.ndarray | torch.Tensor
+
+
+def _is_tensor(x: Any) -> bool:
+    """True for a torch tensor; without importing torch (a tensor exists only if torch was imported)."""
+    module = sys.modules.get("torch")
+    return module is not None and isinstance(x, module.Tensor)
 
 TAU_GAMMA = 2.4            # Isik 2021 Eq. 15
 RELMSE_EPS = 0.01          # relMSE denominator guard (Hasselgren 2020 gives none; 0.01 is the usual value)
@@ -67,8 +78,8 @@ def count_nonfinite(x: ArrayLike) -> int:
 
 # --------------------------------------------------------------------------------------------- input
 def _as_numpy(x: ArrayLike) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        return x.detach().to("cpu", torch.float64).numpy()
+    if _is_tensor(x):
+        return x.detach().to("cpu", sys.modules["torch"].float64).numpy()
     return np.asarray(x, dtype=np.float64)
 
 
@@ -104,7 +115,9 @@ def tonemap(x: ArrayLike) -> ArrayLike:
     kind as the input (torch tensor or numpy array, same dtype for floats). +Inf maps to 1 (the limit);
     NaN stays NaN.
     """
-    if isinstance(x, torch.Tensor):
+    if _is_tensor(x):
+        import torch
+
         x = x if x.is_floating_point() else x.to(torch.float32)
         clamped = x.clamp_min(0.0)
         ratio = torch.where(torch.isposinf(clamped), torch.ones_like(clamped), clamped / (1.0 + clamped))

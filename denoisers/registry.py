@@ -17,22 +17,11 @@ from typing import Any, Callable, ClassVar, Iterator, Sequence
 import numpy as np
 import torch
 
+from denoisers.errors import MissingInputError  # noqa: F401 (raised by methods, imported from here)
 from scenegen.dataset import PIXEL_BUFFERS, SAMPLE_BUFFERS
 
 # Per-pixel inputs a method may declare, besides the PIXEL_BUFFERS of the data format.
 PIXEL_INPUTS: frozenset[str] = frozenset(PIXEL_BUFFERS)
-
-
-class MissingInputError(KeyError):
-    """A method asked for a buffer that was not rendered; names the buffer and the method."""
-
-    def __init__(self, method: str, buffer: str, detail: str = "") -> None:
-        self.method, self.buffer = method, buffer
-        message = f"method {method!r} needs buffer {buffer!r}, which was not rendered"
-        super().__init__(message + (f" ({detail})" if detail else ""))
-
-    def __str__(self) -> str:
-        return str(self.args[0])
 
 
 @dataclass(frozen=True)

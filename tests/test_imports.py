@@ -236,3 +236,23 @@ def test_checker_finds_a_function_level_cycle(tmp_path):
     graph = import_graph(tmp_path, ("app",))
     assert import_cycles(graph) == [{"app.a", "app.b"}]
     assert shortest_cycle(graph, {"app.a", "app.b"}) == ["app.a", "app.b", "app.a"]
+
+
+def test_scoring_jobs_do_not_import_torch() -> None:
+    """The evaluate / score-scenario commands (several hundred short jobs per run) check their config and load
+    their modules without torch, whose import costs about 1.7 s each; a training command's check does import it."""
+    import os
+    import subprocess
+    import sys
+
+    probe = ("import sys\n"
+             "from denoisers.cli import TORCH_FREE_COMMANDS, load_evaluation_config\n"
+             "import denoisers.scoring, denoisers.stability_job, denoisers.stability_metrics, denoisers.metrics\n"
+             "assert {'evaluate', 'score-scenario'} <= TORCH_FREE_COMMANDS\n"
+             "load_evaluation_config('config/config.yaml', build_models=False)\n"
+             "print('torch' in sys.modules)\n"
+             "load_evaluation_config('config/config.yaml')\n"
+             "print('torch' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.stdout.split() == ["False", "True"], out.stdout + out.stderr

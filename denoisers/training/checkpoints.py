@@ -15,12 +15,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from denoisers.errors import CheckpointError  # noqa: F401 (raised here, imported from here elsewhere)
+
 CHECKPOINT_FORMAT = "mcdenoise-checkpoint"
 CHECKPOINT_VERSION = 1
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint cannot be used; the message names the file and why."""
 
 
 def save_atomic(obj: Any, path: Path) -> None:

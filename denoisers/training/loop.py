@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from denoisers.errors import NonFiniteLossError  # noqa: F401 (raised here, imported from here elsewhere)
 from denoisers.training.checkpoints import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, CheckpointError, fingerprint,
                                             load_checkpoint, load_model, rng_state, save_atomic, set_rng_state)
 from denoisers.training.curves import plot_curves
@@ -62,14 +63,6 @@ HIGHER_IS_BETTER: frozenset[str] = frozenset({"ssim", "psnr"})
 _NOT_FINGERPRINTED = frozenset({"max_steps", "max_seconds", "progress", "threads", "checkpoint_every",
                                 "checkpoint_seconds", "log_every",
                                 "precision", "channels_last"})  # fingerprinted as resolved ("compute")
-
-
-class NonFiniteLossError(FloatingPointError):
-    """Training produced a NaN/Inf loss; ``step`` (0-based, = batch index) and ``batch`` name where."""
-
-    def __init__(self, message: str, step: int, batch: str) -> None:
-        super().__init__(message)
-        self.step, self.batch = step, batch
 
 
 class TrainingTask(Protocol):

@@ -248,8 +248,11 @@ def _pixel_buffers(spec: ModelSpec) -> tuple[str, ...]:
 VOLUME_ZERO_PIXEL_BUFFERS: tuple[str, ...] = ("gbuffer.normal", "gbuffer.roughness")
 
 
-def training_problems(cfg: dict) -> list[str]:
-    """Constraints of the ``training`` section the JSON schema cannot express (schema-valid cfg)."""
+def training_problems(cfg: dict, build_tasks: bool = True) -> list[str]:
+    """Constraints of the ``training`` section the JSON schema cannot express (schema-valid cfg).
+
+    ``build_tasks`` False skips building each model's network and loss (the net / loss keys' check), which
+    imports torch: for jobs that never touch a model, once the workflow has checked the whole config."""
     training = cfg.get("training") or {}
     problems: list[str] = []
     base_ids = [entry["id"] for entry in training.get("models", [])]
@@ -289,7 +292,7 @@ def training_problems(cfg: dict) -> list[str]:
         where = f"training model {spec.id!r}"
         if trains_on_volumes(spec):
             problems += [f"{where}: {problem}" for problem in _volume_data_problems(cfg, spec)]
-            problems += [f"{where}: {problem}" for problem in task_problems(spec)]
+            problems += [f"{where}: {problem}" for problem in task_problems(spec)] if build_tasks else []
             continue
         size = min(cfg["render"]["width"], cfg["render"]["height"])
         if spec.data["crop"] > size:
@@ -304,7 +307,7 @@ def training_problems(cfg: dict) -> list[str]:
         if spec.data["spp"] > stored:
             what = "render.spp + render.extra_radiance_spp" if radiance_only else "render.spp"
             problems.append(f"{where}: data.spp = {spec.data['spp']} exceeds {what} = {stored}")
-        problems += [f"{where}: {problem}" for problem in task_problems(spec)]
+        problems += [f"{where}: {problem}" for problem in task_problems(spec)] if build_tasks else []
     return problems
 
 
