@@ -57,7 +57,8 @@ def test_ablation_variants_inherit_the_base_model_and_share_the_ablation_budget(
     cfg = load_config(REPO_ROOT / "config" / "config.yaml")
     specs = {spec.id: spec for spec in model_specs(cfg)}
     base = specs["rae"]
-    assert base.net == {"width": 0.5} and base.budget["max_steps"] == 3000
+    raw = next(entry for entry in cfg["training"]["models"] if entry["id"] == "rae")
+    assert base.net == {"width": 0.5} and base.budget["max_steps"] == raw["budget"]["max_steps"] == 4000
     color = specs["rae_inputs_color"]
     assert color.net == {"width": 0.5, "demodulate": False, "features": []}
     assert color.loss == base.loss and color.data == base.data and color.optimizer == base.optimizer
