@@ -72,7 +72,7 @@ def volume_problems(cfg: dict) -> list[str]:
 def volume_runs(cfg: dict) -> list[Run]:
     """Every (volume row, spp), runnable or not (Run.not_run names the missing buffer or layers)."""
     from denoisers import registry
-    from scenegen.dataset import PIXEL_BUFFERS, VOLUME_BUFFERS
+    from scenegen.dataset import PIXEL_BUFFERS, VOLUME_BUFFERS, VOLUME_ZERO_PIXEL_BUFFERS
 
     layers = volume_layers(cfg)
     runs = []
@@ -80,11 +80,14 @@ def volume_runs(cfg: dict) -> list[Run]:
         method = registry.build(spec.method, resolve_method_params(cfg, spec.params), row=spec.id)
         missing = [b for b in method.info.inputs if b not in VOLUME_BUFFERS]
         missing += [b for b in method.info.pixel_inputs if b not in PIXEL_BUFFERS]
+        zeros = [b for b in method.info.pixel_inputs if b in VOLUME_ZERO_PIXEL_BUFFERS]
         for spp in spec.spp:
             needed = spp * method.samples_factor
             if missing:
                 reason = (f"not run (reads buffer {missing[0]!r}, which volumetric clips do not have; they hold "
                           f"{', '.join(VOLUME_BUFFERS)})")
+            elif zeros:
+                reason = f"not run (reads {zeros[0]!r}, which volumetric clips store as zeros: no surfaces)"
             elif needed > layers:
                 reason = f"not run (needs {needed} sample layers, the clips have {layers}; raise volumes.spp)"
             else:

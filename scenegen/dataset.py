@@ -50,6 +50,8 @@ MAX_SAMPLE_LAYERS = 32
 #: Per-sample buffers of a volumetric clip's noisy frame (radiance, albedo, position and depth have the
 #: surface names; albedo is the single-scattering albedo at a medium event, see docs/data-format.md).
 VOLUME_BUFFERS: tuple[str, ...] = ("radiance", "albedo", "position", "depth", "sigma_t", "medium", "transmittance")
+#: Per-pixel buffers a volumetric clip stores only as zeros (no surfaces: no normal, no roughness).
+VOLUME_ZERO_PIXEL_BUFFERS: tuple[str, ...] = ("gbuffer.normal", "gbuffer.roughness")
 #: Default for ``buffers=``: every per-sample buffer of a surface scene's noisy frame.
 ALL: tuple[str, ...] = tuple(name for name in SAMPLE_BUFFERS if name not in {"sigma_t", "medium", "transmittance"})
 

@@ -41,12 +41,17 @@ def volume_config(n_test: int = 2, rows: list[dict] | None = None, denoise_spp: 
 
 def test_volume_rows_are_their_own_and_runs_say_why_not() -> None:
     cfg = volume_config(rows=[{"id": "vol_noisy", "method": "noisy"}, {"id": "vol_svgf_surface", "method": "svgf"},
-                              {"id": "vol_wrls", "method": "wrls", "spp": [2]}], denoise_spp=[2, 8])
-    assert [spec.id for spec in volume_method_specs(cfg)] == ["vol_noisy", "vol_svgf_surface", "vol_wrls"]
+                              {"id": "vol_wrls", "method": "wrls", "spp": [2]},
+                              {"id": "vol_rae_gbuffer", "method": "rae", "params": {"model": "rae"}}],
+                        denoise_spp=[2, 8])
+    assert [spec.id for spec in volume_method_specs(cfg)] == ["vol_noisy", "vol_svgf_surface", "vol_wrls",
+                                                             "vol_rae_gbuffer"]
     assert method_spec(cfg, "vol_wrls").role == "volume" and method_spec(cfg, "vol_wrls").spp == (2,)
     runs = {(run.spec.id, run.spp): run.not_run for run in volume_runs(cfg)}
     assert runs[("vol_noisy", 2)] == "" and runs[("vol_wrls", 2)] == ""
     assert "'normal'" in runs[("vol_svgf_surface", 2)]                   # surface SVGF reads normals
+    # The G-buffer RAE reads normals and roughness, which volumetric clips store as zeros.
+    assert "'gbuffer.normal', which volumetric clips store as zeros" in runs[("vol_rae_gbuffer", 2)]
     assert "needs 8 sample layers, the clips have 4" in runs[("vol_noisy", 8)]
     assert ("vol_wrls", 8) not in runs
     assert volume_test_scene_ids(cfg) == ["vol_test_camera_000", "vol_test_camera_001", "vol_test_light_000",

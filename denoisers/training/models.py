@@ -29,6 +29,7 @@ from typing import Any
 from denoisers.training.spec import ModelSpec
 from denoisers.training.tasks import task_builder, task_problems
 from scenegen.config import SCENE_SPLITS, output_root, training_scene_split, volume_training_split
+from scenegen.dataset import VOLUME_ZERO_PIXEL_BUFFERS
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
 #: Files a finished model directory holds (the rule's output directory).
@@ -242,10 +243,6 @@ def _pixel_buffers(spec: ModelSpec) -> tuple[str, ...]:
         return task_builder(spec.method).pixel_buffers
     except KeyError:
         return ()           # reported by task_problems
-
-
-#: Per-pixel buffers a volumetric clip stores only as zeros (no surfaces: docs/data-format.md).
-VOLUME_ZERO_PIXEL_BUFFERS: tuple[str, ...] = ("gbuffer.normal", "gbuffer.roughness")
 
 
 def training_problems(cfg: dict, build_tasks: bool = True) -> list[str]:
