@@ -279,6 +279,81 @@ MCDN_INLINE void add_scaled_differences(const float* f, const float* g, const fl
     }
 }
 
+// The backward passes' affinity taps fused into one pass over the columns, as fused_tap is for the forward:
+// weight, d loss / d weight and every gradient update per pixel in registers instead of the separate row passes
+// of weight_gradient, affinity_weights and add_scaled_differences. Same arithmetic in the same order, so both
+// paths give bit-identical results. Pass 1 (at pixels p): g_bandwidth and g_features.
+template <int DIMS, int CHANNELS>
+MCDN_INLINE void fused_backward_pixels(const float* __restrict f, const float* __restrict g,
+                                       const float* __restrict a, const float* __restrict in,
+                                       const float* __restrict gn, const float* __restrict gd,
+                                       float* __restrict gb, float* __restrict gf, int64_t plane, int64_t x_begin,
+                                       int64_t x_end) {
+    MCDN_PIXEL_LOOP
+    for (int64_t x = x_begin; x < x_end; ++x) {
+        float g_weight = 0.0f;
+        for (int c = 0; c < CHANNELS; ++c) {
+            g_weight += gn[c * plane + x] * in[c * plane + x];
+        }
+        g_weight += gd[x];
+        float distance = 0.0f;
+        for (int d = 0; d < DIMS; ++d) {
+            const float difference = f[d * plane + x] - g[d * plane + x];
+            distance += difference * difference;
+        }
+        const float weight = fast_exp(-a[x] * distance);
+        gb[x] -= g_weight * weight * distance;
+        const float scale = -2.0f * g_weight * weight * a[x];
+        for (int d = 0; d < DIMS; ++d) {
+            gf[d * plane + x] += 1.0f * (scale * (f[d * plane + x] - g[d * plane + x]));
+        }
+    }
+}
+
+// Pass 2 (at pixels q, the values of p = q - o_t indexed by q's column): g_image and g_neighbours.
+template <int DIMS, int CHANNELS>
+MCDN_INLINE void fused_backward_taps(const float* __restrict f, const float* __restrict g,
+                                     const float* __restrict a, const float* __restrict image_q,
+                                     const float* __restrict gn, const float* __restrict gd,
+                                     float* __restrict gi, float* __restrict gg, int64_t plane, int64_t x_begin,
+                                     int64_t x_end) {
+    MCDN_PIXEL_LOOP
+    for (int64_t x = x_begin; x < x_end; ++x) {
+        float distance = 0.0f;
+        for (int d = 0; d < DIMS; ++d) {
+            const float difference = f[d * plane + x] - g[d * plane + x];
+            distance += difference * difference;
+        }
+        const float weight = fast_exp(-a[x] * distance);
+        float g_weight = 0.0f;
+        for (int c = 0; c < CHANNELS; ++c) {
+            gi[c * plane + x] += weight * gn[c * plane + x];
+            g_weight += gn[c * plane + x] * image_q[c * plane + x];
+        }
+        g_weight += gd[x];
+        const float scale = -2.0f * g_weight * weight * a[x];
+        for (int d = 0; d < DIMS; ++d) {
+            gg[d * plane + x] += -1.0f * (scale * (f[d * plane + x] - g[d * plane + x]));
+        }
+    }
+}
+
+// Which fused backward instance serves (dims, channels): the forward's pairs (3 colour channels; d = 1, 2, 4, 8).
+enum class FusedBackward { none, d1, d2, d4, d8 };
+
+MCDN_INLINE FusedBackward fused_backward_for(int64_t dims, int64_t channels) {
+    if (channels != 3) {
+        return FusedBackward::none;
+    }
+    switch (dims) {
+        case 1: return FusedBackward::d1;
+        case 2: return FusedBackward::d2;
+        case 4: return FusedBackward::d4;
+        case 8: return FusedBackward::d8;
+        default: return FusedBackward::none;
+    }
+}
+
 struct BackwardInputs {
     const float *image, *features, *neighbours, *bandwidth, *center, *grad_num, *grad_den;
 };
@@ -299,6 +374,7 @@ void backward_at_pixels(const BackwardInputs& in, const BackwardOutputs& out, co
     float* g_weight = scratch + 2 * width;
     float* scale = scratch + 3 * width;
     const bool affinity_grads = out.features != nullptr || out.bandwidth != nullptr;
+    const FusedBackward fused = fused_backward_for(s.dims, s.channels);
     for (int64_t row = row_begin; row < row_end; ++row) {
         const int64_t n = row / height, y = row % height;
         const int64_t pixel = n * plane + y * width;    // (n, 0, y, 0) of a one-channel tensor
@@ -329,13 +405,38 @@ void backward_at_pixels(const BackwardInputs& in, const BackwardOutputs& out, co
                 if (x_begin >= x_end || (centre ? out.center == nullptr : !affinity_grads)) {
                     continue;
                 }
-                weight_gradient(gn_row, image_base + sy * width + dx, in.grad_den + pixel, s.channels, plane,
-                                x_begin, x_end, g_weight);
                 if (centre) {    // the centre tap covers the whole row
+                    weight_gradient(gn_row, image_base + sy * width + dx, in.grad_den + pixel, s.channels, plane,
+                                    x_begin, x_end, g_weight);
                     std::copy(g_weight, g_weight + width, out.center + pixel);
                     continue;
                 }
                 const float* g_row = neighbour_base + sy * width + dx;
+                if (gb_row != nullptr && gf_row != nullptr && fused != FusedBackward::none) {
+                    const float* in_row = image_base + sy * width + dx;
+                    const float* gd_row = in.grad_den + pixel;
+                    switch (fused) {
+                        case FusedBackward::d1:
+                            fused_backward_pixels<1, 3>(f_row, g_row, a_row, in_row,
+                                gn_row, gd_row, gb_row, gf_row, plane, x_begin, x_end);
+                            break;
+                        case FusedBackward::d2:
+                            fused_backward_pixels<2, 3>(f_row, g_row, a_row, in_row,
+                                gn_row, gd_row, gb_row, gf_row, plane, x_begin, x_end);
+                            break;
+                        case FusedBackward::d4:
+                            fused_backward_pixels<4, 3>(f_row, g_row, a_row, in_row,
+                                gn_row, gd_row, gb_row, gf_row, plane, x_begin, x_end);
+                            break;
+                        default:
+                            fused_backward_pixels<8, 3>(f_row, g_row, a_row, in_row,
+                                gn_row, gd_row, gb_row, gf_row, plane, x_begin, x_end);
+                            break;
+                    }
+                    continue;
+                }
+                weight_gradient(gn_row, image_base + sy * width + dx, in.grad_den + pixel, s.channels, plane,
+                                x_begin, x_end, g_weight);
                 affinity_weights(f_row, g_row, a_row, s.dims, plane, x_begin, x_end, distance, weight);
                 if (gb_row != nullptr) {
                     MCDN_PIXEL_LOOP
@@ -363,6 +464,7 @@ void backward_at_taps(const BackwardInputs& in, const BackwardOutputs& out, cons
     float* weight = scratch + width;
     float* g_weight = scratch + 2 * width;
     float* scale = scratch + 3 * width;
+    const FusedBackward fused = fused_backward_for(s.dims, s.channels);
     for (int64_t row = row_begin; row < row_end; ++row) {
         const int64_t n = row / height, y = row % height;
         const float* g_row = in.neighbours + n * s.dims * plane + y * width;
@@ -395,6 +497,28 @@ void backward_at_taps(const BackwardInputs& in, const BackwardOutputs& out, cons
                 const float* f_row = in.features + n * s.dims * plane + py * width - dx;
                 const float* gn_row = in.grad_num + n * s.channels * plane + py * width - dx;
                 const float* a_row = in.bandwidth + p_pixel;
+                if (!centre && gi_row != nullptr && gg_row != nullptr && fused != FusedBackward::none) {
+                    const float* gd_row = in.grad_den + p_pixel;
+                    switch (fused) {
+                        case FusedBackward::d1:
+                            fused_backward_taps<1, 3>(f_row, g_row, a_row, image_row,
+                                gn_row, gd_row, gi_row, gg_row, plane, x_begin, x_end);
+                            break;
+                        case FusedBackward::d2:
+                            fused_backward_taps<2, 3>(f_row, g_row, a_row, image_row,
+                                gn_row, gd_row, gi_row, gg_row, plane, x_begin, x_end);
+                            break;
+                        case FusedBackward::d4:
+                            fused_backward_taps<4, 3>(f_row, g_row, a_row, image_row,
+                                gn_row, gd_row, gi_row, gg_row, plane, x_begin, x_end);
+                            break;
+                        default:
+                            fused_backward_taps<8, 3>(f_row, g_row, a_row, image_row,
+                                gn_row, gd_row, gi_row, gg_row, plane, x_begin, x_end);
+                            break;
+                    }
+                    continue;
+                }
                 const float* w_row;
                 if (centre) {
                     w_row = in.center + p_pixel;
