@@ -213,3 +213,24 @@ def test_native_backward_rejects_bad_gradients() -> None:
     with pytest.raises(RuntimeError, match="5 flags"):
         module.affinity_sums_backward(image, features, neighbours, bandwidth, center, grad_num, grad_den, 3, 1,
                                       [True] * 4)
+
+
+@pytest.mark.parametrize("dims", [1, 2, 4, 8])
+@pytest.mark.parametrize("size, dilation", [(3, 1), (13, 2)])
+def test_fused_backward_is_bit_identical_to_the_unfused_passes(dims: int, size: int, dilation: int) -> None:
+    # Three colour channels take the fused backward loops; a fourth channel of zeros (zero image, zero grad_num)
+    # sends the same problem through the unfused passes (only C = 3 is fused) and adds only exact +0 terms, so
+    # every gradient must agree bit for bit.
+    require_native()
+    module = native.load_affinity()
+    image, features, neighbours, bandwidth, center, grad_num, grad_den = backward_case(dims, True, seed=11 + dims,
+                                                                                        height=19, width=29)
+    pad = lambda t: torch.cat([t, torch.zeros_like(t[:, :1])], dim=1).contiguous()  # noqa: E731
+    for c in (center, None):
+        fused = module.affinity_sums_backward(image, features, neighbours, bandwidth, c, grad_num, grad_den,
+                                              size, dilation, [True] * 5)
+        unfused = module.affinity_sums_backward(pad(image), features, neighbours, bandwidth, c, pad(grad_num),
+                                                grad_den, size, dilation, [True] * 5)
+        assert torch.equal(fused[0], unfused[0][:, :3])
+        for a, b in zip(fused[1:], unfused[1:]):
+            assert (a is None and b is None) or torch.equal(a, b)
