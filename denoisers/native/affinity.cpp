@@ -354,6 +354,41 @@ MCDN_INLINE FusedBackward fused_backward_for(int64_t dims, int64_t channels) {
     }
 }
 
+// One fused backward loop: pass 1 (AT_TAPS false: outputs g_bandwidth, g_features) or pass 2 (AT_TAPS true:
+// g_image, g_neighbours); `image` is the image at the tap's pixel.
+template <bool AT_TAPS, int DIMS>
+MCDN_INLINE void fused_backward(const float* f, const float* g, const float* a, const float* image, const float* gn,
+                                const float* gd, float* out_first, float* out_second, int64_t plane, int64_t x_begin,
+                                int64_t x_end) {
+    if constexpr (AT_TAPS) {
+        fused_backward_taps<DIMS, 3>(f, g, a, image, gn, gd, out_first, out_second, plane, x_begin, x_end);
+    } else {
+        fused_backward_pixels<DIMS, 3>(f, g, a, image, gn, gd, out_first, out_second, plane, x_begin, x_end);
+    }
+}
+
+// The instance of fused_backward that `dims` selects (not none). Plain calls, no lambda: every level must be
+// inlined into the cloned row functions, or the loops are compiled for the baseline target only.
+template <bool AT_TAPS>
+MCDN_INLINE void run_fused_backward(FusedBackward dims, const float* f, const float* g, const float* a,
+                                    const float* image, const float* gn, const float* gd, float* out_first,
+                                    float* out_second, int64_t plane, int64_t x_begin, int64_t x_end) {
+    switch (dims) {
+        case FusedBackward::d1:
+            fused_backward<AT_TAPS, 1>(f, g, a, image, gn, gd, out_first, out_second, plane, x_begin, x_end);
+            break;
+        case FusedBackward::d2:
+            fused_backward<AT_TAPS, 2>(f, g, a, image, gn, gd, out_first, out_second, plane, x_begin, x_end);
+            break;
+        case FusedBackward::d4:
+            fused_backward<AT_TAPS, 4>(f, g, a, image, gn, gd, out_first, out_second, plane, x_begin, x_end);
+            break;
+        default:
+            fused_backward<AT_TAPS, 8>(f, g, a, image, gn, gd, out_first, out_second, plane, x_begin, x_end);
+            break;
+    }
+}
+
 struct BackwardInputs {
     const float *image, *features, *neighbours, *bandwidth, *center, *grad_num, *grad_den;
 };
@@ -415,24 +450,8 @@ void backward_at_pixels(const BackwardInputs& in, const BackwardOutputs& out, co
                 if (gb_row != nullptr && gf_row != nullptr && fused != FusedBackward::none) {
                     const float* in_row = image_base + sy * width + dx;
                     const float* gd_row = in.grad_den + pixel;
-                    switch (fused) {
-                        case FusedBackward::d1:
-                            fused_backward_pixels<1, 3>(f_row, g_row, a_row, in_row,
-                                gn_row, gd_row, gb_row, gf_row, plane, x_begin, x_end);
-                            break;
-                        case FusedBackward::d2:
-                            fused_backward_pixels<2, 3>(f_row, g_row, a_row, in_row,
-                                gn_row, gd_row, gb_row, gf_row, plane, x_begin, x_end);
-                            break;
-                        case FusedBackward::d4:
-                            fused_backward_pixels<4, 3>(f_row, g_row, a_row, in_row,
-                                gn_row, gd_row, gb_row, gf_row, plane, x_begin, x_end);
-                            break;
-                        default:
-                            fused_backward_pixels<8, 3>(f_row, g_row, a_row, in_row,
-                                gn_row, gd_row, gb_row, gf_row, plane, x_begin, x_end);
-                            break;
-                    }
+                    run_fused_backward<false>(fused, f_row, g_row, a_row, in_row, gn_row, gd_row, gb_row, gf_row,
+                                              plane, x_begin, x_end);
                     continue;
                 }
                 weight_gradient(gn_row, image_base + sy * width + dx, in.grad_den + pixel, s.channels, plane,
@@ -499,24 +518,8 @@ void backward_at_taps(const BackwardInputs& in, const BackwardOutputs& out, cons
                 const float* a_row = in.bandwidth + p_pixel;
                 if (!centre && gi_row != nullptr && gg_row != nullptr && fused != FusedBackward::none) {
                     const float* gd_row = in.grad_den + p_pixel;
-                    switch (fused) {
-                        case FusedBackward::d1:
-                            fused_backward_taps<1, 3>(f_row, g_row, a_row, image_row,
-                                gn_row, gd_row, gi_row, gg_row, plane, x_begin, x_end);
-                            break;
-                        case FusedBackward::d2:
-                            fused_backward_taps<2, 3>(f_row, g_row, a_row, image_row,
-                                gn_row, gd_row, gi_row, gg_row, plane, x_begin, x_end);
-                            break;
-                        case FusedBackward::d4:
-                            fused_backward_taps<4, 3>(f_row, g_row, a_row, image_row,
-                                gn_row, gd_row, gi_row, gg_row, plane, x_begin, x_end);
-                            break;
-                        default:
-                            fused_backward_taps<8, 3>(f_row, g_row, a_row, image_row,
-                                gn_row, gd_row, gi_row, gg_row, plane, x_begin, x_end);
-                            break;
-                    }
+                    run_fused_backward<true>(fused, f_row, g_row, a_row, image_row, gn_row, gd_row, gi_row, gg_row,
+                                             plane, x_begin, x_end);
                     continue;
                 }
                 const float* w_row;
