@@ -58,8 +58,9 @@ def _log_kernel64(sigma: float, size: int) -> torch.Tensor:
     return kernel - kernel.mean()
 
 
-def _log_kernel_cached(sigma: float, size: int) -> torch.Tensor:
-    return _log_kernel64(sigma, size).float()
+def _check_log_size(size: int) -> None:
+    if size % 2 != 1 or size < 3:
+        raise ValueError(f"LoG kernel size must be odd and >= 3, got {size}")
 
 
 def log_kernel(sigma: float = LOG_SIGMA, size: int = LOG_SIZE) -> torch.Tensor:
@@ -67,9 +68,8 @@ def log_kernel(sigma: float = LOG_SIGMA, size: int = LOG_SIZE) -> torch.Tensor:
 
     Same construction as MATLAB's ``fspecial('log', size, sigma)``, which HFEN uses. Odd ``size`` only.
     """
-    if size % 2 != 1 or size < 3:
-        raise ValueError(f"LoG kernel size must be odd and >= 3, got {size}")
-    return _log_kernel_cached(float(sigma), int(size)).clone()
+    _check_log_size(size)
+    return _log_kernel64(float(sigma), int(size)).float()
 
 
 @lru_cache(maxsize=16)
@@ -107,8 +107,7 @@ def laplacian_of_gaussian(x: torch.Tensor, sigma: float = LOG_SIGMA, size: int =
     gradient loss does not see a fake edge at the crop border. Equal (to float rounding) to ``F.conv2d`` of
     the replicate-padded image with :func:`log_kernel`, computed as the kernel's rank-3 separable form.
     """
-    if size % 2 != 1 or size < 3:
-        raise ValueError(f"LoG kernel size must be odd and >= 3, got {size}")
+    _check_log_size(size)
     rows, cols = _log_operators(float(sigma), int(size), x.shape[-2], x.shape[-1])
     rows, cols = rows.to(dtype=x.dtype, device=x.device), cols.to(dtype=x.dtype, device=x.device)
     filtered = rows @ (x.unsqueeze(-3) @ cols.transpose(-1, -2))     # (..., C, R, H, W)
