@@ -126,3 +126,45 @@ def test_step_minutes_leave_out_pauses_and_validations() -> None:
     assert row["train_minutes"] == pytest.approx(float(elapsed[-1]) / 60) and row["train_minutes"] > 20
     no_times = TrainedModel(spec, {"steps": 1000}, frame.drop(columns=["elapsed_s"]), pd.DataFrame())
     assert math.isnan(no_times.median_step_seconds())
+
+
+def test_the_line_fit_beside_the_flag_reads_a_steady_fall_exactly_and_a_flat_noisy_curve_as_about_zero() -> None:
+    """The trend column against scipy.stats.linregress done by hand and an exact line; not part of the rule."""
+    from scipy import stats
+
+    cfg = claims_config()
+    # FALLING is a straight line from step 300 on (0.05 per 100 steps): over the window (steps 800-1000) the
+    # line falls 0.10, relative to the window's mean loss 0.35, with a zero-width interval.
+    fall, half = trained(cfg, "rae", FALLING).validation_trend(0.2)
+    assert fall == pytest.approx(0.10 / 0.35) and half == pytest.approx(0.0, abs=1e-9)
+    # A flat curve with alternating noise: the running minimum falls (flag), the line's interval holds 0.
+    noisy = [1.0, 0.5, 0.44, 0.45, 0.44, 0.45, 0.44, 0.45, 0.435, 0.45]
+    model = trained(cfg, "rae", noisy)
+    assert model.validation_improvement(0.2) == pytest.approx((0.44 - 0.435) / 0.44)
+    fall, half = model.validation_trend(0.2)
+    window = np.array([0.45, 0.435, 0.45])      # steps 800, 900, 1000
+    fit = stats.linregress([800.0, 900.0, 1000.0], window)
+    assert fall == pytest.approx(-fit.slope * 200 / window.mean())
+    assert half == pytest.approx(stats.t.ppf(0.975, 1) * fit.stderr * 200 / window.mean())
+    assert fall - half < 0 < fall + half
+    # Too few validations in the window for an interval.
+    assert math.isnan(trained(cfg, "rae", FALLING).validation_trend(0.05)[0])
+
+
+def test_the_validation_psnr_gained_over_the_window() -> None:
+    cfg = claims_config()
+    model = trained(cfg, "rae", FALLING)
+    model.curves["val_psnr"] = np.where(model.curves["val_loss"].notna(), 20.0 + model.curves["step"] / 1000.0,
+                                        np.nan)
+    assert model.validation_psnr_gain(0.2) == pytest.approx(1.0 - 0.8)     # best 21.0 at 1000, 20.8 at 800
+    table = training_table(_models_of(cfg, model), cfg).set_index("model")
+    assert table.loc["rae", "val_psnr_gain_in_window"] == pytest.approx(0.2)
+    assert table.loc["rae", "val_loss_trend_in_window"] == pytest.approx(0.10 / 0.35)
+    del model.curves["val_psnr"]
+    assert math.isnan(model.validation_psnr_gain(0.2))
+
+
+def _models_of(cfg: dict, model: TrainedModel) -> TrainedModels:
+    models = TrainedModels(model_specs(cfg))
+    models.models[model.spec.id] = model
+    return models

@@ -94,14 +94,49 @@ class TrainedModel:
         before the window (too few validations to tell)."""
         if "val_loss" not in self.curves:
             return math.nan
-        val = self.curves.dropna(subset=["val_loss"])
-        steps = int(self.summary.get("steps") or 0)
-        start = steps * (1.0 - window_fraction)
+        val, start = self._window_validations(window_fraction)
         before = val[val["step"] <= start]["val_loss"]
         if not len(before) or not len(val):
             return math.nan
         best_before, best = float(before.min()), float(val["val_loss"].min())
         return (best_before - best) / best_before if best_before > 0 else math.nan
+
+    def _window_validations(self, window_fraction: float) -> tuple[pd.DataFrame, float]:
+        """(validated rows of curves.csv, first step of the last ``window_fraction`` of the steps run)."""
+        val = self.curves.dropna(subset=["val_loss"]) if "val_loss" in self.curves else self.curves.iloc[0:0]
+        return val, int(self.summary.get("steps") or 0) * (1.0 - window_fraction)
+
+    def validation_trend(self, window_fraction: float) -> tuple[float, float]:
+        """(relative fall, its 95 % half-width) of a least-squares line through the validation losses of the last
+        ``window_fraction`` of the steps: (line at the window's start - line at its end) / the window's mean loss,
+        so a steady fall reads the same as validation_improvement and a flat noisy curve reads about 0. Shown
+        beside the flag, which reads the running minimum: on a noisy curve the minimum keeps falling while the
+        line does not. NaN for fewer than 3 validations in the window (no interval)."""
+        from scipy import stats
+
+        val, start = self._window_validations(window_fraction)
+        window = val[val["step"] >= start]
+        if len(window) < 3:
+            return math.nan, math.nan
+        steps, loss = window["step"].to_numpy(float), window["val_loss"].to_numpy(float)
+        fit = stats.linregress(steps, loss)
+        span = float(self.summary.get("steps") or steps[-1]) - start
+        scale = span / float(loss.mean())
+        half = float(stats.t.ppf(0.975, len(window) - 2)) * fit.stderr * scale
+        return -fit.slope * scale, half
+
+    def validation_psnr_gain(self, window_fraction: float) -> float:
+        """Best validation PSNR (dB, curves.csv val_psnr) over the whole run minus the best before the last
+        ``window_fraction`` of the steps: what the last part of the budget bought in the metric the claims test.
+        NaN without val_psnr or without a validation before the window."""
+        val, start = self._window_validations(window_fraction)
+        if "val_psnr" not in val:
+            return math.nan
+        psnr = val.dropna(subset=["val_psnr"])
+        before = psnr[psnr["step"] <= start]["val_psnr"]
+        if not len(before):
+            return math.nan
+        return float(psnr["val_psnr"].max()) - float(before.max())
 
     def final_rise(self) -> tuple[float, int | None]:
         """(relative rise of the last validation loss above the best one, step of the best); (NaN, None)

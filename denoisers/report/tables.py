@@ -263,7 +263,8 @@ def _converged(reason: str) -> str:
 
 def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFrame:
     """One row per configured model: size, budget used, validation metrics of best.pt and convergence (the
-    relative fall of the best validation loss over the last part of the run, training.convergence)."""
+    relative fall of the best validation loss over the last part of the run, training.convergence, which
+    decides; beside it the line fit's fall with its 95 % half-width and the validation PSNR gained there)."""
     import pandas as pd
 
     rule = {"window_fraction": 0.2, "min_improvement": 0.01, **((cfg or {}).get("training", {}).get("convergence", {}))}
@@ -276,6 +277,7 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
         if model:
             s = model.summary
             validation = model.validation
+            trend, trend_half = model.validation_trend(rule["window_fraction"])
             if s.get("same_training_as"):   # the base's weights, not a training of its own (its time is the base's)
                 row["status"] = f"trained = {s['same_training_as']}"
             row.update({"parameters": s.get("parameters"), "parameters_full_width": s.get("parameters_full_width"),
@@ -286,6 +288,9 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
                         "seconds_per_step": s.get("seconds_per_step"), "best_step": s.get("best_step"),
                         "final_train_loss": model.final_training_loss(),
                         "val_loss_fall_in_window": model.validation_improvement(rule["window_fraction"]),
+                        "val_loss_trend_in_window": trend,
+                        "val_loss_trend_ci95": trend_half,
+                        "val_psnr_gain_in_window": model.validation_psnr_gain(rule["window_fraction"]),
                         "converged": _converged(model.undertrained(cfg or {})),
                         "commit": (s.get("provenance", {}).get("commit") or "")[:12],
                         "dirty": s.get("provenance", {}).get("dirty"),

@@ -184,7 +184,11 @@ def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
              "distribution scenes. Sizes, budgets and validation metrics of each model's best (lowest validation "
              "loss) checkpoint. `converged` = no when the best validation loss still fell by more than "
              f"{conv['min_improvement']:.0%} (relative) over the last {conv['window_fraction']:.0%} of the steps run "
-             "(`val_loss_fall_in_window`); claims that use such a model say so. `train_minutes`: the job's "
+             "(`val_loss_fall_in_window`); claims that use such a model say so. Beside it, not deciding: "
+             "`val_loss_trend_in_window` ± `val_loss_trend_ci95`, the fall of a least-squares line through the "
+             "window's validation losses with its 95 % interval (a flat but noisy curve reads about 0 there, while "
+             "its running minimum still falls), and `val_psnr_gain_in_window`, the validation PSNR (dB) the window "
+             "added to the best before it. `train_minutes`: the job's "
              "elapsed wall time (any stop of the run while it trained included); `step_minutes`: the median time "
              "per step between logged rows of its curves.csv (validation left out) times its steps, which a stopped "
              "or briefly crowded job does not inflate.", "", markdown,
