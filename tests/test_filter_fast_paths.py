@@ -18,7 +18,7 @@ import torch
 
 from denoisers import native, registry
 from denoisers.filters import PairRegion, PairWorkspace, atrous_step, bilinear_footprint, bilinear_taps
-from denoisers.methods import svgf as svgf_module
+from denoisers.methods import svgf_terms
 from denoisers.methods.eaw import eaw_workspace, filter_eaw
 from denoisers.registry import Frame
 
@@ -238,7 +238,7 @@ def test_svgf_atrous_matches_an_independent_float64_evaluation(backend: str, hei
 
 def test_svgf_depth_gradient_matches_an_independent_float64_evaluation() -> None:
     depth = random_guides(23, 31, seed=3)["depth"]
-    np.testing.assert_allclose(svgf_module._depth_gradient(depth).numpy(),
+    np.testing.assert_allclose(svgf_terms.depth_gradient(depth).numpy(),
                                depth_gradient_float64(depth.double().numpy()), rtol=1e-5, atol=1e-6)
 
 
@@ -273,7 +273,7 @@ def test_svgf_reprojection_matches_an_independent_float64_evaluation() -> None:
     generator = torch.Generator().manual_seed(6)
     svgf = registry.build("svgf")
     state = torch.cat([torch.rand(6, height, width, generator=generator) * 3, guides["depth"], guides["normal"]])
-    svgf._history = svgf_module._History(state=state, index=4)
+    svgf._history = svgf_terms.History(state=state, index=4)
     motion = torch.randn(2, height, width, generator=generator) * 2
     valid = (torch.rand(1, height, width, generator=generator) > 0.2).float()
     depth = guides["depth"] * (1 + 0.15 * torch.rand(1, height, width, generator=generator))  # some fail the test
@@ -293,7 +293,7 @@ def test_svgf_reprojection_matches_an_independent_float64_evaluation() -> None:
 
 def test_svgf_depth_gradient_takes_the_smaller_one_sided_difference() -> None:
     depth = torch.tensor([[1.0, 2.0, 2.5, 10.0], [1.0, 1.5, 3.0, 3.5]])[None]
-    gradient = svgf_module._depth_gradient(depth)
+    gradient = svgf_terms.depth_gradient(depth)
     # Row 0: forward differences 1, 0.5, 7.5; backward at x = 1 is 1, forward 0.5 -> 0.5; at x = 2 backward 0.5.
     assert torch.equal(gradient[0, 0], torch.tensor([1.0, 0.5, 0.5, 7.5]))
     assert torch.equal(gradient[1, :, 0], torch.zeros(2))

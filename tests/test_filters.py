@@ -339,13 +339,14 @@ def test_svgf_history_reprojection_rejects_inconsistent_depth() -> None:
 
 def test_svgf_sparse_and_dense_spatial_variance_agree(monkeypatch) -> None:
     from denoisers.methods import svgf as svgf_module
+    from denoisers.methods import svgf_terms
 
     generator = torch.Generator().manual_seed(7)
     scene = two_planes()
     moments = torch.rand(2, H, W, generator=generator)
     where = torch.rand(1, H, W, generator=generator) < 0.1
     svgf = registry.build("svgf")
-    gradient = svgf_module._depth_gradient(scene["depth"])
+    gradient = svgf_terms.depth_gradient(scene["depth"])
     monkeypatch.setattr(svgf_module, "SPARSE_VARIANCE_FRACTION", 1.0)
     sparse = svgf._spatial_moments(moments, scene["normal"], scene["depth"], gradient, where)
     monkeypatch.setattr(svgf_module, "SPARSE_VARIANCE_FRACTION", 0.0)

@@ -27,7 +27,7 @@ import torch
 
 from denoisers import native, registry
 from denoisers.filters import LOG2_E, MIN_LOG2_WEIGHT
-from denoisers.methods import svgf as svgf_module
+from denoisers.methods import svgf_terms
 from denoisers.methods.eaw import filter_eaw
 from denoisers.registry import Frame
 
@@ -104,7 +104,7 @@ def test_svgf_atrous_native_matches_torch(kernels, monkeypatch, height: int, wid
     variance = torch.rand(1, height, width, generator=torch.Generator().manual_seed(width)) ** 2
     variance[:, 0, 0] = 0.0
     svgf = registry.build("svgf", params)
-    gradient = svgf_module._depth_gradient(guides["depth"])
+    gradient = svgf_terms.depth_gradient(guides["depth"])
     (out, history), (expected, expected_history) = both_paths(
         monkeypatch, lambda: svgf._atrous(guides["color"], variance, guides["normal"], guides["depth"], gradient))
     assert_close(out, expected)
@@ -116,7 +116,7 @@ def test_native_kernels_are_independent_of_the_thread_count(kernels) -> None:
     height, width = 300, 64                                       # > one chunk of row_grain rows
     guides = random_guides(height, width, seed=3)
     variance = torch.rand(1, height, width) ** 2
-    gradient = svgf_module._depth_gradient(guides["depth"])
+    gradient = svgf_terms.depth_gradient(guides["depth"])
     geometry = torch.cat([guides["normal"], guides["depth"]])
     svgf = registry.build("svgf")
 
@@ -232,7 +232,7 @@ def test_svgf_temporal_native_matches_torch(kernels, monkeypatch) -> None:
 
     def run():
         svgf = registry.build("svgf")
-        svgf._history = svgf_module._History(state=state, index=4)
+        svgf._history = svgf_terms.History(state=state, index=4)
         return svgf._accumulate(frame, illumination, moments, depth, guides["normal"])
 
     result, expected = both_paths(monkeypatch, run)
@@ -267,7 +267,7 @@ def test_svgf_atrous_native_is_as_accurate_as_torch_next_to_spikes(kernels, monk
     spikes = torch.rand(1, height, width, generator=generator) < 0.01
     color = torch.where(spikes, torch.tensor(1e8), guides["color"])
     variance = torch.where(spikes, torch.tensor(1e16), torch.rand(1, height, width, generator=generator))
-    gradient = svgf_module._depth_gradient(guides["depth"])
+    gradient = svgf_terms.depth_gradient(guides["depth"])
     inputs = (color, variance, guides["normal"], guides["depth"], gradient)
     svgf = registry.build("svgf")
     (out, _), (torch_out, _) = both_paths(monkeypatch, lambda: svgf._atrous(*inputs))
