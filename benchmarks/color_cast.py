@@ -35,14 +35,23 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from denoisers.methods.rae import RecurrentAutoencoderDenoiser  # noqa: E402
+from denoisers.methods.rae import GBufferRecurrentAutoencoderDenoiser, RecurrentAutoencoderDenoiser  # noqa: E402
 from denoisers import registry  # noqa: E402
 from denoisers.registry import Denoiser, clip_frames  # noqa: E402
 from denoisers.metrics import psnr  # noqa: E402
 from denoisers.report.color_balance import cast_of, channel_means  # noqa: E402
+from denoisers.training.checkpoints import load_model  # noqa: E402
 from denoisers.training.models import training_split  # noqa: E402
 from scenegen.config import load_config  # noqa: E402
 from scenegen.dataset import load_clip  # noqa: E402
+
+
+def method_class_of(checkpoint: Path) -> type[RecurrentAutoencoderDenoiser]:
+    """The evaluation's RAE method for a checkpoint: ``rae`` for a model trained on G-buffer features (net
+    features_from gbuffer), ``rae_samples`` for one trained on the sample means."""
+    model = load_model(checkpoint)
+    gbuffer = getattr(model.config, "features_from", "samples") == "gbuffer"
+    return GBufferRecurrentAutoencoderDenoiser if gbuffer else RecurrentAutoencoderDenoiser
 
 
 def stream(method: Denoiser, frames: list, albedo: list[torch.Tensor] | None) -> list[np.ndarray]:
@@ -110,22 +119,25 @@ def main() -> None:
     for scene in scenes:
         layers = max(args.spp, args.albedo_layers)
         clip = load_clip(args.results / "renders" / scene, buffers=RecurrentAutoencoderDenoiser.info.inputs,
-                         spp=layers, reference=True)
+                         spp=layers, reference=True)        # the sample-mean RAE's inputs cover the G-buffer RAE's
         references = np.stack(list(clip.reference["radiance"]))
         reference = channel_means(list(references))
         bins = (references, clip.samples["albedo"].mean(axis=(1, 2))) if args.brightness_bins else None
         scored = references if args.psnr else None
         noisy = channel_means(list(clip.samples["radiance"][:, :args.spp].mean(axis=1)))
         print(f"{scene}  {'noisy input':34s} ratio {np.round(noisy / reference, 3)}  cast {cast_of(noisy / reference):.3f}")
-        frames = list(clip_frames(clip, RecurrentAutoencoderDenoiser.info, args.spp))
         wide_albedo = None
         if args.albedo_layers > args.spp:
             wide = clip.samples["albedo"].mean(axis=1, keepdims=True)          # (T, 1, 3, H, W)
-            wide_albedo = [torch.from_numpy(np.repeat(wide[t], args.spp, axis=0)) for t in range(len(frames))]
+            wide_albedo = [torch.from_numpy(np.repeat(frame, args.spp, axis=0)) for frame in wide]
         for model_dir in args.models:
-            method = RecurrentAutoencoderDenoiser(checkpoint=str(model_dir / "best.pt"))
+            method_class = method_class_of(model_dir / "best.pt")
+            method = method_class(checkpoint=str(model_dir / "best.pt"))
+            frames = list(clip_frames(clip, method_class.info, args.spp))
             variants = [("own albedo", None)]
-            if wide_albedo is not None and method.model.config.demodulate:
+            # A G-buffer model reads its albedo from the pixel-centre G-buffer: the layer mean does not apply.
+            if (wide_albedo is not None and method.model.config.demodulate
+                    and method_class is RecurrentAutoencoderDenoiser):
                 variants.append((f"albedo of {args.albedo_layers} layers", wide_albedo))
             for label, albedo in variants:
                 outputs = stream(method, frames, albedo)

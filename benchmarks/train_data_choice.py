@@ -15,7 +15,10 @@ Training scenes come from ``--train-root`` (default ``--render-root``), validati
 An arm may also name its own training scenes and their root with the non-data keys ``train`` (scene ids joined
 by ``+``, or a range ``train_000..train_005``) and ``root`` -- e.g. the data-scale comparison of issue 11 §2,
 ``root=A,train=train_000..train_005`` (6 scenes with 1024-spp references) against
-``root=B,train=train_000..train_023`` (24 scenes with 256-spp references). Every arm prints the render time of
+``root=B,train=train_000..train_023`` (24 scenes with 256-spp references). ``gbuffer_albedo_spp=K`` gives an arm
+an antialiased G-buffer albedo (the mean of K jittered primary rays per pixel, rendered from ``--scene-root``)
+in its training and validation clips instead of the stored pixel-centre one: the same validation crops, so the
+pairing holds (docs/findings.md "RAE: demodulation by an aliased albedo"). Every arm prints the render time of
 its training data: the sum of the ``timing_s`` of the noisy and reference sidecars of its training clips.
 Runs go to ``--out``/<arm>/ (trainer directories: a rerun with the same settings resumes, and finishes at once
 when done). Training is slow on a CPU: the checks in docs/findings.md use tiny settings only.
@@ -47,7 +50,8 @@ import torch
 import yaml
 from scipy import stats
 
-from train_precision_quality import train  # benchmarks/ is sys.path[0] when run as a script
+from remodulation_ceiling import rendered_footprint_albedo  # benchmarks/ is sys.path[0] when run as a script
+from train_precision_quality import train
 from denoisers.training.data import SequenceDataset, fixed_batches, load_training_clips
 from denoisers.training.job import clip_buffers, task_sequence_config
 from denoisers.training.models import _schema_defaults, model_spec
@@ -56,8 +60,11 @@ from denoisers.training.tasks import task_builder
 from scenegen.config import load_config
 
 
-#: Arm keys that are not training-data keys: the arm's training scenes and the folder holding their renders.
-SCENE_KEYS: tuple[str, ...] = ("train", "root")
+#: Arm keys that are not training-data keys: the arm's training scenes, the folder holding their renders, and
+#: ``gbuffer_albedo_spp`` (K > 1: the G-buffer albedo of the arm's training and validation clips is replaced by
+#: its mean over K jittered primary rays per pixel, rendered here from the scenes: an antialiased G-buffer
+#: albedo, which no render job stores yet; 1 keeps the stored pixel-centre one).
+SCENE_KEYS: tuple[str, ...] = ("train", "root", "gbuffer_albedo_spp")
 #: Arm keys starting with this override the model's ``net`` (e.g. ``net.width=0.25``): a size comparison on
 #: the same data and validation sequences (the network's config class checks the key when it is built).
 NET_PREFIX = "net."
@@ -136,6 +143,24 @@ def parse_arm(text: str, base: dict[str, Any]) -> dict[str, Any]:
         raise ValueError(f"arm {text!r}: data key {where!r}: {err.message}") from None
 
 
+def with_footprint_albedo(clips: list, cfg: dict, scene_root: Path, spp: int, cache: dict) -> list:
+    """Copies of ``clips`` whose ``gbuffer["albedo"]`` (T, 3, H, W) is the mean over ``spp`` jittered primary rays
+    per pixel (rendered from ``scene_root``/<scene>; cached in ``cache`` by (scene, spp)); ``spp`` <= 1 returns
+    ``clips`` unchanged."""
+    if spp <= 1:
+        return clips
+    out = []
+    for clip in clips:
+        key = (clip.scene, spp)
+        if key not in cache:
+            cache[key] = rendered_footprint_albedo(cfg, scene_root / clip.scene, clip.frames, spp, "gbuffer")
+        if cache[key].shape != clip.gbuffer["albedo"].shape:
+            raise ValueError(f"{clip.scene}: rendered albedo {cache[key].shape} != stored "
+                             f"{clip.gbuffer['albedo'].shape}")
+        out.append(dataclasses.replace(clip, gbuffer={**clip.gbuffer, "albedo": cache[key]}))
+    return out
+
+
 def t_interval(values: list[float], level: float = 0.95) -> tuple[float, float, float]:
     """(mean, low, high) of the Student-t interval of the mean of ``values`` (nan bounds for fewer than 2)."""
     mean = statistics.fmean(values)
@@ -161,6 +186,8 @@ def main() -> None:
     parser.add_argument("--validation-sequences", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=Path("/tmp/train_data_choice"))
+    parser.add_argument("--scene-root", type=Path, default=None,
+                        help="generated scenes, for arms with gbuffer_albedo_spp (default: <render-root>/../scenes)")
     args = parser.parse_args()
     if len(set(args.arms)) != len(args.arms):
         parser.error(f"--arms repeats an arm: {args.arms}")
@@ -184,8 +211,16 @@ def main() -> None:
         arm_scenes[arm] = [root / scene for scene in (scene_list(keys["train"]) if "train" in keys else args.train)]
     train_clips = load_training_clips(arm_scenes[args.arms[0]], buffers)
     validation_clips = load_training_clips([args.render_root / s for s in args.validate], buffers)
-    validation = fixed_batches(validation_clips, task_sequence_config(builder, base, validation_clips),
-                               args.validation_sequences, batch_size=1, seed=int(cfg["seed"]))
+    validation_config = task_sequence_config(builder, base, validation_clips)
+    scene_root = args.scene_root or args.render_root.parent / "scenes"
+    footprints: dict = {}
+
+    def arm_albedo_spp(arm: str) -> int:
+        return int(split_arm(arm)[0].get("gbuffer_albedo_spp", 1))
+
+    def arm_validation(arm: str) -> list:
+        clips = with_footprint_albedo(validation_clips, cfg, scene_root, arm_albedo_spp(arm), footprints)
+        return fixed_batches(clips, validation_config, args.validation_sequences, batch_size=1, seed=int(cfg["seed"]))
     shape = train_clips[0].samples["radiance"].shape
     print(f"torch {torch.__version__}; {args.threads} threads; load average "
           f"{' / '.join(f'{v:.2f}' for v in os.getloadavg())}")
@@ -201,7 +236,9 @@ def main() -> None:
                                                       **base.optimizer, **prefixed_overrides(arm, OPT_PREFIX)}),
                                                   compute=_schema_defaults("training_compute", {
                                                       **base.compute, **prefixed_overrides(arm, COMPUTE_PREFIX)}))
-        clips = load_training_clips(arm_scenes[arm], buffers)
+        clips = with_footprint_albedo(load_training_clips(arm_scenes[arm], buffers), cfg, scene_root,
+                                      arm_albedo_spp(arm), footprints)
+        validation = arm_validation(arm)
         seconds = render_seconds(arm_scenes[arm])
         print(f"{arm}: {len(clips)} training clips ({', '.join(p.name for p in arm_scenes[arm])}), "
               f"{sum(len(c.frames) for c in clips)} frames, rendered in {seconds / 60:.1f} min (sidecars)", flush=True)
