@@ -106,7 +106,9 @@ def main() -> None:
         reference = clip.reference["radiance"]
         scene_dir = args.results / "scenes" / scene
         line = []
-        for name, mode, albedo in (("G-buffer centre", "gbuffer", clip.gbuffer["albedo"]),
+        stored_spp = int(clip.meta[0].get("gbuffer_albedo_spp", 1))     # render.gbuffer_albedo_spp of the renders
+        gbuffer_name = "G-buffer centre" if stored_spp == 1 else f"G-buffer ({stored_spp} rays)"
+        for name, mode, albedo in ((gbuffer_name, "gbuffer", clip.gbuffer["albedo"]),
                                    ("1-spp sample", "samples", clip.samples["albedo"][:, 0])):
             footprint = rendered_footprint_albedo(cfg, scene_dir, clip.frames, args.footprint_spp, mode)
             if footprint.shape != reference.shape:

@@ -62,8 +62,8 @@ from scenegen.config import load_config
 
 #: Arm keys that are not training-data keys: the arm's training scenes, the folder holding their renders, and
 #: ``gbuffer_albedo_spp`` (K > 1: the G-buffer albedo of the arm's training and validation clips is replaced by
-#: its mean over K jittered primary rays per pixel, rendered here from the scenes: an antialiased G-buffer
-#: albedo, which no render job stores yet; 1 keeps the stored pixel-centre one).
+#: its mean over K jittered primary rays per pixel, rendered here from the scenes: the antialiased G-buffer
+#: albedo that render.gbuffer_albedo_spp stores, without re-rendering; 1 keeps the stored one).
 SCENE_KEYS: tuple[str, ...] = ("train", "root", "gbuffer_albedo_spp")
 #: Arm keys starting with this override the model's ``net`` (e.g. ``net.width=0.25``): a size comparison on
 #: the same data and validation sequences (the network's config class checks the key when it is built).

@@ -24,6 +24,9 @@ NOISY_FORMAT_VERSION = 2
 #: effective reference_spp (scenegen.config.scene_reference_spp), so null or absent changes no digest.
 REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp", "train_reference_spp",
                                  "reference_integrator"})
+#: render.* keys only the noisy renders depend on, with the value that enters no digest (so configs written before
+#: the key existed keep their renders): gbuffer_albedo_spp > 1 averages the G-buffer albedo over jittered rays.
+NOISY_OPTIONAL_KEYS: dict[str, Any] = {"gbuffer_albedo_spp": 1}
 
 
 def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
@@ -34,7 +37,7 @@ def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
         # A scenario depends on its name, clip length and image size (speeds are set in pixels per frame).
         stability = cfg["stability"]
         shared = [f"render.{key}" for key in cfg["render"]
-                  if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS | {"width", "height"}]
+                  if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS | set(NOISY_OPTIONAL_KEYS) | {"width", "height"}]
         clip = {key: stability[key] for key in ("frames", "width", "height")}
         settings = {"seed": cfg["seed"], "stability": {"scenario": stability_scenario(cfg, scene), **clip},
                     "render_shared": config_digest(cfg, *shared)}
@@ -58,7 +61,8 @@ def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
         procedural = {key: value for key, value in cfg["scenes"].items()
                       if key not in SCENE_LAYOUT_KEYS | {"train_frames"}}
         procedural["frames"] = scene_frame_count(cfg, scene)
-    shared = [f"render.{key}" for key in cfg["render"] if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS]
+    shared = [f"render.{key}" for key in cfg["render"]
+              if key not in NOISY_ONLY_KEYS | REFERENCE_ONLY_KEYS | set(NOISY_OPTIONAL_KEYS)]
     return {"seed": cfg["seed"], "scenes": procedural, "render_shared": config_digest(cfg, *shared)}
 
 
@@ -70,8 +74,12 @@ def scene_digest(cfg: dict, scene: str) -> str:
 def render_digest(cfg: dict, scene: str, kind: str) -> str:
     """Rules render_noisy (``kind`` 'noisy') and render_reference ('reference')."""
     if kind == "noisy":   # stability scenes: their own spp (scene_render_config)
-        own = {key: scene_render_config(cfg, scene)[key] for key in sorted(NOISY_ONLY_KEYS)}
+        render = scene_render_config(cfg, scene)
+        own = {key: render[key] for key in sorted(NOISY_ONLY_KEYS)}
         own["format"] = NOISY_FORMAT_VERSION
+        if not scene.startswith(VOLUME_PREFIX):   # volumetric clips have their own G-buffer pass
+            own.update({key: render[key] for key, neutral in NOISY_OPTIONAL_KEYS.items()
+                        if render.get(key, neutral) != neutral})
     else:   # the spp this scene's references are rendered with, under the key reference_spp
         own = {"reference_batch_spp": cfg["render"]["reference_batch_spp"],
                "reference_spp": scene_reference_spp(cfg, scene),

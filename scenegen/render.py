@@ -34,6 +34,7 @@ class RenderSettings:
     reference_spp: int = 1024
     reference_batch_spp: int = 32
     reference_integrator: str = "path"   # "path": radiance only; "features": also the feature means
+    gbuffer_albedo_spp: int = 1           # 1: pixel-centre G-buffer albedo; K > 1: mean over K jittered rays
     max_depth: int = 8
     rr_depth: int = 5
     variant: str = "llvm_ad_rgb"
@@ -135,7 +136,22 @@ def render_gbuffer(manifest: dict, scene_dir: Path, frame: int, settings: Render
     sensor = _gbuffer_sensor(manifest, frame, settings)
     integrator = mi.load_dict({"type": "mcdn_features", "mode": "gbuffer"})
     image = np.array(mi.render(scene, spp=1, seed=0, sensor=sensor, integrator=integrator), np.float32)
-    return split_channels(image, [("rgb", 3), *GBUFFER_AOVS])
+    buffers = split_channels(image, [("rgb", 3), *GBUFFER_AOVS])
+    if settings.gbuffer_albedo_spp > 1:
+        buffers["albedo"] = gbuffer_albedo_mean(scene, integrator, spp=settings.gbuffer_albedo_spp, seed=frame + 1)
+    return buffers
+
+
+def gbuffer_albedo_mean(scene, integrator, *, spp: int, seed: int) -> np.ndarray:
+    """(3, H, W) mean G-buffer albedo (each ray's primary hit's own, 0 on a miss) over ``spp`` jittered camera rays
+    per pixel of ``scene``'s own sensor (box-filtered film: the pixel footprint); ``integrator`` is a
+    ``mcdn_features`` integrator in ``gbuffer`` mode."""
+    import mitsuba as mi
+
+    from scenegen.integrator import GBUFFER_AOVS
+
+    image = np.array(mi.render(scene, spp=spp, seed=seed, integrator=integrator), np.float32)
+    return split_channels(image, [("rgb", 3), *GBUFFER_AOVS])["albedo"]
 
 
 def sample_wavefront(scene, *, n_layers: int, seed: int) -> np.ndarray:
@@ -217,6 +233,7 @@ def frame_meta(manifest: dict, scene_id: str, frame: int, settings: RenderSettin
         "prev_camera": (_plain(camera_matrices(manifest, frame - 1, settings.width, settings.height))
                         if frame > 0 else None),
         "camera_cut": bool(manifest["camera"]["frames"][frame].get("cut", False)),
+        "gbuffer_albedo_spp": settings.gbuffer_albedo_spp,
     }
     return meta
 

@@ -115,7 +115,8 @@ def _legacy_render_digest(cfg: dict, scene: str, kind: str) -> str:
     else:
         procedural = {k: v for k, v in cfg["scenes"].items()
                       if k not in {"n_train", "n_test", "frames_per_chunk", "train_frames"}}
-    shared = [f"render.{key}" for key in cfg["render"] if key not in noisy | reference]
+    later = {"gbuffer_albedo_spp"}         # keys added since, whose default enters no digest
+    shared = [f"render.{key}" for key in cfg["render"] if key not in noisy | reference | later]
     settings = {"seed": cfg["seed"], "scenes": procedural, "render_shared": config_digest(cfg, *shared)}
     own = noisy if kind == "noisy" else reference
     render = {key: cfg["render"][key] for key in sorted(own)}
