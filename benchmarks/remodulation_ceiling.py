@@ -61,24 +61,26 @@ def rendered_footprint_albedo(cfg: dict, scene_dir: Path, frames: list[int], spp
     """(T, 3, H, W) mean albedo of ``spp`` jittered camera rays per pixel of ``frames``: the G-buffer albedo (the
     primary hit's own) with ``mode="gbuffer"``, the per-sample feature albedo with ``mode="samples"``."""
     from scenegen.mitsuba_env import init_mitsuba
-    from scenegen.render import RenderSettings, load_frame_scene, split_channels
+    from scenegen.render import RenderSettings, gbuffer_albedo_mean, load_frame_scene, split_channels
 
+    if mode not in ("gbuffer", "samples"):
+        raise ValueError(f"mode must be 'gbuffer' or 'samples', got {mode!r}")
     settings = RenderSettings.from_config(scene_render_config(cfg, scene_dir.name))
     init_mitsuba(settings.variant)
     import mitsuba as mi
 
-    from scenegen.integrator import GBUFFER_AOVS, SAMPLE_AOVS     # needs the variant set
-    if mode not in ("gbuffer", "samples"):
-        raise ValueError(f"mode must be 'gbuffer' or 'samples', got {mode!r}")
+    from scenegen.integrator import SAMPLE_AOVS     # needs the variant set
     manifest = json.loads((scene_dir / "manifest.json").read_text())
-    layout = [("rgb", 3), *(GBUFFER_AOVS if mode == "gbuffer" else SAMPLE_AOVS)]
     gbuffer_integrator = mi.load_dict({"type": "mcdn_features", "mode": "gbuffer"})   # as render_gbuffer's
     out = []
     for frame in frames:
         scene = load_frame_scene(manifest, scene_dir, frame, settings, mode="samples")
-        integrator = gbuffer_integrator if mode == "gbuffer" else scene.integrator()
-        image = np.array(mi.render(scene, spp=spp, seed=1_000_003 + frame, integrator=integrator), np.float32)
-        out.append(split_channels(image, layout)["albedo"])
+        seed = 1_000_003 + frame
+        if mode == "gbuffer":
+            out.append(gbuffer_albedo_mean(scene, gbuffer_integrator, spp=spp, seed=seed))
+        else:
+            image = np.array(mi.render(scene, spp=spp, seed=seed), np.float32)
+            out.append(split_channels(image, [("radiance", 3), *SAMPLE_AOVS])["albedo"])
     return np.stack(out)
 
 
