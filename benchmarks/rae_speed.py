@@ -46,8 +46,9 @@ from torch.profiler import ProfilerActivity, profile
 
 from denoisers import registry
 from denoisers.methods.rae import RecurrentAutoencoderDenoiser
-from denoisers.nets.rae import (INPUT_BUFFERS, RAEConfig, RecurrentAutoencoder, State, conv_flops,
-                                fused_conv_available, prepare_inputs, world_to_view)
+from denoisers.nets.rae import RAEConfig, RecurrentAutoencoder, State, conv_flops, fused_conv_available
+from denoisers.nets.rae_task import INPUT_BUFFERS, prepare_inputs
+from denoisers.nets.view import world_to_view
 from denoisers.registry import Frame
 from scenegen.camera import look_at_matrix
 

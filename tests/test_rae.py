@@ -1,5 +1,5 @@
-"""Tests of the RAE (Chaitanya et al. 2017): network (denoisers/nets/rae.py), loss (denoisers/losses.py) and
-evaluation method (denoisers/methods/rae.py), on tiny tensors."""
+"""Tests of the RAE (Chaitanya et al. 2017): network and inputs (denoisers/nets/rae.py, rae_task.py), loss
+(denoisers/losses.py) and evaluation method (denoisers/methods/rae.py), on tiny tensors."""
 from __future__ import annotations
 
 import math
@@ -16,8 +16,9 @@ from denoisers.losses import (PAPER_FRAME_WEIGHTS_7, frame_weights, gradient_l1,
 from denoisers.methods.rae import RecurrentAutoencoderDenoiser
 from denoisers.nets import build_net, count_parameters, net_spec
 from denoisers.nets import rae as rae_net
-from denoisers.nets.rae import (PAPER_PARAMETER_COUNT, RAEConfig, RAETask, RecurrentAutoencoder, conv_flops,
-                                decode_color, encode_color, parameter_report, prepare_inputs, world_to_view)
+from denoisers.nets.rae import PAPER_PARAMETER_COUNT, RAEConfig, RecurrentAutoencoder, conv_flops, parameter_report
+from denoisers.nets.rae_task import RAETask, decode_color, encode_color, prepare_inputs
+from denoisers.nets.view import world_to_view
 from denoisers.training.data import SequenceConfig, SequenceDataset, SequencePlan
 from denoisers.training.loop import CheckpointError, Trainer, TrainerConfig, load_model
 from scenegen.camera import look_at_matrix
@@ -310,7 +311,7 @@ def test_gbuffer_rae_reads_the_gbuffer_and_matches_its_training_path() -> None:
     output equals the training task's prediction on the same clip; it follows the G-buffer albedo and ignores
     the per-sample one; each method refuses the other's models; features_from round-trips (default left out)."""
     from denoisers.methods.rae import GBufferRecurrentAutoencoderDenoiser
-    from denoisers.nets.rae import GBUFFER_FEATURE_BUFFERS
+    from denoisers.nets.rae_task import GBUFFER_FEATURE_BUFFERS
 
     config = RAEConfig(width=0.125, levels=2, features_from="gbuffer")
     assert RAEConfig.from_dict(config.to_dict()) == config and "features_from" not in TINY.to_dict()

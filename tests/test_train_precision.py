@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from denoisers.nets import rae as rae_net
+from denoisers.nets import rae_task as rae_task_module
 from denoisers.training import precision
 from denoisers.training.job import trainer_config, work_dir_for
 from denoisers.training.loop import TrainerConfig, load_checkpoint
@@ -114,13 +114,13 @@ def test_work_dir_follows_what_auto_resolves_to(monkeypatch: pytest.MonkeyPatch,
 def test_bf16_step_runs_convolutions_in_bf16_and_keeps_fp32_state(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
                                                                    caplog: pytest.LogCaptureFixture) -> None:
     loss_inputs: list[torch.dtype] = []
-    original = rae_net.rae_loss
+    original = rae_task_module.rae_loss
 
     def recording_loss(pred, target, weights=None):
         loss_inputs.append(pred.dtype)
         return original(pred, target, weights)
 
-    monkeypatch.setattr(rae_net, "rae_loss", recording_loss)
+    monkeypatch.setattr(rae_task_module, "rae_loss", recording_loss)
     trainer = make_trainer(tmp_path / "bf16", steps=2, validation=True, validate_every=2, precision="bf16",
                            channels_last=True)
     conv_outputs: list[torch.dtype] = []

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from denoisers.filters import warp_previous
-from denoisers.nets.rae import RAEConfig, RAETask, prepare_inputs
+from denoisers.nets.rae import RAEConfig
+from denoisers.nets.rae_task import RAETask, prepare_inputs
 from denoisers.training import data as training_data
 from denoisers.training.data import SequenceConfig, SequenceDataset, SequencePlan, fixed_batches
 from denoisers.training.loop import (CheckpointError, NonFiniteLossError, Trainer, TrainerConfig, load_checkpoint,

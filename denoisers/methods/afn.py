@@ -11,7 +11,7 @@ from denoisers.filters import check_sizes
 from denoisers.nets import for_inference
 from denoisers.nets.afn import AFNNet
 from denoisers.nets.afn_task import SAMPLE_BUFFERS, History, frame_step, sample_features
-from denoisers.nets.rae import world_to_view
+from denoisers.nets.view import world_to_view
 from denoisers.registry import Denoiser, Frame, register
 
 

@@ -10,7 +10,7 @@ from denoisers.filters import check_sizes
 from denoisers.nets import for_inference
 from denoisers.nets.kpcn import KPCNNet
 from denoisers.nets.kpcn_task import SAMPLE_BUFFERS, frame_step
-from denoisers.nets.rae import world_to_view
+from denoisers.nets.view import world_to_view
 from denoisers.registry import Denoiser, Frame, register
 
 

@@ -22,7 +22,7 @@ from denoisers.filters import check_sizes
 from denoisers.nets import for_inference
 from denoisers.nets.ntasd import NTASDNet, decode
 from denoisers.nets.ntasd_task import FrameInputs, frame_step
-from denoisers.nets.rae import world_to_view
+from denoisers.nets.view import world_to_view
 from denoisers.registry import AdaptiveOutput, Denoiser, Frame, register
 from denoisers.training.tasks import NTASD_VARIANTS
 

@@ -8,9 +8,10 @@ import torch
 
 from denoisers.filters import check_sizes
 from denoisers.nets import for_inference
-from denoisers.nets.rae import (COLOR_INPUT_BUFFERS, GBUFFER_FEATURE_BUFFERS, INPUT_BUFFERS, RecurrentAutoencoder,
-                                State, buffer_means, check_color_only, decode_color, gbuffer_features,
-                                prepare_inputs, world_to_view)
+from denoisers.nets.rae import RecurrentAutoencoder, State
+from denoisers.nets.rae_task import (COLOR_INPUT_BUFFERS, GBUFFER_FEATURE_BUFFERS, INPUT_BUFFERS, buffer_means,
+                                     check_color_only, decode_color, gbuffer_features, prepare_inputs)
+from denoisers.nets.view import world_to_view
 from denoisers.registry import Denoiser, Frame, register
 
 

@@ -24,7 +24,8 @@ Inputs (§3.2): noisy radiance demodulated by the albedo (3), view-space shading
 (1), roughness (1) = 7 channels. Colour is raised to the power 0.2 before it enters the network and
 the training target likewise (§4.4, "raises both the input and target images into power 0.2 as a
 preprocess"); the network's output is in that space, so the final image is
-max(output, 0)^(1/0.2), re-modulated by the albedo.
+max(output, 0)^(1/0.2), re-modulated by the albedo. Building these inputs from a frame's buffers and the
+training task live in :mod:`denoisers.nets.rae_task`.
 
 Parameter count: the architecture above has 1,951,935 parameters at full size; §5.2 states 3.2 million.
 No reading of Fig. 4 that keeps the 36 layers of §5.1 gives 3.2 million (Fig. 4's "AE large" column
@@ -34,16 +35,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from denoisers.filters import sanitize
-from denoisers.losses import RAE_LOSS_WEIGHTS, rae_loss
 
 #: §5.2: "Our network has a total of 3.2 million trainable parameters".
 PAPER_PARAMETER_COUNT = 3_200_000
@@ -51,14 +49,9 @@ PAPER_PARAMETER_COUNT = 3_200_000
 AUX_FEATURES: dict[str, int] = {"normal": 2, "depth": 1, "roughness": 1}
 #: Where an RAE's albedo and auxiliary features come from (RAEConfig.features_from).
 FEATURE_SOURCES: tuple[str, ...] = ("samples", "gbuffer")
-#: Per-pixel G-buffer buffers a ``features_from: gbuffer`` RAE reads (scenegen.dataset.PIXEL_BUFFERS names).
-GBUFFER_FEATURE_BUFFERS: tuple[str, ...] = ("gbuffer.albedo", "gbuffer.normal", "gbuffer.depth", "gbuffer.roughness")
 #: Encodings of the depth feature (RAEConfig.depth_encoding), metres -> network input.
 DEPTH_ENCODINGS: dict[str, Any] = {"metres": lambda depth: depth,
                                    "log1p": lambda depth: torch.log1p(depth.clamp_min(0))}
-#: Mitsuba's camera frame has +x to the image's left and +z forward; view space here is x right, y up,
-#: z towards the viewer (OpenGL convention): view = diag(-1, 1, -1) @ camera.
-MITSUBA_CAMERA_TO_VIEW = np.diag([-1.0, 1.0, -1.0])
 
 State = list[torch.Tensor]
 
@@ -315,144 +308,6 @@ class RecurrentAutoencoder(nn.Module):
             out, state = self.step(x[:, t], None if reset_every_frame else state)
             outputs.append(out)
         return torch.stack(outputs, dim=1), state
-
-
-# ------------------------------------------------------------------------------------------ inputs
-def world_to_view(to_world: Any) -> torch.Tensor:
-    """(3, 3) rotation from world space to view space (x right, y up, z towards the viewer) of a
-    Mitsuba camera-to-world matrix ``to_world`` (4 x 4 or 3 x 3, nested lists or array)."""
-    rotation = np.asarray(to_world, dtype=np.float64)[:3, :3]
-    return torch.from_numpy(MITSUBA_CAMERA_TO_VIEW @ rotation.T).float()
-
-
-def encode_color(linear: torch.Tensor, divisor: torch.Tensor, exponent: float) -> torch.Tensor:
-    """(linear / divisor)^exponent with non-finite values -> 0 and negatives clamped to 0."""
-    return (sanitize(linear) / divisor).clamp_min(0).pow(exponent)
-
-
-def decode_color(encoded: torch.Tensor, divisor: torch.Tensor, exponent: float) -> torch.Tensor:
-    """Inverse of :func:`encode_color`: max(encoded, 0)^(1/exponent) * divisor (linear HDR radiance)."""
-    return encoded.clamp_min(0).pow(1.0 / exponent) * divisor
-
-
-def prepare_inputs(config: RAEConfig, radiance: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
-                   depth: torch.Tensor, roughness: torch.Tensor,
-                   view_rotation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Network input and demodulation divisor from per-pixel means over the samples.
-
-    radiance, albedo, normal (world space): (..., 3, H, W); depth, roughness: (..., 1, H, W), metres
-    and linear alpha; view_rotation: (..., 3, 3) from :func:`world_to_view` (leading dims as the
-    images'). Returns x (..., in_channels, H, W) = [colour^0.2, normal_view x y, depth, roughness]
-    (the configured subset) and divisor (..., 3, H, W) = max(albedo, albedo_floor), or ones when
-    ``config.demodulate`` is off. Non-finite inputs become 0.
-    """
-    divisor = sanitize(albedo).clamp_min(config.albedo_floor) if config.demodulate else torch.ones_like(radiance)
-    channels = [encode_color(radiance, divisor, config.exponent)]
-    for feature in config.features:
-        if feature == "normal":
-            rotation = sanitize(view_rotation)[..., :2, :]
-            channels.append(torch.einsum("...ij,...jhw->...ihw", rotation, sanitize(normal)))
-        elif feature == "depth":
-            channels.append(DEPTH_ENCODINGS[config.depth_encoding](sanitize(depth)))
-        else:
-            channels.append(sanitize(roughness))
-    return torch.cat(channels, dim=-3), divisor
-
-
-# ----------------------------------------------------------------------------------- training task
-#: Per-sample buffers the RAE reads.
-INPUT_BUFFERS: tuple[str, ...] = ("radiance", "albedo", "normal", "depth", "roughness")
-#: Per-sample buffers of the colour-only RAE (``rae_color``; Iglesias-Guitian et al. 2022 train it on volumes).
-COLOR_INPUT_BUFFERS: tuple[str, ...] = ("radiance",)
-_ZERO_CHANNELS = {"albedo": 3, "normal": 3, "depth": 1, "roughness": 1}
-
-
-def check_color_only(config: RAEConfig, where: str) -> None:
-    """ValueError unless ``config`` reads colour alone (no demodulation, no auxiliary features)."""
-    if config.demodulate or config.features:
-        raise ValueError(f"{where}: a colour-only RAE needs net {{demodulate: false, features: []}}, got demodulate "
-                         f"{config.demodulate}, features {list(config.features)}")
-
-
-def gbuffer_features(pixel: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """{albedo, normal, depth, roughness} of :func:`prepare_inputs` from the per-pixel G-buffer buffers
-    ``gbuffer.*`` ((..., C, H, W) each); KeyError naming a missing one."""
-    missing = [name for name in GBUFFER_FEATURE_BUFFERS if name not in pixel]
-    if missing:
-        raise KeyError(f"rae (features_from gbuffer): per-pixel buffers {missing} are missing; render with a G-buffer "
-                       "pass that stores them (scenegen.dataset.PIXEL_BUFFERS)")
-    return {name.split(".", 1)[1]: pixel[name] for name in GBUFFER_FEATURE_BUFFERS}
-
-
-def buffer_means(samples: Mapping[str, torch.Tensor], buffers: tuple[str, ...], sample_dim: int
-                 ) -> dict[str, torch.Tensor]:
-    """Per-pixel means over ``sample_dim`` of every RAE input buffer; buffers outside ``buffers`` (the colour-only
-    RAE's) are zeros of their channel count, which a colour-only config never reads."""
-    means = {b: samples[b].mean(dim=sample_dim) for b in buffers}
-    radiance = means["radiance"]
-    for name, channels in _ZERO_CHANNELS.items():
-        if name not in means:
-            shape = (*radiance.shape[:-3], channels, *radiance.shape[-2:])
-            means[name] = torch.zeros(shape, dtype=radiance.dtype)
-    return means
-
-
-@dataclass
-class RAETask:
-    """How the trainer (``denoisers.training.loop``) trains an RAE on ``denoisers.training.data`` batches.
-
-    A batch holds per-sample buffers (N, T, S, C, H, W) of :data:`INPUT_BUFFERS` (only radiance with
-    ``config.features_from == "gbuffer"``, which reads the per-pixel (N, T, C, H, W)
-    :data:`GBUFFER_FEATURE_BUFFERS` instead), ``reference.radiance`` (N, T, 3, H, W) and ``world_to_view``
-    (N, T, 3, 3). The target is the reference demodulated by the same divisor as the input (the frame's mean
-    sample albedo, or its G-buffer albedo), raised to the power 0.2; the loss is
-    :func:`denoisers.losses.rae_loss`.
-    """
-
-    config: RAEConfig = field(default_factory=RAEConfig)
-    loss_weights: dict[str, float] = field(default_factory=lambda: dict(RAE_LOSS_WEIGHTS))
-
-    name: str = "rae_samples"
-    buffers: tuple[str, ...] = INPUT_BUFFERS        # COLOR_INPUT_BUFFERS for the colour-only and G-buffer RAEs
-
-    def __post_init__(self) -> None:
-        if self.config.features_from == "gbuffer":
-            if self.buffers != COLOR_INPUT_BUFFERS:
-                raise ValueError(f"{self.name}: an RAE with features_from gbuffer reads radiance alone per sample, "
-                                 f"got {list(self.buffers)}")
-        elif self.buffers != INPUT_BUFFERS:
-            check_color_only(self.config, self.name)
-
-    def build_model(self) -> RecurrentAutoencoder:
-        return RecurrentAutoencoder(self.config)
-
-    def net_spec(self) -> dict[str, Any]:
-        return {"name": RecurrentAutoencoder.NET_NAME, "config": self.config.to_dict()}
-
-    def describe(self) -> dict[str, Any]:
-        """Everything that changes what training computes (part of the checkpoint's fingerprint)."""
-        return {"task": self.name, "net": self.net_spec(), "loss_weights": dict(self.loss_weights)}
-
-    def inputs(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """(x (N, T, in_channels, H, W), divisor (N, T, 3, H, W)) of a batch."""
-        means = buffer_means(batch, self.buffers, sample_dim=2)
-        if self.config.features_from == "gbuffer":
-            means.update(gbuffer_features(batch))
-        return prepare_inputs(self.config, means["radiance"], means["albedo"], means["normal"], means["depth"],
-                              means["roughness"], batch["world_to_view"])
-
-    def loss(self, model: nn.Module, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-        x, divisor = self.inputs(batch)
-        target = encode_color(batch["reference.radiance"], divisor, self.config.exponent)
-        pred, _ = model(x)
-        total, terms = rae_loss(pred, target, self.loss_weights)
-        return total, {name: float(value) for name, value in terms.items()}
-
-    def predict(self, model: nn.Module, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """(N, T, 3, H, W) linear HDR radiance of the model on a batch (state carried through each sequence)."""
-        x, divisor = self.inputs(batch)
-        pred, _ = model(x)
-        return decode_color(pred, divisor, self.config.exponent)
 
 
 # ------------------------------------------------------------------------------------ descriptions

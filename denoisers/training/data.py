@@ -55,6 +55,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from denoisers.nets.view import MITSUBA_CAMERA_TO_VIEW
 from denoisers.training.crops import CROP_MODES, RELATIVE_EPS, ImportanceCrops
 from scenegen.dataset import Clip, load_clip
 
@@ -72,8 +73,6 @@ COLOUR_AUGMENTATION_KEYS: tuple[str, ...] = ("permute_channels", "grayscale_prob
 #: Per-pixel buffers a sequence can carry.
 PIXEL_KEYS: tuple[str, ...] = ("motion", "valid", "gbuffer.position", "gbuffer.normal", "gbuffer.depth",
                                "gbuffer.object", "gbuffer.albedo", "gbuffer.roughness")
-#: Mitsuba camera frame -> view space (x right, y up, z towards the viewer).
-_CAMERA_TO_VIEW = np.diag([-1.0, 1.0, -1.0])
 #: One counter-clockwise quarter turn of the image (np.rot90 on (row, column)) in view space (x right, y up).
 _QUARTER_TURN_VIEW = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 #: Left-right mirror of the image in view space.
@@ -412,7 +411,7 @@ class SequenceDataset:
         tensors = {key: torch.from_numpy(np.ascontiguousarray(value, dtype=np.float32)) for key, value in out.items()}
         if config.camera:
             transform = image_transform_view(plan.rotation, plan.flip)
-            rotations = [transform @ _CAMERA_TO_VIEW @ np.asarray(clip.meta[t]["camera"]["to_world"],
+            rotations = [transform @ MITSUBA_CAMERA_TO_VIEW @ np.asarray(clip.meta[t]["camera"]["to_world"],
                                                                   dtype=np.float64)[:3, :3].T for t in plan.frames]
             tensors["world_to_view"] = torch.from_numpy(np.stack(rotations)).float()
         return tensors

@@ -1,7 +1,7 @@
 """A generic trainer for the learned denoisers: Adam, learning-rate schedules, step or time budgets, exact
 resume from checkpoints, validation with best-checkpoint selection, training curves and a progress bar.
 
-A method plugs in a *task* (see :class:`TrainingTask`; the RAE's is ``denoisers.nets.rae.RAETask``) and a
+A method plugs in a *task* (see :class:`TrainingTask`; the RAE's is ``denoisers.nets.rae_task.RAETask``) and a
 data source with ``batch(index, batch_size)`` (``denoisers.training.data.SequenceDataset``). Files in
 the output directory:
 
@@ -66,7 +66,7 @@ _NOT_FINGERPRINTED = frozenset({"max_steps", "max_seconds", "progress", "threads
 
 
 class TrainingTask(Protocol):
-    """What the trainer needs from a method (see ``denoisers.nets.rae.RAETask``)."""
+    """What the trainer needs from a method (see ``denoisers.nets.rae_task.RAETask``)."""
 
     name: str
 

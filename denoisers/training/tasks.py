@@ -74,7 +74,8 @@ def _rae_task(spec: ModelSpec) -> Any:
     """RAE (Chaitanya et al. 2017) on features averaged over the samples: net keys of RAEConfig, loss weights
     spatial / gradient / temporal."""
     from denoisers.losses import RAE_LOSS_WEIGHTS
-    from denoisers.nets.rae import RAEConfig, RAETask
+    from denoisers.nets.rae import RAEConfig
+    from denoisers.nets.rae_task import RAETask
 
     unknown = set(spec.loss) - set(RAE_LOSS_WEIGHTS)
     if unknown:
@@ -89,7 +90,7 @@ def _rae_task(spec: ModelSpec) -> Any:
 def _rae_color_task(spec: ModelSpec) -> Any:
     """The colour-only RAE (Iglesias-Guitian et al. 2022 retrain the RAE on colour alone for volumes): the RAE's
     keys, with net demodulate false and features [] required."""
-    from denoisers.nets.rae import COLOR_INPUT_BUFFERS, RAETask
+    from denoisers.nets.rae_task import COLOR_INPUT_BUFFERS, RAETask
 
     task = _rae_task(spec)
     return RAETask(config=task.config, loss_weights=task.loss_weights, name="rae_color", buffers=COLOR_INPUT_BUFFERS)
@@ -102,7 +103,7 @@ def _rae_gbuffer_task(spec: ModelSpec) -> Any:
     the paper's rasterised G-buffer (§3.1-3.2): the keys of ``rae_samples``; net features_from is set to gbuffer."""
     import dataclasses
 
-    from denoisers.nets.rae import COLOR_INPUT_BUFFERS, RAETask
+    from denoisers.nets.rae_task import COLOR_INPUT_BUFFERS, RAETask
 
     if spec.net.get("features_from", "gbuffer") != "gbuffer":
         raise ValueError(f"rae: net features_from must be gbuffer (or left out), got {spec.net['features_from']!r}")
