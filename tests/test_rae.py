@@ -132,6 +132,35 @@ def test_inference_step_matches_the_plain_forward_and_leaves_training_intact(fus
 
 
 # ------------------------------------------------------------------------------------------ inputs
+def test_zero_feature_init_starts_as_a_network_that_ignores_the_features() -> None:
+    """feature_init "zero": the first convolution's weights on the feature channels (3:) are 0 and every other
+    weight is the He draw of the same seed, so at initialisation the output does not depend on the features;
+    their weights still receive gradient. The key round-trips; "he" (the paper's) is left out of to_dict."""
+    he_config, zero_config = TINY, RAEConfig(width=0.125, levels=2, feature_init="zero")
+    torch.manual_seed(3)
+    he = RecurrentAutoencoder(he_config)
+    torch.manual_seed(3)
+    zero = RecurrentAutoencoder(zero_config)
+    first = "encoder_convs.0.0.weight"
+    for (name, a), (_, b) in zip(he.state_dict().items(), zero.state_dict().items()):
+        if name == first:
+            assert torch.equal(b[:, :3], a[:, :3]) and not b[:, 3:].any() and a[:, 3:].abs().sum() > 0
+        else:
+            assert torch.equal(a, b), name
+    x = torch.rand(2, he_config.in_channels, 16, 16)
+    changed = x.clone()
+    changed[:, 3:] = torch.randn(2, he_config.in_channels - 3, 16, 16) * 5.0
+    out, _ = zero.step(x)
+    torch.testing.assert_close(zero.step(changed)[0], out, rtol=0, atol=0)
+    assert not torch.allclose(he.step(changed)[0], he.step(x)[0])
+    out.square().mean().backward()
+    assert zero.encoder_convs[0][0].weight.grad[:, 3:].abs().sum() > 0
+    assert RAEConfig.from_dict(zero_config.to_dict()) == zero_config and zero_config.to_dict()["feature_init"] == "zero"
+    assert "feature_init" not in he_config.to_dict()
+    with pytest.raises(ValueError, match="feature_init"):
+        RAEConfig(feature_init="xavier")
+
+
 def test_view_space_normals_follow_the_camera() -> None:
     # Camera at the origin looking along world +x with y up: image-right is world +z.
     rotation = world_to_view(look_at_matrix(np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])))

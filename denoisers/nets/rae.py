@@ -49,6 +49,8 @@ PAPER_PARAMETER_COUNT = 3_200_000
 AUX_FEATURES: dict[str, int] = {"normal": 2, "depth": 1, "roughness": 1}
 #: Where an RAE's albedo and auxiliary features come from (RAEConfig.features_from).
 FEATURE_SOURCES: tuple[str, ...] = ("samples", "gbuffer")
+#: How the first convolution's weights on the auxiliary features start (RAEConfig.feature_init).
+FEATURE_INITS: tuple[str, ...] = ("he", "zero")
 #: Encodings of the depth feature (RAEConfig.depth_encoding), metres -> network input.
 DEPTH_ENCODINGS: dict[str, Any] = {"metres": lambda depth: depth,
                                    "log1p": lambda depth: torch.log1p(depth.clamp_min(0))}
@@ -71,7 +73,11 @@ class RAEConfig:
     features_from: where the albedo and the auxiliary features come from: "samples" (the mean of the frame's
     per-sample buffers, one jittered sample per pixel at 1 spp) or "gbuffer" (the pixel-centre G-buffer pass,
     noise-free: the paper's rasterised G-buffer, §3.1-3.2; method and task ``rae``; ``rae_samples`` reads the
-    samples).
+    samples);
+    feature_init: how the first convolution's weights on the auxiliary feature channels start: "he" (§5.3, like
+    every other weight) or "zero" (ours: training starts from the function of the colour-only network and the
+    features' weights grow only as far as they lower the loss; docs/findings.md "RAE: initialising the feature
+    inputs").
     """
 
     width: float = 1.0
@@ -86,6 +92,7 @@ class RAEConfig:
     albedo_floor: float = 0.01
     depth_encoding: str = "metres"
     features_from: str = "samples"
+    feature_init: str = "he"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "features", tuple(self.features))
@@ -97,6 +104,8 @@ class RAEConfig:
             raise ValueError(f"rae: need width > 0, levels >= 1, 0 < exponent <= 1, albedo_floor > 0; got {self}")
         if self.depth_encoding not in DEPTH_ENCODINGS:
             raise ValueError(f"rae: depth_encoding must be one of {list(DEPTH_ENCODINGS)}, got {self.depth_encoding!r}")
+        if self.feature_init not in FEATURE_INITS:
+            raise ValueError(f"rae: feature_init must be one of {list(FEATURE_INITS)}, got {self.feature_init!r}")
         if self.features_from not in FEATURE_SOURCES:
             raise ValueError(f"rae: features_from must be one of {list(FEATURE_SOURCES)}, got {self.features_from!r}")
         if len(self.final_features) != 2:
@@ -127,7 +136,7 @@ class RAEConfig:
         data["final_features"] = list(self.final_features)
         # Defaults of keys added later are left out, so that checkpoints and model files written before the key
         # existed keep their fingerprint (a resumed training would otherwise refuse its own checkpoint).
-        for key, default in (("depth_encoding", "metres"), ("features_from", "samples")):
+        for key, default in (("depth_encoding", "metres"), ("features_from", "samples"), ("feature_init", "he")):
             if data[key] == default:
                 del data[key]
         return data
@@ -230,7 +239,8 @@ class RecurrentAutoencoder(nn.Module):
 
     def _initialise(self) -> None:
         """He et al. 2015 initialisation (§5.3): normal, fan-in, gain of leaky ReLU 0.1; the linear
-        output layer gets gain 1; biases 0."""
+        output layer gets gain 1; biases 0. With ``feature_init`` "zero" the first convolution's weights on the
+        auxiliary feature channels (input channels 3:) are then set to 0, so the initial network ignores them."""
         for module in self.modules():
             if isinstance(module, nn.Conv2d):
                 if module is self.output_conv:
@@ -238,6 +248,9 @@ class RecurrentAutoencoder(nn.Module):
                 else:
                     nn.init.kaiming_normal_(module.weight, a=self.config.negative_slope, nonlinearity="leaky_relu")
                 nn.init.zeros_(module.bias)
+        if self.config.feature_init == "zero":
+            with torch.no_grad():
+                self.encoder_convs[0][0].weight[:, 3:].zero_()
 
     @property
     def multiple(self) -> int:
