@@ -135,7 +135,8 @@ def test_inference_step_matches_the_plain_forward_and_leaves_training_intact(fus
 def test_zero_feature_init_starts_as_a_network_that_ignores_the_features() -> None:
     """feature_init "zero": the first convolution's weights on the feature channels (3:) are 0 and every other
     weight is the He draw of the same seed, so at initialisation the output does not depend on the features;
-    their weights still receive gradient. The key round-trips; "he" (the paper's) is left out of to_dict."""
+    their weights still receive gradient. The key round-trips; "he" (the paper's) is left out of to_dict, and a
+    network without features is the same (and has the same fingerprint) either way."""
     he_config, zero_config = TINY, RAEConfig(width=0.125, levels=2, feature_init="zero")
     torch.manual_seed(3)
     he = RecurrentAutoencoder(he_config)
@@ -157,6 +158,8 @@ def test_zero_feature_init_starts_as_a_network_that_ignores_the_features() -> No
     assert zero.encoder_convs[0][0].weight.grad[:, 3:].abs().sum() > 0
     assert RAEConfig.from_dict(zero_config.to_dict()) == zero_config and zero_config.to_dict()["feature_init"] == "zero"
     assert "feature_init" not in he_config.to_dict()
+    colour_only = RAEConfig(demodulate=False, features=(), feature_init="zero")
+    assert colour_only == RAEConfig(demodulate=False, features=()) and "feature_init" not in colour_only.to_dict()
     with pytest.raises(ValueError, match="feature_init"):
         RAEConfig(feature_init="xavier")
 

@@ -106,6 +106,9 @@ class RAEConfig:
             raise ValueError(f"rae: depth_encoding must be one of {list(DEPTH_ENCODINGS)}, got {self.depth_encoding!r}")
         if self.feature_init not in FEATURE_INITS:
             raise ValueError(f"rae: feature_init must be one of {list(FEATURE_INITS)}, got {self.feature_init!r}")
+        if not self.features:
+            # Nothing to initialise: a colour-only network is the same either way, and so is its fingerprint.
+            object.__setattr__(self, "feature_init", "he")
         if self.features_from not in FEATURE_SOURCES:
             raise ValueError(f"rae: features_from must be one of {list(FEATURE_SOURCES)}, got {self.features_from!r}")
         if len(self.final_features) != 2:
