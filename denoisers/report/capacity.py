@@ -90,11 +90,14 @@ def sweep(res: Results, ablation: Mapping[str, Any]) -> tuple[list[Member], str]
 
 
 def swept_keys(members: Sequence[Member]) -> list[str]:
-    """The ``net`` keys the variants set (order of first appearance)."""
+    """The ``net`` keys on which some variant differs from the base model (order of first appearance); keys a
+    variant inherits unchanged from the base's ``net`` (e.g. the RAE's ``feature_init``) are not swept."""
+    base_net = next((member.spec.net for member in members if member.is_base), {})
     keys: list[str] = []
     for member in members:
         if not member.is_base:
-            keys += [key for key in member.spec.net if key not in keys]
+            keys += [key for key, value in member.spec.net.items()
+                     if key not in keys and (key not in base_net or base_net[key] != value)]
     return keys
 
 
