@@ -58,9 +58,9 @@ def test_ablation_variants_inherit_the_base_model_and_share_the_ablation_budget(
     specs = {spec.id: spec for spec in model_specs(cfg)}
     base = specs["rae"]
     raw = next(entry for entry in cfg["training"]["models"] if entry["id"] == "rae")
-    assert base.net == {"width": 0.5} and base.budget["max_steps"] == raw["budget"]["max_steps"] == 4000
+    assert base.net == {"width": 0.5, "feature_init": "zero"} and base.budget["max_steps"] == raw["budget"]["max_steps"] == 4000
     color = specs["rae_inputs_color"]
-    assert color.net == {"width": 0.5, "demodulate": False, "features": []}
+    assert color.net == {"width": 0.5, "feature_init": "zero", "demodulate": False, "features": []}
     assert color.loss == base.loss and color.data == base.data and color.optimizer == base.optimizer
     inputs = next(entry for entry in cfg["training"]["ablations"] if entry["id"] == "rae_inputs")
     assert "budget" not in inputs and color.seed == base.seed and color.budget == base.budget
