@@ -110,7 +110,7 @@ def main() -> None:
                                     validation, "fp32", args)
     names = list(runs)
     steps = sorted(set.intersection(*(set(run["rows"]) for run in runs.values())))
-    print(f"\nvalidation (fp32 inference) at equal steps; dPSNR = run - fp32:")
+    print("\nvalidation (fp32 inference) at equal steps; dPSNR = run - fp32:")
     header = "  ".join(f"{name + ' PSNR':>17s}" for name in names)
     print(f"  {'step':>6s}  {header}  " + "  ".join(f"{'d ' + name:>16s}" for name in names[1:])
           + f"  {'fp32 val loss':>13s}  {'bf16 val loss':>13s}")

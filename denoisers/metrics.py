@@ -24,12 +24,9 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
-
-if TYPE_CHECKING:
-    import torch
 
 # torch is not imported here: the scoring jobs never hold a tensor, and its import costs about 1.7 s per job.
 ArrayLike = Any   # np.ndarray | torch.Tensor

@@ -289,7 +289,7 @@ def test_clean_refuses_folders_it_must_not_touch(tmp_path: Path, monkeypatch: py
 
 
 @pytest.mark.slow
-def test_two_configs_run_one_after_the_other_leave_two_complete_folders(stub_workflow: Path) -> None:
+def test_two_configs_run_one_after_the_other_leave_two_complete_folders(stub_workflow: Path) -> None:  # noqa: F811 (the imported fixture)
     """The stub `renders` run of the smoke config, then a seed-7 config with its own output_dir: both folders
     hold every scene and chunk, the first is untouched; `clean` of the second leaves the first intact."""
     work = stub_workflow

@@ -10,7 +10,7 @@ import torch
 from denoisers import adaptive, filters, kernels, registry
 from denoisers.adaptive import budget_total, gather_mean, render_adaptive, renderer_derivative
 from denoisers.nets.ntasd import NTASDConfig, NTASDNet, decode, encode, grey
-from denoisers.nets.ntasd_task import FrameInputs, NTASDTask, frame_step
+from denoisers.nets.ntasd_task import NTASDTask
 from denoisers.registry import Frame
 from denoisers.training.tasks import NTASD_VARIANTS, task_problems
 from denoisers.training.spec import ModelSpec

@@ -123,7 +123,7 @@ def test_frame_updates_match_a_fresh_load(scenario, light):
 def test_occupied_bounds_are_the_voxels_a_transfer_function_makes_visible():
     """Hand-placed voxels in a (D, H, W) = [z, y, x] field inside a box from (0, 0, 0) to (4, 2, 8): the bounds
     cover exactly the voxels whose extinction passes the visibility threshold in any frame."""
-    from scenegen.volume_scenes import VISIBLE_OPTICAL_DEPTH, occupied_bounds
+    from scenegen.volume_framing import VISIBLE_OPTICAL_DEPTH, occupied_bounds
     from scenegen.volumes import TransferFunction
 
     field = np.zeros((8, 4, 4), np.float32)          # voxels of 1 x 0.5 x 1 scene units (x, y, z)
@@ -155,7 +155,7 @@ def test_the_camera_frames_the_visible_volume(seed, scenario, aspect):
     import drjit as dr
     import mitsuba as mi
 
-    from scenegen.volume_scenes import FRAME_FILL, occupied_bounds
+    from scenegen.volume_framing import FRAME_FILL, occupied_bounds
 
     width = 64
     height = int(round(width * aspect))

@@ -223,7 +223,7 @@ def build_atlas(cfg: dict, results_dir: Path) -> list[Path]:
              "static pixels (no motion, valid reprojection, "
              "no change or focus mask in t or t − 1); *bias* = mean signed luminance error in the focus mask / mean "
              "reference luminance there.", ""]
-    lines += [f"Speed: ms/frame of the stability denoise jobs themselves (median `denoise()` call without the first "
+    lines += ["Speed: ms/frame of the stability denoise jobs themselves (median `denoise()` call without the first "
               "frame); they may have shared the machine, so the charts are indicative. The report's timing table "
               "(rule time_methods) is the careful measurement.", ""]
     baselines = input_ratios(scores, cfg)
