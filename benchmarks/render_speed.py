@@ -39,7 +39,8 @@ def _median_time(fn, repeats: int) -> float:
 
 def _frame_bytes(scene, gbuffer: dict, spp: int, extra: int, folder: Path) -> int:
     """Bytes of one noisy frame EXR (sample layers, the frame's G-buffer, zero motion) as render-noisy writes it."""
-    from scenegen.dataset import noisy_channels, pixel_channels, write_frame
+    from scenegen.channels import noisy_channels, pixel_channels
+    from scenegen.dataset import write_frame
     from scenegen.render import NonFiniteCounter, render_sample_layers
 
     samples = render_sample_layers(scene, n_layers=spp, n_radiance_only=extra, seed=1, counter=NonFiniteCounter())

@@ -149,7 +149,7 @@ def evaluated_scene_ids(cfg: dict) -> list[str]:
 
 def rendered_layers(cfg: dict) -> dict[str, int]:
     """Sample layers on disk per buffer: radiance has spp + extra_radiance_spp, every other buffer spp."""
-    from scenegen.dataset import RADIANCE_BUFFER, SAMPLE_BUFFERS
+    from scenegen.channels import RADIANCE_BUFFER, SAMPLE_BUFFERS
 
     render = cfg["render"]
     return {buffer: render["spp"] + (render["extra_radiance_spp"] if buffer == RADIANCE_BUFFER else 0)

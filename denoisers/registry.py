@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from denoisers.errors import MissingInputError  # noqa: F401 (raised by methods, imported from here)
-from scenegen.dataset import PIXEL_BUFFERS, SAMPLE_BUFFERS
+from scenegen.channels import PIXEL_BUFFERS, SAMPLE_BUFFERS
 
 # Per-pixel inputs a method may declare, besides the PIXEL_BUFFERS of the data format.
 PIXEL_INPUTS: frozenset[str] = frozenset(PIXEL_BUFFERS)
@@ -29,8 +29,8 @@ class MethodInfo:
     """What a registered method declares about itself."""
 
     name: str
-    inputs: tuple[str, ...]               # per-sample buffers, names of scenegen.dataset.SAMPLE_BUFFERS
-    pixel_inputs: tuple[str, ...] = ()    # per-pixel buffers, names of scenegen.dataset.PIXEL_BUFFERS
+    inputs: tuple[str, ...]               # per-sample buffers, names of scenegen.channels.SAMPLE_BUFFERS
+    pixel_inputs: tuple[str, ...] = ()    # per-pixel buffers, names of scenegen.channels.PIXEL_BUFFERS
     trainable: bool = False
     temporal: bool = False
     description: str = ""

@@ -10,7 +10,7 @@ and where their outputs go.
 
 The rows are ``volumes.rows`` (denoisers.evaluate.volume_method_specs), each at ``volumes.denoise_spp``
 (narrowed by its own ``spp``). A run is not run, with the reason, when its method reads a buffer the
-volumetric clips do not have (they hold scenegen.dataset.VOLUME_BUFFERS: no normals, no diffuse/specular
+volumetric clips do not have (they hold scenegen.channels.VOLUME_BUFFERS: no normals, no diffuse/specular
 split) or more sample layers than they hold (``volumes.spp``). Only the vol_test_* clips are evaluated; the
 vol_train_* clips are for training.
 """
@@ -72,7 +72,7 @@ def volume_problems(cfg: dict) -> list[str]:
 def volume_runs(cfg: dict) -> list[Run]:
     """Every (volume row, spp), runnable or not (Run.not_run names the missing buffer or layers)."""
     from denoisers import registry
-    from scenegen.dataset import PIXEL_BUFFERS, VOLUME_BUFFERS, VOLUME_ZERO_PIXEL_BUFFERS
+    from scenegen.channels import PIXEL_BUFFERS, VOLUME_BUFFERS, VOLUME_ZERO_PIXEL_BUFFERS
 
     layers = volume_layers(cfg)
     runs = []

@@ -1,7 +1,7 @@
 """OpenEXR reading and writing on top of the OpenEXR >= 3.3 Python bindings (``OpenEXR.File``).
 
 Every image handled here is a single-part scanline EXR whose channels are independent (H, W) planes.
-Channel naming for the renderer's outputs lives in :mod:`scenegen.dataset`; this module only moves
+Channel naming for the renderer's outputs lives in :mod:`scenegen.channels`; this module only moves
 named float planes to and from disk.
 
 Binding quirks this module works around (observed with OpenEXR 3.5):

@@ -79,7 +79,8 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
 
 def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
     """Render the per-sample noisy frames of one chunk, with motion vectors and G-buffers."""
-    from scenegen.dataset import noisy_channels, pixel_channels, write_frame
+    from scenegen.channels import noisy_channels, pixel_channels
+    from scenegen.dataset import write_frame
     from scenegen.motion import motion_vectors
 
     settings = RenderSettings.from_config(scene_render_config(cfg, scene_id))
@@ -135,7 +136,8 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
     (render.train_reference_spp for train_* scenes when set, else render.reference_spp); the sidecars record it.
     ``render.reference_integrator``: "path" renders radiance with Mitsuba's ``path`` integrator (the buffers the
     evaluation and training use); "features" renders with the feature integrator and adds the feature means."""
-    from scenegen.dataset import reference_channels, write_frame
+    from scenegen.channels import reference_channels
+    from scenegen.dataset import write_frame
 
     settings = dataclasses.replace(RenderSettings.from_config(scene_render_config(cfg, scene_id)),
                                    reference_spp=scene_reference_spp(cfg, scene_id))

@@ -109,7 +109,8 @@ def _sample_layers(scene, n_layers: int, seed: int, counter: NonFiniteCounter) -
 def run_render_volume_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path,
                             settings: RenderSettings) -> None:
     """Render the noisy frames of a volumetric clip (one chunk: the whole clip)."""
-    from scenegen.dataset import noisy_channels, pixel_channels, write_frame
+    from scenegen.channels import noisy_channels, pixel_channels
+    from scenegen.dataset import write_frame
     from scenegen.volume_motion import closest_collision_gbuffer, volume_motion_vectors
     from scenegen.volume_scenes import frame_updates
 
@@ -151,7 +152,8 @@ def run_render_volume_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Pat
 def run_render_volume_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path,
                                 settings: RenderSettings) -> None:
     """Render the references of a volumetric clip with Mitsuba's volpath: two independent halves per frame."""
-    from scenegen.dataset import reference_channels, write_frame
+    from scenegen.channels import reference_channels
+    from scenegen.dataset import write_frame
     from scenegen.volume_scenes import frame_updates
 
     variant, manifest, clip, scene = _open_clip(scene_id, chunk, scene_dir, settings, "volpath")

@@ -17,7 +17,8 @@ from denoisers.adaptive import BudgetError, budget_total, gather_mean, masked_sa
 from denoisers.evaluate import EvaluationError
 from denoisers.registry import AdaptiveOutput, Denoiser, Frame
 from scenegen.config import validate_config
-from scenegen.dataset import noisy_channels, pixel_channels, reference_channels, write_frame
+from scenegen.channels import noisy_channels, pixel_channels, reference_channels
+from scenegen.dataset import write_frame
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 HEIGHT, WIDTH, FRAMES, FULL, EXTRA = 12, 14, 3, 2, 6     # 2 full layers + 6 radiance-only layers

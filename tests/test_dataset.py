@@ -1,4 +1,4 @@
-"""Tests for scenegen.dataset: channel tables, array <-> channel conversion and the clip loader."""
+"""Tests for scenegen.channels and scenegen.dataset: channel tables, array <-> channel conversion and the clip loader."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenegen.dataset import (
-    ALL, VOLUME_BUFFERS, HALF_BUFFERS, HALF_PIXEL_BUFFERS, PIXEL_BUFFERS, REFERENCE_BUFFERS, SAMPLE_BUFFERS, Clip, DatasetError,
-    MissingBufferError, NotEnoughSamplesError, is_half_channel, load_clip, load_frame, noisy_buffers,
-    noisy_channel_names, noisy_channels, pixel_channels, reference_channel_names, reference_channels,
-    sample_channel_names, sample_layers, write_frame,
-)
+from scenegen.channels import (ALL, VOLUME_BUFFERS, HALF_BUFFERS, HALF_PIXEL_BUFFERS, PIXEL_BUFFERS, REFERENCE_BUFFERS,
+                               SAMPLE_BUFFERS, is_half_channel, noisy_buffers, noisy_channel_names, noisy_channels,
+                               pixel_channels, reference_channel_names, reference_channels, sample_channel_names,
+                               sample_layers)
+from scenegen.dataset import (Clip, DatasetError, MissingBufferError, NotEnoughSamplesError, load_clip, load_frame,
+                              write_frame)
 from scenegen.exr import list_channels, read_exr, write_exr
 
 H, W = 6, 10

@@ -20,7 +20,8 @@ import yaml
 from denoisers import denoise_job, evaluate, metrics, registry, robustness, scoring
 from denoisers.registry import Denoiser, Frame, MissingInputError
 from scenegen.config import validate_config
-from scenegen.dataset import noisy_channels, pixel_channels, reference_channels, write_frame
+from scenegen.channels import noisy_channels, pixel_channels, reference_channels
+from scenegen.dataset import write_frame
 from scenegen.exr import read_exr
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

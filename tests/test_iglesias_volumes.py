@@ -222,7 +222,7 @@ def test_c42_is_decided_on_the_spike_scenario_over_the_clips() -> None:
 def test_dark_half_brightness_is_output_over_reference_where_the_reference_is_dark(tmp_path) -> None:
     """A row that doubles every dark pixel and keeps the bright ones reads 2; one that returns the reference, 1."""
     from denoisers.evaluate import write_radiance_exr
-    from scenegen.dataset import reference_channels
+    from scenegen.channels import reference_channels
     from scenegen.exr import write_exr
 
     cfg = volume_config(n_test=1, rows=[{"id": "vol_same", "method": "noisy"}, {"id": "vol_double", "method": "noisy"}],

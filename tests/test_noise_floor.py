@@ -19,7 +19,8 @@ import pytest
 
 from scenegen import jobs
 from scenegen import render as render_module
-from scenegen.dataset import REFERENCE_BUFFERS, MissingBufferError, load_reference_frame
+from scenegen.channels import REFERENCE_BUFFERS
+from scenegen.dataset import MissingBufferError, load_reference_frame
 from scenegen.integrator import SAMPLE_AOVS
 from scenegen.render import psnr_between_halves
 

@@ -39,7 +39,8 @@ from denoisers.reproductions import all_claims
 from denoisers.training.models import MODEL_FILES, capacity_model_ids, model_dir, model_specs
 from scenegen.config import (CUSTOM_PREFIX, chunk_count, chunk_frames, load_config, scene_frame_count, scene_ids,
                              scene_reference_spp, volume_scene_ids)
-from scenegen.dataset import ALL, REFERENCE_BUFFERS, REQUIRED_REFERENCE_BUFFERS, SAMPLE_BUFFERS, load_clip
+from scenegen.channels import ALL, REFERENCE_BUFFERS, SAMPLE_BUFFERS
+from scenegen.dataset import REQUIRED_REFERENCE_BUFFERS, load_clip
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 # Every test here shares one smoke DAG run (minutes): excluded by `-m "not slow"`.

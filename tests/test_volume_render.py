@@ -15,7 +15,8 @@ import pytest
 from scenegen import jobs
 from scenegen.config import (load_config, scene_ids, scene_reference_spp, scene_render_config, volume_clip_spec,
                              volume_scene_ids)
-from scenegen.dataset import VOLUME_BUFFERS, MissingBufferError, load_clip, load_reference_frame
+from scenegen.channels import VOLUME_BUFFERS
+from scenegen.dataset import MissingBufferError, load_clip, load_reference_frame
 from scenegen.digests import render_digest, scene_digest
 from scenegen.motion import warp_previous
 from scenegen.volume_motion import OBJECT_ENVIRONMENT, OBJECT_MEDIUM, OBJECT_SURFACE, closest_collision_gbuffer

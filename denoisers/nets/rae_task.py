@@ -18,7 +18,7 @@ from denoisers.filters import sanitize
 from denoisers.losses import RAE_LOSS_WEIGHTS, rae_loss
 from denoisers.nets.rae import DEPTH_ENCODINGS, RAEConfig, RecurrentAutoencoder
 
-#: Per-pixel G-buffer buffers a ``features_from: gbuffer`` RAE reads (scenegen.dataset.PIXEL_BUFFERS names).
+#: Per-pixel G-buffer buffers a ``features_from: gbuffer`` RAE reads (scenegen.channels.PIXEL_BUFFERS names).
 GBUFFER_FEATURE_BUFFERS: tuple[str, ...] = ("gbuffer.albedo", "gbuffer.normal", "gbuffer.depth", "gbuffer.roughness")
 
 
@@ -77,7 +77,7 @@ def gbuffer_features(pixel: Mapping[str, torch.Tensor]) -> dict[str, torch.Tenso
     missing = [name for name in GBUFFER_FEATURE_BUFFERS if name not in pixel]
     if missing:
         raise KeyError(f"rae (features_from gbuffer): per-pixel buffers {missing} are missing; render with a G-buffer "
-                       "pass that stores them (scenegen.dataset.PIXEL_BUFFERS)")
+                       "pass that stores them (scenegen.channels.PIXEL_BUFFERS)")
     return {name.split(".", 1)[1]: pixel[name] for name in GBUFFER_FEATURE_BUFFERS}
 
 

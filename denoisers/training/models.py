@@ -29,7 +29,7 @@ from typing import Any
 from denoisers.training.spec import ModelSpec
 from denoisers.training.tasks import task_builder, task_problems
 from scenegen.config import SCENE_SPLITS, output_root, training_scene_split, volume_training_split
-from scenegen.dataset import VOLUME_ZERO_PIXEL_BUFFERS
+from scenegen.channels import VOLUME_ZERO_PIXEL_BUFFERS
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
 #: Files a finished model directory holds (the rule's output directory).
@@ -326,7 +326,7 @@ def _volume_data_problems(cfg: dict, spec: ModelSpec) -> list[str]:
     stored = volumes["spp"] if volumes.get("spp") is not None else cfg["render"]["spp"]
     if spec.data["spp"] > stored:
         problems.append(f"data.spp = {spec.data['spp']} exceeds volumes.spp = {stored}")
-    from scenegen.dataset import VOLUME_BUFFERS
+    from scenegen.channels import VOLUME_BUFFERS
 
     missing = [buffer for buffer in _sample_buffers(spec) if buffer not in VOLUME_BUFFERS]
     missing += [buffer for buffer in _pixel_buffers(spec) if buffer in VOLUME_ZERO_PIXEL_BUFFERS]

@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from scenegen.dataset import SAMPLE_BUFFERS
+from scenegen.channels import SAMPLE_BUFFERS
 
 if TYPE_CHECKING:
     from denoisers.training.spec import ModelSpec
