@@ -22,10 +22,13 @@ else the log's last stamp (an underestimate, said in the output). Work lost at a
 after a training's last checkpoint) is counted, as it was spent. ``--pause START/END`` (ISO times, repeatable)
 removes pause windows; ``--since`` drops segments that started earlier (e.g. before a code change superseded
 their work); ``--rule`` / ``--exclude-rule`` count one stage's jobs only (its busy wall time as if it had run
-alone; jobs of other stages running beside it in the same segment are not subtracted).
+alone; jobs of other stages running beside it in the same segment are not subtracted). ``--superseded
+REGEX@TIME`` leaves out the jobs a later change made obsolete (by their ``rule wildcards`` label and start),
+e.g. trainings redone after a setting changed; unlike ``--since`` it keeps the rest of those segments.
 
 Usage: python benchmarks/run_wall_time.py .snakemake/log/*.snakemake.log [--since 2026-12-02T03:29]
            [--pause 2026-12-02T03:37:35/2026-12-02T04:15:44 ...] [--heartbeat /path/heartbeat.log]
+           [--superseded 'train_denoiser model=rae(_.*)?@2026-12-03T07:39' ...]
 """
 from __future__ import annotations
 
@@ -42,6 +45,7 @@ _JOBID = re.compile(r"^\s+jobid: (\d+)\s*$")
 _FINISHED = re.compile(r"^Finished job(?:id:)? (\d+)")
 _ERROR = re.compile(r"^Error in rule (\w+):\s*$")
 _THREADS = re.compile(r"^\s+threads: (\d+)\s*$")
+_WILDCARDS = re.compile(r"^\s+wildcards: (.*?)\s*$")
 
 Interval = tuple[datetime, datetime]
 
@@ -55,6 +59,12 @@ class Job:
     end: datetime | None = None
     failed: bool = False
     threads: int = 1                 # Snakemake prints "threads: N" for N > 1 only
+    wildcards: str = ""              # as the log prints them, e.g. "model=rae"
+
+    @property
+    def label(self) -> str:
+        """``rule wildcards``, e.g. ``train_denoiser model=rae``: what ``--superseded`` patterns match."""
+        return f"{self.rule} {self.wildcards}".strip()
 
 
 @dataclass
@@ -99,6 +109,8 @@ def parse_log(text: str, name: str = "log") -> Segment | None:
             pending_rule = None
         elif (match := _THREADS.match(line)) is not None and announced is not None:
             announced.threads = int(match.group(1))
+        elif (match := _WILDCARDS.match(line)) is not None and announced is not None:
+            announced.wildcards = match.group(1)
         elif (match := _FINISHED.match(line)) is not None:
             jobid = int(match.group(1))
             if jobid in jobs and jobs[jobid].end is None:
@@ -166,6 +178,19 @@ def keep_rules(segments: list[Segment], only: Sequence[str] = (), exclude: Seque
         segment.jobs = [job for job in segment.jobs if (not only or job.rule in only) and job.rule not in exclude]
 
 
+def drop_superseded(segments: list[Segment], superseded: Sequence[tuple[re.Pattern[str], datetime]]) -> int:
+    """Leave out the jobs whose label (``rule wildcards``) a pattern matches (``re.fullmatch``) and that started
+    before its time: work a later change redid (e.g. models retrained after their settings changed), which a
+    run at the final code would not have done. Returns how many jobs were dropped."""
+    dropped = 0
+    for segment in segments:
+        kept = [job for job in segment.jobs
+                if not any(pattern.fullmatch(job.label) and job.start < before for pattern, before in superseded)]
+        dropped += len(segment.jobs) - len(kept)
+        segment.jobs = kept
+    return dropped
+
+
 def job_intervals(segment: Segment, pauses: list[Interval]) -> list[tuple[Job, list[Interval]]]:
     """Each job's interval in ``segment`` (unfinished ones end at the segment's end), pauses removed."""
     assert segment.end is not None
@@ -203,6 +228,10 @@ def main() -> None:
                         help="count only jobs of this rule (repeatable; e.g. the training stage alone)")
     parser.add_argument("--exclude-rule", action="append", default=[], metavar="NAME",
                         help="leave out jobs of this rule (repeatable)")
+    parser.add_argument("--superseded", action="append", default=[], metavar="REGEX@ISO",
+                        help="leave out jobs whose 'rule wildcards' label the regex matches in full and that started "
+                             "before the ISO time: work a later change redid, e.g. "
+                             "'train_denoiser model=rae(_.*)?@2026-12-03T07:39' (repeatable)")
     parser.add_argument("--cores", type=int, default=2,
                         help="cores of the machine the run used (for the core-use line; default 2)")
     parser.add_argument("--max-gap", type=float, default=5.0,
@@ -221,6 +250,13 @@ def main() -> None:
         raise SystemExit("no invocation with jobs in the given logs")
     close_segments(segments, heartbeats, args.alive, timedelta(minutes=args.max_gap))
     keep_rules(segments, args.rule, args.exclude_rule)   # after closing: the ends do not depend on the rules counted
+    superseded = []
+    for item in args.superseded:
+        pattern, sep, before = item.rpartition("@")
+        if not sep or not pattern:
+            raise SystemExit(f"--superseded {item!r}: expected REGEX@ISO-TIME")
+        superseded.append((re.compile(pattern), datetime.fromisoformat(before)))
+    dropped = drop_superseded(segments, superseded)
 
     per_rule: dict[str, list[float]] = {}
     total = used = idle = 0.0
@@ -244,7 +280,7 @@ def main() -> None:
     for rule, (started, finished, seconds) in sorted(per_rule.items(), key=lambda item: -item[1][2]):
         print(f"{rule} | {started} | {finished} | {seconds / 60:.1f}")
     print(f"\nbusy wall time over {len(segments)} segments: {total / 3600:.2f} h ({total / 60:.0f} min); "
-          f"{len(pauses)} pause window(s) removed")
+          f"{len(pauses)} pause window(s) removed; {dropped} superseded job(s) left out")
     print(f"core use on {args.cores} cores (each job holds min(threads, cores)): {used / 60:.0f} core-min used, "
           f"{idle / 60:.0f} core-min idle while jobs ran; the same work packed onto every core: "
           f"{used / args.cores / 60:.0f} min of wall")

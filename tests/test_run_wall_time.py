@@ -2,6 +2,7 @@
 hand-computed wall times."""
 from __future__ import annotations
 
+import re
 from datetime import datetime
 
 from tests.benchmark_modules import load_benchmark
@@ -109,3 +110,19 @@ def test_threads_are_read_and_core_use_counts_idle_cores() -> None:
     assert (used, idle) == (45 * 60, 15 * 60)
     # A job asking for more threads than there are cores holds every core, no more.
     assert rwt.core_use(rwt.job_intervals(segment, []), cores=1) == (30 * 60, 0)
+
+
+def test_superseded_jobs_are_left_out_by_label_and_start() -> None:
+    """A training redone after a settings change: its first run (before the change) is left out, its redo and
+    the other jobs stay; the label is 'rule wildcards' as the log prints them."""
+    log = (_job("09:00:00", "train_denoiser", 1) + _finish("09:30:00", 1, "train_denoiser")
+           + _job("09:00:00", "denoise_clip", 2) + _finish("09:10:00", 2, "denoise_clip")
+           + _job("10:00:00", "train_denoiser", 3) + _finish("10:20:00", 3, "train_denoiser"))
+    segment = rwt.parse_log(log, "a")
+    assert [job.label for job in segment.jobs] == ["train_denoiser x=1", "denoise_clip x=1", "train_denoiser x=1"]
+    rwt.close_segments([segment], [])
+    dropped = rwt.drop_superseded([segment], [(re.compile(r"train_denoiser x=1"), _t("09:45:00"))])
+    assert dropped == 1 and [job.jobid for job in segment.jobs] == [2, 3]
+    pieces = [piece for _, cut in rwt.job_intervals(segment, []) for piece in cut]
+    assert rwt.union_length(pieces) == 30 * 60          # 09:00-09:10 and 10:00-10:20
+    assert rwt.drop_superseded([segment], [(re.compile(r"train_denoiser"), _t("11:00:00"))]) == 0   # fullmatch
