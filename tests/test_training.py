@@ -177,6 +177,10 @@ def test_backward_playback_reverses_the_frames() -> None:
     assert 0.35 < np.mean(directions) < 0.65
     with pytest.raises(ValueError, match="backward playback"):
         SequenceConfig(pixel_buffers=("motion",), backward_prob=0.5)
+    # One frame played backwards is the same frame: a single-frame model may keep the default.
+    single = SequenceDataset([clip], SequenceConfig(length=1, crop=8, pixel_buffers=("motion", "valid"),
+                                                    backward_prob=0.5), seed=3)
+    assert all(len(single.plan(single.generator(i)).frames) == 1 for i in range(5))
 
 
 def test_camera_stops_repeat_the_frame_with_fresh_noise() -> None:

@@ -105,6 +105,10 @@ def test_the_last_training_scenes_are_held_out_for_validation() -> None:
     assert train == [f"train_{i:03d}" for i in range(24)] and validation == ["train_024", "train_025"]
 
 
+def _model(cfg: dict, model_id: str) -> dict:
+    return next(entry for entry in cfg["training"]["models"] if entry["id"] == model_id)
+
+
 @pytest.mark.parametrize("break_config, message", [
     (lambda c: c["training"]["ablations"][0].update(model="raee"), "names model 'raee'"),
     (lambda c: c["training"]["models"].append(dict(c["training"]["models"][0], id="rae_loss_spatial")),
@@ -117,6 +121,9 @@ def test_the_last_training_scenes_are_held_out_for_validation() -> None:
     (lambda c: c["training"]["models"][0]["net"].update(widht=0.5), "unknown configuration keys ['widht']"),
     (lambda c: c["training"]["models"][0]["loss"].update(perceptual=1.0), "unknown loss terms ['perceptual']"),
     (lambda c: c["training"]["models"][0].update(method="eaw"), "method 'eaw' cannot be trained"),
+    # The task builds, but its sequences carry motion vectors, which backward playback would misread.
+    (lambda c: _model(c, "afn_single").update(data={**_model(c, "afn_single")["data"], "backward_prob": 0.5}),
+     "backward playback needs forward motion vectors"),
 ])
 def test_training_problems_name_the_key(break_config, message: str) -> None:
     cfg = smoke_config()

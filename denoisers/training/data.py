@@ -160,9 +160,10 @@ class SequenceConfig:
         unknown = [b for b in self.pixel_buffers if b not in PIXEL_KEYS]
         if unknown:
             raise ValueError(f"unknown per-pixel buffers {unknown}; known: {list(PIXEL_KEYS)}")
-        if self.backward_prob > 0 and {"motion", "valid"} & set(self.pixel_buffers):
+        # A one-frame sequence played backwards is the same frame: no motion vector links it to another.
+        if self.length > 1 and self.backward_prob > 0 and {"motion", "valid"} & set(self.pixel_buffers):
             raise ValueError("backward playback needs forward motion vectors, which are not rendered: "
-                             "set backward_prob to 0 when a sequence carries motion/valid")
+                             "set backward_prob to 0 when a sequence of more than one frame carries motion/valid")
 
     def without_augmentation(self) -> "SequenceConfig":
         """The same cut (length, crop, spp, buffers) without any random augmentation, with random layers and

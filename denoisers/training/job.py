@@ -31,6 +31,8 @@ from scenegen.atomic import atomic_directory, write_text_atomic
 from denoisers.provenance import provenance
 from scenegen.digests import render_digest
 from denoisers.training.models import ModelSpec, model_spec, same_training_as, settings_digest, training_split
+from denoisers.training.tasks import (clip_buffers, reference_buffers, sequence_config,  # noqa: F401 (re-exported)
+                                      task_sequence_config)
 from scenegen.config import short_digest
 
 log = logging.getLogger(__name__)
@@ -60,42 +62,6 @@ def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
     digest = settings_digest(unbudgeted, {**data_settings(cfg, spec),
                                           "compute": resolve_compute(spec.compute).fingerprint()})
     return Path(models_root) / WORK_DIR_NAME / f"{spec.id}-{digest[:12]}"
-
-
-def sequence_config(spec: ModelSpec, sample_buffers: tuple[str, ...], pixel_buffers: tuple[str, ...] = (),
-                    mean_buffers: tuple[str, ...] = (), reference_buffers: tuple[str, ...] = ("radiance",)) -> Any:
-    from denoisers.training.data import SequenceConfig
-
-    data = spec.data
-    return SequenceConfig(length=data["length"], crop=data["crop"], spp=data["spp"], rotate=data["rotate"],
-                          flip=data["flip"], color_range=data["color_range"], backward_prob=data["backward_prob"],
-                          stop_prob=data["stop_prob"], sample_buffers=sample_buffers, layers=data["layers"],
-                          crops=data["crops"], importance_floor=data["importance_floor"],
-                          permute_channels=bool(data.get("permute_channels", False)),
-                          grayscale_prob=float(data.get("grayscale_prob", 0.0)),
-                          pixel_buffers=pixel_buffers, mean_buffers=mean_buffers,
-                          reference_buffers=reference_buffers)
-
-
-def reference_buffers(builder: Any, clips: Any) -> tuple[str, ...]:
-    """Reference buffers a task's batches carry: radiance, plus each of the builder's
-    ``optional_reference_buffers`` that every clip's references hold (all clips or none, so that every batch,
-    training and validation, has the same keys)."""
-    optional = tuple(getattr(builder, "optional_reference_buffers", ()))
-    held = [b for b in optional if all(c.reference is not None and b in c.reference for c in clips)]
-    return ("radiance", *held)
-
-
-def clip_buffers(builder: Any) -> tuple[str, ...]:
-    """Buffers to load from the renders for a task: its per-sample buffers, then its per-pixel means."""
-    return tuple(dict.fromkeys(builder.sample_buffers + builder.mean_buffers))
-
-
-def task_sequence_config(builder: Any, spec: ModelSpec, clips: Any) -> Any:
-    """The SequenceConfig a task's batches need (sample, pixel, mean and reference buffers) for ``spec``'s data
-    keys; ``clips`` decide the optional reference buffers (:func:`reference_buffers`)."""
-    return sequence_config(spec, builder.sample_buffers, builder.pixel_buffers, builder.mean_buffers,
-                           reference_buffers(builder, clips))
 
 
 def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = True) -> Any:

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from denoisers.training.spec import ModelSpec
-from denoisers.training.tasks import task_builder, task_problems
+from denoisers.training.tasks import sequence_problems, task_builder, task_problems
 from scenegen.config import SCENE_SPLITS, output_root, training_scene_split, volume_training_split
 from scenegen.channels import VOLUME_ZERO_PIXEL_BUFFERS
 
@@ -289,7 +289,7 @@ def training_problems(cfg: dict, build_tasks: bool = True) -> list[str]:
         where = f"training model {spec.id!r}"
         if trains_on_volumes(spec):
             problems += [f"{where}: {problem}" for problem in _volume_data_problems(cfg, spec)]
-            problems += [f"{where}: {problem}" for problem in task_problems(spec)] if build_tasks else []
+            problems += [f"{where}: {problem}" for problem in _build_problems(spec)] if build_tasks else []
             continue
         size = min(cfg["render"]["width"], cfg["render"]["height"])
         if spec.data["crop"] > size:
@@ -304,8 +304,14 @@ def training_problems(cfg: dict, build_tasks: bool = True) -> list[str]:
         if spec.data["spp"] > stored:
             what = "render.spp + render.extra_radiance_spp" if radiance_only else "render.spp"
             problems.append(f"{where}: data.spp = {spec.data['spp']} exceeds {what} = {stored}")
-        problems += [f"{where}: {problem}" for problem in task_problems(spec)] if build_tasks else []
+        problems += [f"{where}: {problem}" for problem in _build_problems(spec)] if build_tasks else []
     return problems
+
+
+def _build_problems(spec: ModelSpec) -> list[str]:
+    """Why ``spec``'s task (net and loss keys) or its sequences (data keys against the task's buffers) cannot be
+    built; the task first, since its sequences need a known method."""
+    return task_problems(spec) or sequence_problems(spec)
 
 
 def _volume_data_problems(cfg: dict, spec: ModelSpec) -> list[str]:
