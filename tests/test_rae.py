@@ -324,14 +324,18 @@ def test_method_streams_frames_and_reset_clears_the_state() -> None:
     torch.testing.assert_close(outputs[2], alone(clip_frames(cut)[2]), rtol=0, atol=0)  # a camera cut resets too
 
 
-def test_method_matches_the_training_path() -> None:
-    model = tiny_model()
+@pytest.mark.parametrize("net_config", [TINY, RAEConfig(width=0.125, levels=2, features=()),
+                                    RAEConfig(width=0.125, levels=2, demodulate=False, features=())],
+                         ids=["all", "untextured", "colour_only"])
+def test_method_matches_the_training_path(net_config: RAEConfig) -> None:
+    """The evaluated method sees what training saw, for each input set of the ablation (Fig. 3)."""
+    model = tiny_model(config=net_config)
     clip = synthetic_clip(frames=3, height=12, width=10)
     config = SequenceConfig(length=3, crop=None, spp=1).without_augmentation()
     batch = SequenceDataset([clip], config).sequence(
         SequencePlan(clip=0, scene=clip.scene, frames=(0, 1, 2), layers=((0,), (0,), (0,)), crop=(0, 0)))
     with torch.no_grad():
-        trained = RAETask(TINY).predict(model, {k: v[None] for k, v in batch.items()})[0]
+        trained = RAETask(net_config).predict(model, {k: v[None] for k, v in batch.items()})[0]
     method = RecurrentAutoencoderDenoiser.from_model(model)
     method.reset()
     streamed = torch.stack([method.denoise(f) for f in clip_frames(clip)])
