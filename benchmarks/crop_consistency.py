@@ -46,10 +46,9 @@ def crop_frame(frame: registry.Frame, y: int, x: int, crop: int) -> registry.Fra
     return dataclasses.replace(frame, samples=cut, pixel=pixel)
 
 
-def output_image(result) -> np.ndarray:
+def output_image(result: torch.Tensor) -> np.ndarray:
     """(H, W, 3) float32 of a method's (3, H, W) output."""
-    tensor = getattr(result, "image", result)
-    return tensor.detach().float().permute(1, 2, 0).numpy()
+    return result.detach().float().permute(1, 2, 0).numpy()
 
 
 def frame_gaps(method: registry.Denoiser, frame: registry.Frame, reference: np.ndarray,
@@ -84,6 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'model':<48} {'scene':<12} {'whole':>7} {'alone':>7} {'gap':>7} {'min':>7}")
     for checkpoint in args.checkpoint:
         method = registry.build(args.method, {"checkpoint": str(checkpoint)})
+        if method.info.adaptive:
+            parser.error(f"method {args.method!r} is adaptive: a window changes where its sample budget goes, "
+                         f"so whole-frame and window runs are not comparable")
         for render_dir in args.render_dir:
             clip = load_clip(render_dir, buffers=method.info.inputs, spp=args.spp * method.samples_factor)
             frames = list(registry.clip_frames(clip, method.info, args.spp * method.samples_factor))
