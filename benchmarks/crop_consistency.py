@@ -27,9 +27,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from denoisers import registry  # noqa: E402
-from denoisers.metrics import psnr  # noqa: E402
-from scenegen.dataset import load_clip  # noqa: E402
+from denoisers import registry
+from denoisers.metrics import psnr
+from scenegen.dataset import load_clip
 
 
 def windows(height: int, width: int, crop: int) -> list[tuple[int, int]]:
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
                       for s in frame_gaps(method, frames[t], clip.reference["radiance"][t], args.crop)]
             whole, alone = (float(np.mean([s[i] for s in scores])) for i in (0, 1))
             gaps = [a - b for a, b in scores if math.isfinite(a - b)]
-            print(f"{str(checkpoint.parent.name):<48} {render_dir.name:<12} {whole:7.2f} {alone:7.2f} "
+            print(f"{checkpoint.parent.name!s:<48} {render_dir.name:<12} {whole:7.2f} {alone:7.2f} "
                   f"{float(np.mean(gaps)):+7.2f} {min(gaps):+7.2f}")
     return 0
 
