@@ -168,3 +168,25 @@ def _models_of(cfg: dict, model: TrainedModel) -> TrainedModels:
     models = TrainedModels(model_specs(cfg))
     models.models[model.spec.id] = model
     return models
+
+
+def _crop_check(gaps: dict[str, float]) -> dict:
+    return {"crop": 64, "spp": 4, "frames_per_scene": 4, "gap_db": min(gaps.values()),
+            "scenes": {scene: {"whole_psnr": 30.0, "window_psnr": 30.0 - gap, "gap_db": gap,
+                               "worst_window_gap_db": gap - 1.0} for scene, gap in gaps.items()}}
+
+
+def test_a_model_worse_on_whole_frames_than_on_its_crops_is_flagged() -> None:
+    cfg = claims_config()
+    model = trained(cfg, "rae", FLAT)
+    model.summary["crop_check"] = _crop_check({"train_024": 0.4, "train_025": -2.94})
+    reason = model.undertrained(cfg)
+    assert "under-trained" in reason and "2.9 dB below their 64-pixel windows (train_025" in reason
+    assert _converged_column(cfg, model) == "no (under-trained)"
+    # Within the threshold, skipped, or absent (models trained before the check): no flag.
+    model.summary["crop_check"] = _crop_check({"train_024": 0.4, "train_025": -0.38})
+    assert model.undertrained(cfg) == ""
+    model.summary["crop_check"] = {"skipped": "trained on whole frames"}
+    assert model.undertrained(cfg) == ""
+    del model.summary["crop_check"]
+    assert model.undertrained(cfg) == ""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -194,6 +195,10 @@ def test_a_training_job_publishes_the_model_and_is_deterministic(tmp_path: Path,
     assert json.loads((out / "settings.json").read_text())["net"] == {"width": 0.125, "levels": 2}
     validation = (out / "validation.csv").read_text().strip().splitlines()
     assert len(validation) == 1 + cfg["training"]["validation_sequences"]
+    # Trained on 8-pixel crops of 16-pixel frames: best.pt is checked on whole validation frames.
+    check = summary["crop_check"]
+    assert check["crop"] == 8 and set(check["scenes"]) == {"train_001"} and math.isfinite(check["gap_db"])
+    assert check["gap_db"] == check["scenes"]["train_001"]["gap_db"]
     # The same config and seed from scratch give the same weights.
     train_model(cfg, "rae", tmp_path / "renders", tmp_path / "b" / "models" / "rae", threads=1, progress=False)
     a, b = (load_checkpoint(tmp_path / run / "models" / "rae" / "best.pt")["model_state"] for run in "ab")

@@ -56,6 +56,10 @@ FINAL_FRACTION = 0.2
 #: A row whose model trained fewer steps is flagged (e.g. the smoke config's few-step models): its
 #: numbers test the budget, not the method.
 MIN_TRAINING_STEPS = 100
+#: A model whose whole validation frames score this many dB below crop-sized windows of them (summary
+#: crop_check) is flagged. On the 2026-12-03 Isik models the sound ones lay above -0.4 dB, those that had
+#: learned their 64-pixel crops' borders at -1.0 to -2.9 (docs/findings.md).
+CROP_GAP_DB = 1.0
 
 
 # ------------------------------------------------------------------------------------- trained models
@@ -171,11 +175,26 @@ class TrainedModel:
         if fall > rule["min_improvement"]:
             reasons.append(f"best validation loss fell {fall:.1%} over {window} "
                            f"(threshold {rule['min_improvement']:.1%})")
+        crop_gap = self.crop_gap_reason()
+        if crop_gap:
+            reasons.append(crop_gap)
         if reasons:
             return f"model {self.spec.id} under-trained: " + "; ".join(reasons)
         if math.isnan(fall):
             return f"model {self.spec.id} convergence unknown: no validation before {window}"
         return ""
+
+    def crop_gap_reason(self) -> str:
+        """'' or how much worse best.pt is on whole validation frames than on windows of its training crop's
+        size (summary crop_check, denoisers.crop_check): below -CROP_GAP_DB it learned the crops' borders."""
+        check = self.summary.get("crop_check") or {}
+        scenes = check.get("scenes") or {}
+        gap = check.get("gap_db")
+        if not scenes or gap is None or not gap < -CROP_GAP_DB:
+            return ""
+        worst = min(scenes, key=lambda scene: scenes[scene]["gap_db"])
+        return (f"whole validation frames score {-gap:.1f} dB below their {check['crop']}-pixel windows "
+                f"({worst}, threshold {CROP_GAP_DB:.1f} dB): it learned its training crops' borders")
 
     def describe(self) -> str:
         s = self.summary

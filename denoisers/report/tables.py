@@ -264,7 +264,9 @@ def _converged(reason: str) -> str:
 def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFrame:
     """One row per configured model: size, budget used, validation metrics of best.pt and convergence (the
     relative fall of the best validation loss over the last part of the run, training.convergence, which
-    decides; beside it the line fit's fall with its 95 % half-width and the validation PSNR gained there)."""
+    decides; beside it the line fit's fall with its 95 % half-width and the validation PSNR gained there), and
+    whole_frame_gap_db: whole validation frames minus crop-sized windows of them, lowest scene (NaN: not checked;
+    denoisers.crop_check)."""
     import pandas as pd
 
     rule = {"window_fraction": 0.2, "min_improvement": 0.01, **((cfg or {}).get("training", {}).get("convergence", {}))}
@@ -292,6 +294,7 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
                         "val_loss_trend_ci95": trend_half,
                         "val_psnr_gain_in_window": model.validation_psnr_gain(rule["window_fraction"]),
                         "converged": _converged(model.undertrained(cfg or {})),
+                        "whole_frame_gap_db": (s.get("crop_check") or {}).get("gap_db", math.nan),
                         "commit": (s.get("provenance", {}).get("commit") or "")[:12],
                         "dirty": s.get("provenance", {}).get("dirty"),
                         **{f"val_{k}": float(validation[k].mean()) for k in ("loss", "ssim", "psnr", "rmse")

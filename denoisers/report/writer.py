@@ -14,7 +14,7 @@ from denoisers.report import targets
 from denoisers.report.atlas import report_section as atlas_section
 from denoisers.report.capacity import capacity_section
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, MIN_UNITS, NOT_RUN, REPRODUCED, claims_table
-from denoisers.report.collect import MIN_TRAINING_STEPS, Results, collect
+from denoisers.report.collect import CROP_GAP_DB, MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.color_balance import color_balance_section
 from denoisers.report.outputs import report_outputs
 from denoisers.report.stats import LABELS, formatted, frame_to_markdown, markdown_table, with_ci_columns
@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
 TRAINING_COLUMNS = ("train_minutes", "step_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim",
-                    "val_psnr", "val_rmse")
+                    "val_psnr", "val_rmse", "whole_frame_gap_db")
 CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "mean_diff_ci_95", "parts", "measured", "facts", "flags", "note"]
 
 
@@ -191,7 +191,10 @@ def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
              "added to the best before it. `train_minutes`: the job's "
              "elapsed wall time (any stop of the run while it trained included); `step_minutes`: the median time "
              "per step between logged rows of its curves.csv (validation left out) times its steps, which a stopped "
-             "or briefly crowded job does not inflate.", "", markdown,
+             "or briefly crowded job does not inflate. `whole_frame_gap_db`: a model trained on crops smaller than "
+             "the frames, scored on whole validation frames minus on crop-sized windows of them (lowest scene, "
+             f"dB; denoisers/crop_check.py); below -{CROP_GAP_DB:g} dB it learned the crops' borders and counts as "
+             "not converged.", "", markdown,
              "![Training curves](figures/training_curves.png)", ""]
     if res.models.missing:
         lines += [f"Not trained (no complete model directory): {', '.join(res.models.missing)}", ""]

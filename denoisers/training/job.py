@@ -15,6 +15,10 @@ finished is the output directory written (atomically) with:
                       workflow's rerun trigger, denoisers.experiment), which the report checks
 * ``settings.json``   the resolved model settings
 
+``summary.json`` also holds ``crop_check``: when the model trained on crops smaller than the frames, how much
+worse ``best.pt`` is on whole validation frames than on crop-sized windows of them (denoisers.crop_check; the
+report counts a gap below ``CROP_GAP_DB`` as a training defect), or why the check was skipped.
+
 An ablation variant whose settings equal its base model's (``same_training_as``) is not trained again: its
 directory holds the base's files with its own summary (``same_training_as`` names the base) and settings.
 """
@@ -196,6 +200,8 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
 
         full = build_net(task.net_spec()["name"], {**task.net_spec()["config"], "width": 1.0})
         summary["parameters_full_width"] = count_parameters(full)
+    summary["crop_check"] = whole_frame_check(spec, sequences.crop, sequences.spp,
+                                              [render_root / s for s in validation_scenes], result.best)
     if stopped_by == "max_seconds":
         log.warning("model %s: the time cap max_seconds = %s stopped training at step %d of %d; the weights "
                     "depend on this machine's speed", model_id, spec.budget.get("max_seconds"), result.steps,
@@ -207,3 +213,26 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
         write_text_atomic(staging / "summary.json", json.dumps(summary, indent=1, sort_keys=True, default=str) + "\n")
         write_text_atomic(staging / "settings.json", json.dumps(spec.settings(), indent=1, sort_keys=True) + "\n")
     return summary
+
+
+def whole_frame_check(spec: ModelSpec, crop: int | None, spp: int, render_dirs: list[Path],
+                      checkpoint: Path) -> dict[str, Any]:
+    """denoisers.crop_check of ``checkpoint`` on the validation scenes at the training crop and spp, or
+    ``{"skipped": why}`` (whole-frame training, an adaptive method, frames no larger than the crop)."""
+    from denoisers import crop_check, registry
+    from denoisers.training.data import load_training_clips
+
+    info = registry.get(spec.method).info
+    if crop is None:
+        return {"skipped": "trained on whole frames"}
+    if info.adaptive:
+        return {"skipped": f"method {spec.method!r} is adaptive (a window moves its sample budget)"}
+    method = registry.build(spec.method, {"checkpoint": str(checkpoint)})
+    clips = load_training_clips(render_dirs, info.inputs, layers=spp * method.samples_factor)
+    smallest = min(min(clip.samples[info.inputs[0]].shape[-2:]) for clip in clips)
+    if crop >= smallest:
+        return {"skipped": f"the crop {crop} covers the whole {smallest}-pixel frames"}
+    check = crop_check.check_method(method, clips, spp, crop)
+    log.info("model %s: whole validation frames minus %d-pixel windows: %+.2f dB (lowest scene)", spec.id, crop,
+             check["gap_db"])
+    return check
