@@ -235,6 +235,10 @@ def test_isik2021_config_passes_dry_run_and_lint(workflow_copy: Path) -> None:
     assert training_problems(isik) == []
     methods = {spec.method for spec in model_specs(isik)}
     assert {"afn", "kpcn"} <= methods, methods
+    # The paper's 128 crops, here whole frames: on smaller crops AFN runs learned the crop borders
+    # (docs/findings.md, "AFN: 64-pixel training crops and whole frames").
+    frame = min(isik["render"]["width"], isik["render"]["height"])
+    assert all(spec.data["crop"] >= frame for spec in model_specs(isik)), [s.data["crop"] for s in model_specs(isik)]
     result = run_snakemake("-n", "--forceall", "--configfile", "config/isik2021.yaml", cwd=workflow_copy, timeout=900)
     assert job_counts(result.stdout + result.stderr) == expected_jobs(isik)
     lint = run_snakemake("--lint", "--configfile", "config/isik2021.yaml", cwd=workflow_copy, timeout=900)
