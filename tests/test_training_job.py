@@ -12,7 +12,7 @@ import torch
 
 from denoisers.nets.rae import RAEConfig, parameter_count
 from denoisers.training import data as training_data
-from denoisers.training.job import train_model, work_dir_for
+from denoisers.training.job import train_model, whole_frame_check, work_dir_for
 from denoisers.training.loop import load_checkpoint
 from denoisers.training.models import (model_spec, model_specs, resolve_method_params, same_training_as,
                                        training_problems, training_split)
@@ -280,3 +280,12 @@ def test_model_specs_are_rebuilt_when_the_training_section_changes_and_never_sha
     assert model_specs(changed)[0].net["width"] == 0.25
     reseeded = dict(cfg, seed=cfg["seed"] + 1)
     assert model_specs(reseeded)[0].seed != model_specs(cfg)[0].seed
+
+
+def test_the_whole_frame_check_is_skipped_with_a_reason(tmp_path: Path) -> None:
+    cfg = smoke_config()
+    rae, ntasd = model_spec(cfg, "rae"), model_spec(cfg, "ntasd")
+    # Neither branch reads a checkpoint or a clip.
+    missing = tmp_path / "no_model.pt"
+    assert whole_frame_check(rae, None, 1, [tmp_path], missing) == {"skipped": "trained on whole frames"}
+    assert "adaptive" in whole_frame_check(ntasd, 32, 4, [tmp_path], missing)["skipped"]
