@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -92,9 +91,3 @@ def check_method(method: registry.Denoiser, clips: Sequence[Any], spp: int, crop
     return {"crop": int(crop), "spp": int(spp), "frames_per_scene": int(frames), "scenes": scenes,
             "gap_db": min((s["gap_db"] for s in scenes.values()), default=math.nan)}
 
-
-def check_checkpoint(method_name: str, checkpoint: Path | str, clips: Sequence[Any], spp: int, crop: int,
-                     frames: int = FRAMES_PER_SCENE) -> dict[str, Any]:
-    """:func:`check_method` for the registered ``method_name`` reading ``checkpoint``."""
-    method = registry.build(method_name, {"checkpoint": str(checkpoint)})
-    return check_method(method, clips, spp, crop, frames)
