@@ -194,7 +194,8 @@ def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
              "or briefly crowded job does not inflate. `whole_frame_gap_db`: a model trained on crops smaller than "
              "the frames, scored on whole validation frames minus on crop-sized windows of them (lowest scene, "
              f"dB; denoisers/crop_check.py); below -{CROP_GAP_DB:g} dB it learned the crops' borders and counts as "
-             "not converged.", "", markdown,
+             "not converged; – where it was not checked (trained on whole frames, an adaptive method, or a model "
+             "trained before the check existed: summary.json `crop_check`).", "", markdown,
              "![Training curves](figures/training_curves.png)", ""]
     if res.models.missing:
         lines += [f"Not trained (no complete model directory): {', '.join(res.models.missing)}", ""]
