@@ -181,6 +181,11 @@ def _describe_error(error: jsonschema.ValidationError) -> list[str]:
         return [f"config key '{key}' = {value!r} has {len(value)} items; allowed: {count} items"]
     if kind == "pattern":
         return [f"config key '{key}' = {value!r} does not match the allowed pattern {error.validator_value}"]
+    if kind == "oneOf" and all(set(option) == {"required"} for option in error.validator_value):
+        names = [" + ".join(option["required"]) for option in error.validator_value]
+        given = [name for name in names if all(part in value for part in name.split(" + "))]
+        return [f"config key '{key}' = {value!r} needs exactly one of {', '.join(names)}; "
+                f"given: {', '.join(given) or 'none'}"]
     if kind == "uniqueItems":
         return [f"config key '{key}' = {value!r} contains duplicates; allowed: each value at most once"]
     return [f"config key '{key}': {error.message}"]

@@ -155,6 +155,78 @@ def test_the_work_directory_ignores_the_budget_but_not_the_settings(tmp_path: Pa
     assert work_dir_for(tmp_path, cfg, spec) != work_dir_for(tmp_path, wider, model_spec(wider, "rae"))
 
 
+def _with_schedule(cfg: dict, schedule: dict, max_steps: int) -> dict:
+    cfg = copy.deepcopy(cfg)
+    cfg["training"]["models"][0]["optimizer"] = {**cfg["training"]["models"][0].get("optimizer", {}),
+                                                 "schedule": schedule}
+    cfg["training"]["models"][0]["budget"] = {"max_steps": max_steps}
+    return cfg
+
+
+def test_a_step_schedule_given_as_a_fraction_of_the_budget_is_the_absolute_schedule(tmp_path: Path) -> None:
+    """every_fraction f at B steps is every = round(f B): the same spec, digests and work directory as the
+    absolute form; a longer budget moves the drops, so it is another training (a new work directory), while an
+    absolute schedule keeps its work directory and continues."""
+    cfg = smoke_config()
+    fraction = _with_schedule(cfg, {"name": "step", "every_fraction": 0.35, "gamma": 0.5625}, 4000)
+    absolute = _with_schedule(cfg, {"name": "step", "every": 1400, "gamma": 0.5625}, 4000)
+    spec_f, spec_a = model_spec(fraction, "rae"), model_spec(absolute, "rae")
+    assert spec_f.optimizer["schedule"] == {"name": "step", "every": 1400, "gamma": 0.5625}
+    assert spec_f.settings() == spec_a.settings()
+    assert work_dir_for(tmp_path, fraction, spec_f) == work_dir_for(tmp_path, absolute, spec_a)
+
+    longer_f = _with_schedule(cfg, {"name": "step", "every_fraction": 0.35, "gamma": 0.5625}, 8000)
+    longer_a = _with_schedule(cfg, {"name": "step", "every": 1400, "gamma": 0.5625}, 8000)
+    assert model_spec(longer_f, "rae").optimizer["schedule"]["every"] == 2800
+    assert work_dir_for(tmp_path, longer_f, model_spec(longer_f, "rae")) != work_dir_for(tmp_path, fraction, spec_f)
+    assert work_dir_for(tmp_path, longer_a, model_spec(longer_a, "rae")) == work_dir_for(tmp_path, absolute, spec_a)
+    # A cosine without total_steps decays over the budget in the same way.
+    cosine = _with_schedule(cfg, {"name": "cosine", "warmup_steps": 10}, 300)
+    longer_cosine = _with_schedule(cfg, {"name": "cosine", "warmup_steps": 10}, 600)
+    assert model_spec(cosine, "rae").optimizer["schedule"]["total_steps"] == 300
+    assert work_dir_for(tmp_path, cosine, model_spec(cosine, "rae")) != \
+        work_dir_for(tmp_path, longer_cosine, model_spec(longer_cosine, "rae"))
+    # A tiny budget still drops at most once per step.
+    assert model_spec(_with_schedule(cfg, {"name": "step", "every_fraction": 0.01}, 10), "rae") \
+        .optimizer["schedule"]["every"] == 1
+
+
+def test_an_ablation_with_its_own_budget_resolves_the_fraction_against_it() -> None:
+    cfg = _with_schedule(smoke_config(), {"name": "step", "every_fraction": 0.5, "gamma": 0.5}, 100)
+    cfg["training"]["ablations"] = [{"id": "abl", "model": "rae", "budget": {"max_steps": 300},
+                                     "variants": [{"id": "a"}]},
+                                    {"id": "same", "model": "rae", "variants": [{"id": "b"}]}]
+    assert model_spec(cfg, "rae").optimizer["schedule"]["every"] == 50
+    assert model_spec(cfg, "abl_a").optimizer["schedule"]["every"] == 150
+    assert model_spec(cfg, "same_b").optimizer["schedule"]["every"] == 50
+
+
+@pytest.mark.parametrize("schedule, message", [
+    ({"name": "step", "gamma": 0.5}, r"schedule' = .* needs exactly one of every, every_fraction; given: none"),
+    ({"name": "step", "every": 10, "every_fraction": 0.5}, "given: every, every_fraction"),
+    ({"name": "step", "every_fraction": 1.5}, "every_fraction"),
+    ({"name": "step", "every_fraction": 0.0}, "every_fraction"),
+    ({"name": "step", "every": 0}, "every"),
+])
+def test_a_step_schedule_needs_exactly_one_valid_interval(tmp_path: Path, schedule: dict, message: str) -> None:
+    from scenegen.config import ConfigError
+
+    cfg = _with_schedule(smoke_config(), schedule, 100)
+    path = tmp_path / "bad.yaml"
+    path.write_text(json.dumps(cfg))
+    with pytest.raises(ConfigError, match=message):
+        load_config(path)
+
+
+def test_the_trainer_names_a_step_schedule_without_an_interval() -> None:
+    from denoisers.training.schedules import lr_factor
+
+    with pytest.raises(ValueError, match="needs every"):
+        lr_factor({"name": "step", "every_fraction": 0.5}, 3)
+    with pytest.raises(ValueError, match="every >= 1"):
+        lr_factor({"name": "step", "every": 0}, 3)
+
+
 def test_the_training_thread_count_is_part_of_every_models_settings(tmp_path: Path) -> None:
     """The weights depend on torch's thread count, so training.threads is a setting: every model (ablation
     variants included) carries it, and changing it changes the digests, the work directory and retrains."""

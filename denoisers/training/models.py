@@ -67,6 +67,24 @@ def _base_spec(cfg: dict, entry: Mapping[str, Any]) -> ModelSpec:
         threads=int((cfg.get("training") or {}).get("threads") or 1))
 
 
+def resolve_schedule(optimizer: Mapping[str, Any], budget: Mapping[str, Any]) -> dict[str, Any]:
+    """``optimizer`` with its schedule in steps: a step schedule's ``every_fraction`` (of ``budget.max_steps``)
+    becomes ``every`` = round(fraction x max_steps) (at least 1), a cosine without ``total_steps`` gets
+    max_steps. Specs, digests and the trainer see only the absolute form, so ``every_fraction: 0.35`` at 4000
+    steps is the same model as ``every: 1400``, and raising the budget moves the drops with it: a new schedule,
+    so a new work directory and a training from scratch, not a continued one that would fail its checkpoint's
+    fingerprint."""
+    resolved = copy.deepcopy(dict(optimizer))
+    schedule = dict(resolved.get("schedule") or {})
+    max_steps = int(budget["max_steps"])
+    if schedule.get("name") == "step" and "every_fraction" in schedule and "every" not in schedule:
+        schedule["every"] = max(1, round(float(schedule.pop("every_fraction")) * max_steps))
+    elif schedule.get("name") == "cosine" and schedule.get("total_steps") is None:
+        schedule["total_steps"] = max_steps
+    resolved["schedule"] = schedule
+    return resolved
+
+
 def model_specs(cfg: dict) -> list[ModelSpec]:
     """Every model the config trains: ``training.models`` in order, then every ablation variant.
 
@@ -88,8 +106,10 @@ _SPECS_CACHE_SIZE = 16
 
 def _build_model_specs(cfg: dict) -> list[ModelSpec]:
     training = cfg.get("training") or {}
+    # Bases keep the configured schedule, so an ablation with its own budget resolves every_fraction against it.
     bases = {entry["id"]: _base_spec(cfg, entry) for entry in training.get("models", [])}
-    specs = list(bases.values())
+    specs = [ModelSpec(**{**base.__dict__, "optimizer": resolve_schedule(base.optimizer, base.budget)})
+             for base in bases.values()]
     for ablation in training.get("ablations", []):
         base = bases.get(ablation["model"])
         if base is None:
@@ -102,7 +122,7 @@ def _build_model_specs(cfg: dict) -> list[ModelSpec]:
                 net={**base.net, **copy.deepcopy(variant.get("net") or {})},
                 loss={**base.loss, **copy.deepcopy(variant.get("loss") or {})},
                 data=_schema_defaults("training_data", {**base.data, **(variant.get("data") or {})}),
-                optimizer=copy.deepcopy(base.optimizer), budget=copy.deepcopy(budget),
+                optimizer=resolve_schedule(base.optimizer, budget), budget=copy.deepcopy(budget),
                 ablation=ablation["id"], variant=variant["id"], compute=copy.deepcopy(base.compute),
                 threads=base.threads))
     return specs

@@ -17,7 +17,8 @@ def lr_factor(schedule: Mapping[str, Any], step: int) -> float:
     * ``{"name": "cosine", "warmup_steps": W, "total_steps": S, "min_factor": m}`` -- linear warm-up,
       then cosine decay from 1 to m at step S (m afterwards); the trainer sets S to its step budget when the
       schedule leaves it out.
-    * ``{"name": "step", "every": n, "gamma": g}`` -- g^(step // n).
+    * ``{"name": "step", "every": n, "gamma": g}`` -- g^(step // n). (A config may give ``every_fraction`` of
+      the step budget instead; denoisers.training.models resolves it to ``every`` before the trainer sees it.)
     """
     name = schedule.get("name", "constant")
     if name == "constant":
@@ -35,5 +36,11 @@ def lr_factor(schedule: Mapping[str, Any], step: int) -> float:
         progress = min(1.0, (step - warmup) / max(1, total - warmup))
         return minimum + (1.0 - minimum) * 0.5 * (1.0 + math.cos(math.pi * progress))
     if name == "step":
-        return float(schedule.get("gamma", 0.1)) ** (step // int(schedule["every"]))
+        if "every" not in schedule:
+            raise ValueError(f"a step schedule needs every (steps; the config may give every_fraction of "
+                             f"budget.max_steps instead), got {dict(schedule)}")
+        every = int(schedule["every"])
+        if every < 1:
+            raise ValueError(f"a step schedule needs every >= 1, got {dict(schedule)}")
+        return float(schedule.get("gamma", 0.1)) ** (step // every)
     raise ValueError(f"unknown learning-rate schedule {name!r}; known: constant, ramp_inv_sqrt, cosine, step")
