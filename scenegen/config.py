@@ -182,8 +182,9 @@ def _describe_error(error: jsonschema.ValidationError) -> list[str]:
     if kind == "pattern":
         return [f"config key '{key}' = {value!r} does not match the allowed pattern {error.validator_value}"]
     if kind == "oneOf" and all(set(option) == {"required"} for option in error.validator_value):
-        names = [" + ".join(option["required"]) for option in error.validator_value]
-        given = [name for name in names if all(part in value for part in name.split(" + "))]
+        options = [option["required"] for option in error.validator_value]
+        names = [" + ".join(keys) for keys in options]
+        given = [name for name, keys in zip(names, options) if all(k in value for k in keys)]
         return [f"config key '{key}' = {value!r} needs exactly one of {', '.join(names)}; "
                 f"given: {', '.join(given) or 'none'}"]
     if kind == "uniqueItems":
