@@ -703,7 +703,24 @@ def test_slurm_profile_sets_resources_for_every_rule() -> None:
 
 def test_local_profile_runs_on_two_cores() -> None:
     profile = yaml.safe_load((REPO_ROOT / "workflow/profiles/local/config.yaml").read_text())
-    assert profile["cores"] == 2 and profile["keep-going"] is False and profile["rerun-incomplete"] is True
+    assert profile["cores"] == 2 and profile["keep-going"] is True and profile["rerun-incomplete"] is True
+
+
+def test_local_profile_finishes_independent_jobs_after_a_failure_and_exits_nonzero(tmp_path: Path) -> None:
+    # A toy workflow: `broken` fails at once, `slow` (independent of it) starts beside it and ends later,
+    # `downstream` needs both. The long run must keep `slow`'s output and must not build `downstream`.
+    (tmp_path / "Snakefile").write_text(
+        'rule all:\n    input: "downstream.txt"\n'
+        'rule broken:\n    output: "broken.txt"\n    shell: "exit 3"\n'
+        'rule slow:\n    output: "slow.txt"\n    shell: "sleep 2 && echo ok > {output}"\n'
+        'rule after_slow:\n    input: "slow.txt"\n    output: "after_slow.txt"\n    shell: "cp {input} {output}"\n'
+        'rule downstream:\n    input: "broken.txt", "after_slow.txt"\n    output: "downstream.txt"\n'
+        '    shell: "cat {input} > {output}"\n'
+    )
+    result = run_snakemake("--profile", str(REPO_ROOT / "workflow/profiles/local"), cwd=tmp_path, check=False)
+    assert result.returncode != 0, result.stderr
+    assert (tmp_path / "after_slow.txt").read_text() == "ok\n"
+    assert not (tmp_path / "broken.txt").exists() and not (tmp_path / "downstream.txt").exists()
 
 
 def test_conda_env_mirrors_the_project_dependencies() -> None:
