@@ -99,12 +99,13 @@ def adaptive_accounting(denoised_path: Path, frames: Sequence[int]) -> dict[str,
     """Realised spp per frame of an adaptive row's clip (None for other rows), recomputed from its
     sample_maps.npz. EvaluationError naming the row, scene and frame when a frame's sample map is
     missing or its mean exceeds the row's budget (denoisers.adaptive.budget_problems, rounding included)."""
-    from denoisers.adaptive import SAMPLE_MAPS_FILE, budget_problems
-
     path = Path(denoised_path) / TIMING_FILE
     timing = json.loads(path.read_text()) if path.is_file() else {}
     if not timing.get("adaptive"):
         return None
+    # Imported here: denoisers.adaptive imports torch (~2 s per process), which no other clip's scoring needs.
+    from denoisers.adaptive import SAMPLE_MAPS_FILE, budget_problems
+
     where = f"row {timing.get('method_id')!r}, scene {timing.get('scene')}"
     maps_path = Path(denoised_path) / SAMPLE_MAPS_FILE
     if not maps_path.is_file():
