@@ -4,7 +4,8 @@
 # config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
 # `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake timing`, `snakemake report`,
 # `snakemake stability` (the temporal-stability scenario clips, their masks and the failure atlas), `snakemake volumes`
-# (the volumetric clips: scenes, renders, the volume rows denoised and scored).
+# (the volumetric clips: scenes, renders, the volume rows denoised and scored), `snakemake verify` (stored models
+# retrained and compared, config store.verify).
 # Every output goes below the config's output_dir (default results/; config/smoke.yaml: results/smoke/);
 # `python -m denoisers clean --config <file>` removes one experiment's outputs.
 
@@ -44,6 +45,7 @@ localrules:
     report,
     stability,
     volumes,
+    verify,
 
 
 rule scenes:
@@ -100,13 +102,22 @@ rule volumes:
         volume_robustness_dirs,
 
 
-# Everything implemented so far; the default target.
+# Retrain the models of store.verify.models and compare them with the stored runs (<out>/verify/{model}.json).
+rule verify:
+    input:
+        verify_outputs(),
+
+
+# Everything implemented so far; the default target. The training scenes (and volumetric training clips) are
+# rendered only when something needs them: a model that is not installed from the store, or tuning.
 rule all:
     default_target: True
     input:
-        rules.scenes.input,
-        rules.renders.input,
+        default_scene_dirs(),
+        default_chunk_dirs(),
         rules.train.input,
         rules.build_report.output,
         rules.stability.input,
-        rules.volumes.input,
+        default_volume_outputs(),
+        volume_metrics_files,
+        volume_robustness_dirs,

@@ -12,6 +12,7 @@
   score-scenario  failure metrics of a denoised stability clip     -> <out>/stability/scores/{method}/{scene}/spp{spp}.csv + .json
   atlas       the failure atlas of the stability suite          -> <out>/stability/ATLAS.md, tables/, figures/
   clean       remove an experiment's outputs, or only its stale training work directories (--stale)
+  store       the model store: list, publish, checkpoint, verify, check (denoisers.store.cli)
   methods     list the registered methods
 """
 from __future__ import annotations
@@ -68,6 +69,10 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--out", type=Path, required=True, help="model directory results/models/{model} (atomic)")
     train.add_argument("--threads", type=int, default=None,
                        help="torch threads; default and only accepted value: training.threads (the weights depend on it)")
+
+    from denoisers.store.cli import add_parser as add_store_parser
+
+    add_store_parser(sub)
 
     tune = sub.add_parser("tune", help="grid-search a baseline's parameters on the training scenes (tuning.methods)")
     tune.add_argument("--config", type=Path, required=True, help="resolved config YAML")
@@ -146,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     from denoisers.evaluate import EvaluationError
     from denoisers.experiment import SettingsMismatchError
     from denoisers.errors import CheckpointError, MissingInputError, NonFiniteLossError
+    from denoisers.store import StoreError
     from denoisers.tuning import TuningError
     from scenegen.config import ConfigError
     from scenegen.dataset import DatasetError
@@ -153,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(args)
     except (MissingInputError, EvaluationError, DatasetError, ConfigError, CheckpointError,
-            NonFiniteLossError, TuningError, SettingsMismatchError, CleanError) as error:
+            NonFiniteLossError, TuningError, SettingsMismatchError, CleanError, StoreError) as error:
         # Expected failures get one clear line (the workflow prints the job's log), not a traceback.
         log.error("%s", error)
         return 1
@@ -188,6 +194,10 @@ def _run(args: argparse.Namespace) -> int:
         print(f"{verb} {len(removed)} entries, {sum(size for _, size in removed) / 1024**2:.1f} MB")
         return 0
 
+    if args.command == "store":
+        from denoisers.store.cli import run as run_store
+
+        return run_store(args, cfg)
     if args.command == "train":
         from denoisers.training.job import train_model
 

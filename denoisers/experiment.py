@@ -69,7 +69,7 @@ def robustness_digest(cfg: dict, spec: RowSpec) -> str:
 
 def train_digest(cfg: dict, model_id: str) -> str:
     """Rule train_denoiser: the model's settings and what its training data depend on."""
-    from denoisers.training.job import data_settings
+    from denoisers.training.digests import data_settings
 
     spec = model_spec(cfg, model_id)
     return settings_digest(spec, data_settings(cfg, spec))
@@ -93,8 +93,9 @@ def training_speed_digest(cfg: dict) -> str:
 
 def report_digest(cfg: dict) -> str:
     """Rule build_report: the report states the whole configuration (but the ``stability`` section, whose
-    scenario clips the report does not read)."""
-    return config_digest({key: value for key, value in cfg.items() if key != "stability"})
+    scenario clips the report does not read, and ``store``, which says where models come from, not what they are:
+    a model's own digests cover that)."""
+    return config_digest({key: value for key, value in cfg.items() if key not in ("stability", "store")})
 
 
 # ------------------------------------------------------------------------------------ lineage digests

@@ -45,6 +45,25 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+#: CPU flags recorded with a trained model: the instruction sets oneDNN chooses its kernels by (two machines with
+#: the same flags and threads give bit-identical training steps; others differ in the last bits).
+ISA_FLAGS = frozenset({"sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl", "avx512_vnni",
+                       "avx512_bf16", "amx_bf16", "amx_tile", "asimd", "sve"})
+
+
+def cpu_isa() -> list[str]:
+    """The :data:`ISA_FLAGS` this CPU has (sorted; empty where /proc/cpuinfo is missing)."""
+    flags: set[str] = set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    except OSError:
+        pass
+    return sorted(flags & ISA_FLAGS)
+
+
 def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str | None]:
     versions = {}
     for name in names:
@@ -58,7 +77,7 @@ def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str | None]
 def provenance(threads: dict[str, int] | None = None) -> dict[str, Any]:
     """Everything above as one JSON-serialisable dict; ``threads`` names the thread settings in force."""
     return {**git_state(), "packages": package_versions(), "python": platform.python_version(),
-            "cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "threads": dict(threads or {}),
+            "cpu_model": cpu_model(), "cpu_isa": cpu_isa(), "cpu_count": os.cpu_count(), "threads": dict(threads or {}),
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
 
 

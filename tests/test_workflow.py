@@ -32,8 +32,8 @@ SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
              "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods", "time_training",
              "derive_masks", "denoise_scenario", "score_scenario", "build_atlas", "denoise_volume", "evaluate_volume",
-             "robustness_volume")
-STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report", "stability", "volumes")
+             "robustness_volume", "verify_stored_model")
+STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report", "stability", "volumes", "verify")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
 JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
@@ -687,11 +687,12 @@ def test_slurm_profile_sets_resources_for_every_rule() -> None:
     assert set(profile["set-resources"]) == rule_names() == set(JOB_RULES)
     config_threads = config_threaded_rules()
     assert config_threads == {"denoise_clip", "denoise_scenario", "denoise_volume", "robustness_clip",
-                              "robustness_volume", "train_denoiser", "tune_method"}
+                              "robustness_volume", "train_denoiser", "tune_method", "verify_stored_model"}
     for rule, resources in profile["set-resources"].items():
         assert "mem_mb" in resources, rule
-        # train_denoiser's runtime comes from the model's budget (the rule), every other rule's from here.
-        assert ("runtime" in resources) == (rule != "train_denoiser"), rule
+        # train_denoiser's (and verify_stored_model's) runtime comes from the model's budget (the rule), every other
+        # rule's from here.
+        assert ("runtime" in resources) == (rule not in ("train_denoiser", "verify_stored_model")), rule
         # Rules threaded by a config key get as many CPUs as their threads (the executor's fallback);
         # a fixed cpus_per_task would oversubscribe them when a config raises the key.
         assert ("cpus_per_task" in resources) == (rule not in config_threads), rule

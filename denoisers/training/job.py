@@ -24,6 +24,7 @@ directory holds the base's files with its own summary (``same_training_as`` name
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import shutil
@@ -33,27 +34,14 @@ from typing import Any
 from scenegen.atomic import atomic_directory, write_text_atomic
 
 from denoisers.provenance import provenance
-from scenegen.digests import render_digest
+from denoisers.training.digests import data_settings, model_digest as _model_digest  # noqa: F401 (re-exported)
 from denoisers.training.models import ModelSpec, model_spec, same_training_as, settings_digest, training_split
 from denoisers.training.tasks import (clip_buffers, reference_buffers, sequence_config,  # noqa: F401 (re-exported)
                                       task_sequence_config)
-from scenegen.config import short_digest
 
 log = logging.getLogger(__name__)
 
 WORK_DIR_NAME = ".work"
-
-
-def data_settings(cfg: dict, spec: ModelSpec | None = None) -> dict[str, Any]:
-    """Config values the rendered training data of model ``spec`` depend on (changing them invalidates
-    checkpoints): the settings digests of its training and validation scenes' renders, not the whole
-    scenes/render sections, so that adding a test scene (scenes.n_test) or an external scene retrains nothing."""
-    split = training_split(cfg, spec)
-    renders = {scene: [render_digest(cfg, scene, kind) for kind in ("noisy", "reference")] for scene in sum(split, [])}
-    return {"renders": renders, "split": split, "validation_sequences": cfg["training"]["validation_sequences"],
-            "validate_every": cfg["training"]["validate_every"],
-            # Validation image metrics skip these first frames of each sequence (see trainer_config).
-            "validation_warmup_frames": cfg["evaluation"]["warmup_frames"]}
 
 
 def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
@@ -83,11 +71,6 @@ def trainer_config(cfg: dict, spec: ModelSpec, threads: int, progress: bool = Tr
                          checkpoint_seconds=300.0, best_metric="loss", validation_warmup_frames=warmup,
                          progress=progress, threads=threads, precision=compute["precision"],
                          channels_last=compute["channels_last"], ema_decay=optimizer.get("ema_decay"))
-
-
-def _model_digest(cfg: dict, spec: ModelSpec) -> str:
-    # = denoisers.experiment.Lineage(cfg).model(spec.id) (that module imports this one).
-    return short_digest(settings_digest(spec, data_settings(cfg, spec)))
 
 
 #: Files of a published model directory that do not depend on the model's id.
@@ -123,8 +106,13 @@ def publish_same_training(cfg: dict, model_id: str, source_dir: Path, out_dir: P
 
 
 def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, threads: int | None = None,
-                progress: bool = True) -> dict[str, Any]:
+                progress: bool = True, stop_at_step: int | None = None) -> dict[str, Any]:
     """Train model ``model_id`` of ``cfg`` on ``render_root/<scene>`` clips; write ``out_dir``; return the summary.
+
+    With the model store in use (config ``store``; denoisers.store) a model whose key is stored is installed
+    instead (no render is read), unless ``store.force_training``; a stored part-way checkpoint of the run is
+    continued. ``stop_at_step`` ends training early with every setting (schedule included) unchanged: the first
+    steps of the configured run (``store verify``); it never installs from the store.
 
     The step runs on ``training.threads`` torch threads, which are part of the model's settings (the weights
     depend on them); ``threads``, if given, must agree (ValueError otherwise)."""
@@ -143,6 +131,14 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
     source = same_training_as(cfg, model_id)
     if source is not None:
         return publish_same_training(cfg, model_id, Path(out_dir).parent / source, Path(out_dir))
+    from denoisers.store import ModelStore, model_key, store_settings
+
+    store_use = store_settings(cfg)
+    store = ModelStore.of(cfg) if store_use["use"] else None
+    if store is not None and not store_use["force_training"] and stop_at_step is None:
+        entry = store.model_entry(cfg, model_id)
+        if entry is not None:
+            return store.install(entry, Path(out_dir))
     builder = task_builder(spec.method)
     task = builder.build(spec)
     train_scenes, validation_scenes = training_split(cfg, spec)
@@ -168,7 +164,13 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
     validation = fixed_batches(validation_clips, sequences, cfg["training"]["validation_sequences"], batch_size=1,
                                seed=int(cfg["seed"]))
     config = trainer_config(cfg, spec, threads, progress)
+    if stop_at_step is not None:
+        config = dataclasses.replace(config, max_steps=min(int(stop_at_step), config.max_steps), max_seconds=None)
     work_dir = work_dir_for(Path(out_dir).parent, cfg, spec)
+    if store is not None:
+        from denoisers.training.precision import resolve_compute
+
+        store.fetch_checkpoint(cfg, model_id, work_dir, resolve_compute(spec.compute).fingerprint())
     checkpoint = work_dir / "checkpoint.pt"
     if checkpoint.exists() and int(load_checkpoint(checkpoint)["step"]) > spec.budget["max_steps"]:
         log.info("%s holds more steps than budget.max_steps = %d: training from scratch", checkpoint,
@@ -187,13 +189,14 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
         rows.append({"sequence": index, "description": batch.describe(), **metrics})
     import pandas as pd
 
-    stopped_by = "max_steps" if result.steps >= spec.budget["max_steps"] else "max_seconds"
+    stopped_by = ("max_steps" if result.steps >= spec.budget["max_steps"] else
+                  "stop_at_step" if stop_at_step is not None and result.steps >= stop_at_step else "max_seconds")
     summary = json.loads((work_dir / "summary.json").read_text())
     summary.update({"model_id": model_id, "method": spec.method, "ablation": spec.ablation, "variant": spec.variant,
                     "train_scenes": train_scenes, "validation_scenes": validation_scenes, "stopped_by": stopped_by,
                     "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
                     "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1),
-                    "settings_digest": _model_digest(cfg, spec),
+                    "settings_digest": _model_digest(cfg, spec), "store_key": model_key(cfg, model_id),
                     "provenance": provenance({"training": int(threads)})})
     if hasattr(task, "config") and hasattr(task.config, "width"):
         from denoisers.nets import build_net, count_parameters

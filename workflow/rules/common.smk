@@ -34,6 +34,8 @@ from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
 from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, same_training_as,
                                        training_problems, training_runtime_minutes, training_split)
+from denoisers.store import ModelStore, model_key
+from denoisers.store.workflow import stored_model, verify_models, verify_problems
 
 
 # ---------------------------------------------------------------------------------------------
@@ -51,7 +53,7 @@ except Exception as err:  # WorkflowError, or AttributeError when a section is n
 config_errors = config_problems(config) or ([str(schema_error)] if schema_error else [])
 if not config_errors:
     config_errors = (evaluation_problems(config) + training_problems(config) + tuning_problems(config)
-                     + volume_problems(config))
+                     + volume_problems(config) + verify_problems(config))
 if config_errors:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
 
@@ -155,6 +157,14 @@ def volume_outputs(wildcards=None) -> list[str]:
             for kind in ("noisy", "reference")]
 
 
+def default_volume_outputs(wildcards=None) -> list[str]:
+    """The volumetric renders of the default target: the vol_train_* clips only when a model trains on them."""
+    training = {scene for spec in model_specs(config) if model_source(spec.id) == "train"
+                for scene in sum(training_split(config, spec), [])}
+    return [path for path in volume_outputs() if not path.split("/renders/")[1].startswith("vol_train_")
+            or path.split("/renders/")[1].split("/")[0] in training]
+
+
 def masks_digest(wildcards) -> str:
     """Param: digest of the settings a scenario's masks depend on (its renders'; rerun trigger)."""
     return scene_masks_digest(config, wildcards.scene)
@@ -183,6 +193,24 @@ def check_model_target(wildcards) -> list:
                                 f"no model {wildcards.model} in training.models or training.ablations; "
                                 f"models: {_listing(ids)}")
     return []
+
+
+def check_verify_target(wildcards) -> list:
+    """verify_stored_model: the model must be listed in store.verify.models and stored under this config's key."""
+    if wildcards.model not in verify_models(config):
+        raise impossible_target("verify_stored_model", "verify/{model}.json", wildcards,
+                                f"model {wildcards.model!r} is not in store.verify.models "
+                                f"({_listing(verify_models(config))})")
+    if ModelStore.of(config).model_entry(config, wildcards.model) is None:
+        raise impossible_target("verify_stored_model", "verify/{model}.json", wildcards,
+                                f"model {wildcards.model!r} is not in the store {config['store']['path']} under this "
+                                "config's key")
+    return []
+
+
+def verify_outputs(wildcards=None) -> list[str]:
+    """Target `verify`: every model of store.verify.models retrained and compared with its stored run."""
+    return [results_path(f"verify/{model}.json") for model in verify_models(config)]
 
 
 def check_tuning_target(wildcards) -> list:
@@ -357,18 +385,52 @@ def model_dirs(wildcards=None) -> list[str]:
     return [model_dir(OUT, spec.id).as_posix() for spec in model_specs(config)]
 
 
-def training_chunk_dirs(kind: str):
+def training_chunk_dirs(kind: str, for_training: bool = False):
     """Input function: noisy or reference chunks of the training and validation scenes (of the job's model when it
     has one: a model with data.scenes volumes trains on the vol_train_* clips; tuning: the surface scenes)."""
 
     def chunk_dirs_of_training(wildcards) -> list[str]:
         scenes = TRAIN_SCENES + VALIDATION_SCENES
         if "model" in wildcards.keys():
+            if not for_training and model_source(wildcards.model) != "train":
+                return []  # installed from the store, or the weights of its same-training base
             scenes = sum(training_split(config, model_spec(config, wildcards.model)), [])
         return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for scene in scenes
                 for chunk in range(chunk_count(config, scene))]
 
     return chunk_dirs_of_training
+
+
+def model_source(model_id: str) -> str:
+    """Where train_denoiser gets model ``model_id``: 'store' (installed; denoisers.store), 'same_training' (the
+    weights of its base model) or 'train'."""
+    if same_training_as(config, model_id):
+        return "same_training"
+    return "store" if stored_model(config, model_id) is not None else "train"
+
+
+def model_store_source(wildcards) -> str:
+    """Param of train_denoiser: the model's source and store key, so that a code change to the network or the step
+    (a new key), or store.force_training, reruns the job."""
+    return f"{model_source(wildcards.model)}:{model_key(config, wildcards.model)[:16]}"
+
+
+def needs_training_renders() -> bool:
+    """Whether the DAG's default target needs the training scenes' renders: a model that trains, or tuning."""
+    return bool(tuning_methods()) or any(model_source(spec.id) == "train" for spec in model_specs(config))
+
+
+def default_scene_dirs() -> list[str]:
+    """Scene directories of the default target: every scene, but the training scenes only when they are needed."""
+    skip = set() if needs_training_renders() else set(TRAIN_SCENES + VALIDATION_SCENES)
+    return [results_path(f"scenes/{scene}") for scene in SCENES if scene not in skip]
+
+
+def default_chunk_dirs() -> list[str]:
+    """Render chunks of the default target (as default_scene_dirs)."""
+    skip = set() if needs_training_renders() else set(TRAIN_SCENES + VALIDATION_SCENES)
+    return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for kind in ("noisy", "reference")
+            for scene in SCENES if scene not in skip for chunk in range(chunk_count(config, scene))]
 
 
 def train_digest(wildcards) -> str:

@@ -3,6 +3,10 @@
 # {model} is an id of training.models or an ablation variant {ablation}_{variant}. The trainer keeps
 # a resumable checkpoint in <output_dir>/models/.work/ (not an output): a killed job continues from it.
 # An ablation variant identical to its base model (same settings and budget) reuses the base's weights.
+# A model in the model store (config store; denoisers.store) under its key is installed instead of trained: its
+# training renders are then not inputs (model_source); store.force_training trains anyway. A stored part-way
+# checkpoint of the run is continued.
+#   verify_stored_model: <output_dir>/verify/{model}.json, a stored model retrained (store.verify) and compared.
 
 
 rule train_denoiser:
@@ -16,6 +20,7 @@ rule train_denoiser:
     params:
         config_file=resolved_config_file,
         config_digest=train_digest,
+        store=model_store_source,
         render_root=render_root,
     log:
         results_path("logs/train/{model}.log"),
@@ -35,3 +40,29 @@ rule train_denoiser:
     shell:
         "python -m denoisers train --config {params.config_file} --model-id {wildcards.model}"
         " --render-root {params.render_root} --out {output.model_dir} > {log} 2>&1"
+
+
+rule verify_stored_model:
+    input:
+        valid=check_verify_target,
+        noisy=training_chunk_dirs("noisy", for_training=True),
+        reference=training_chunk_dirs("reference", for_training=True),
+    output:
+        result=results_path("verify/{model}.json"),
+    params:
+        config_file=resolved_config_file,
+        store=model_store_source,
+        render_root=render_root,
+    log:
+        results_path("logs/verify/{model}.log"),
+    benchmark:
+        results_path("benchmarks/verify/{model}.tsv")
+    conda:
+        "../envs/harness.yaml"
+    threads: config["training"]["threads"]
+    resources:
+        mem_mb=8000,
+        runtime=lambda wildcards: training_runtime_minutes(config, wildcards.model),
+    shell:
+        "python -m denoisers store verify --config {params.config_file} --model-id {wildcards.model}"
+        " --render-root {params.render_root} --out {output.result} > {log} 2>&1"

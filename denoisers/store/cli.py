@@ -1,0 +1,113 @@
+"""``python -m denoisers store <action>``: list, publish, checkpoint, verify and check the model store.
+
+  list        every stored model and checkpoint, and whether this config's key finds it
+  publish     copy finished models from <out>/models/ into the store (refuses stale models and key collisions)
+  checkpoint  copy a training run's resumable state (<out>/models/.work/<id>-*/) into the store, part-way
+  verify      retrain a stored model and compare it with the stored run (rule verify_stored_model)
+  check       every entry's files against their recorded digests, and the store's size against its budget
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger("denoisers.store")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    store = sub.add_parser("store", help="the model store: list, publish, checkpoint, verify, check",
+                           description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    store.add_argument("action", choices=["list", "publish", "checkpoint", "verify", "check"])
+    store.add_argument("--config", type=Path, required=True, help="config YAML (its store.path is the store)")
+    store.add_argument("--model-id", nargs="*", default=None,
+                       help="models (default for publish / checkpoint: every configured model found in the results)")
+    store.add_argument("--results", type=Path, default=None, help="the experiment folder (default: output_dir)")
+    store.add_argument("--render-root", type=Path, default=None, help="verify: results/renders")
+    store.add_argument("--out", type=Path, default=None, help="verify: the comparison record (JSON)")
+    store.add_argument("--steps", type=int, default=None,
+                       help="verify: retrain only the first steps (default: store.verify.steps, else the whole budget)")
+
+
+def run(args: argparse.Namespace, cfg: dict) -> int:
+    from denoisers.store.entries import ModelStore, StoreError
+    from denoisers.store.keys import short
+    from denoisers.training.job import work_dir_for
+    from denoisers.training.models import model_specs, same_training_as
+    from scenegen.config import output_root
+
+    store = ModelStore.of(cfg)
+    results = args.results or output_root(cfg)
+    configured = [spec.id for spec in model_specs(cfg)]
+    models = args.model_id or configured
+    if args.action == "list":
+        for kind in ("models", "checkpoints"):
+            for entry in store.entries(kind):
+                record = entry.summary()
+                current = (store.model_entry if kind == "models" else store.checkpoint_entry)(cfg, entry.model_id) \
+                    if entry.model_id in configured else None
+                state = "this config" if current is not None and current.path == entry.path else "other key"
+                print(f"{kind[:-1]:10s} {entry.model_id:24s} {short(entry.key)}  step {record.get('steps', record.get('step'))}"
+                      f"  {state}")
+        print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")
+        return 0
+    if args.action == "publish":
+        published = 0
+        for model_id in models:
+            model_dir = Path(results) / "models" / model_id
+            if same_training_as(cfg, model_id) or not (model_dir / "summary.json").exists():
+                if args.model_id:
+                    raise StoreError(f"{model_dir}: no finished model to publish" if not same_training_as(cfg, model_id)
+                                     else f"model {model_id!r} reuses {same_training_as(cfg, model_id)!r}'s weights")
+                continue
+            if args.model_id is None and "installed_from_store" in (model_dir / "summary.json").read_text():
+                continue
+            entry, what = store.publish_model(cfg, model_dir)
+            published += what == "published"
+            print(f"{what}: {model_id} -> {entry.path}")
+        print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")
+        return 0
+    if args.action == "checkpoint":
+        from denoisers.training.models import model_spec
+
+        for model_id in models:
+            work_dir = work_dir_for(Path(results) / "models", cfg, model_spec(cfg, model_id))
+            if not (work_dir / "checkpoint.pt").exists():
+                if args.model_id:
+                    raise StoreError(f"{work_dir}: no training checkpoint of {model_id!r}")
+                continue
+            if (Path(results) / "models" / model_id / "summary.json").exists() and args.model_id is None:
+                continue  # finished: publish the model instead
+            entry = store.publish_checkpoint(cfg, work_dir)
+            print(f"checkpoint: {model_id} step {entry.summary()['step']} -> {entry.path}")
+        return 0
+    if args.action == "verify":
+        from denoisers.store.verify import verify_model
+
+        if not args.model_id or len(args.model_id) != 1 or args.render_root is None or args.out is None:
+            raise StoreError("store verify needs one --model-id, --render-root and --out")
+        steps = args.steps or (cfg.get("store", {}).get("verify") or {}).get("steps")
+        record = verify_model(cfg, args.model_id[0], args.render_root, args.out, steps=steps)
+        log.info("model %s: %s over %d steps: passed (%d values compared, largest relative difference %.3g)",
+                 record["model_id"], record["mode"], record["steps"], record["curves"]["values_compared"],
+                 record["curves"]["largest_relative_difference"])
+        return 0
+    # check
+    problems = []
+    for kind in ("models", "checkpoints"):
+        for entry in store.entries(kind):
+            from denoisers.store.entries import _check_files
+
+            record = entry.summary()
+            files = (record.get("store") or record).get("files", {})
+            try:
+                _check_files(entry.path, files)
+            except StoreError as error:
+                problems.append(str(error))
+    size, budget = store.size_bytes(), store.budget_bytes()
+    if size > budget:
+        problems.append(f"store {store.root}: {size / 1e6:.1f} MB, over its budget of {budget / 1e6:.0f} MB")
+    for problem in problems:
+        log.error("%s", problem)
+    print(f"store {store.root}: {size / 1e6:.1f} MB of {budget / 1e6:.0f} MB; {len(problems)} problems")
+    return 1 if problems else 0
