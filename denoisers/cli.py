@@ -12,6 +12,8 @@
   score-scenario  failure metrics of a denoised stability clip     -> <out>/stability/scores/{method}/{scene}/spp{spp}.csv + .json
   atlas       the failure atlas of the stability suite          -> <out>/stability/ATLAS.md, tables/, figures/
   clean       remove an experiment's outputs, or only its stale training work directories (--stale)
+  publish-run  a finished run's report, tables and figures, with its digests  -> runs/<name>/
+  readme      regenerate the README's and docs' published-run blocks (--check: fail when out of date)
   store       the model store: list, publish, checkpoint, verify, check (denoisers.store.cli)
   methods     list the registered methods
 """
@@ -69,6 +71,14 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--out", type=Path, required=True, help="model directory results/models/{model} (atomic)")
     train.add_argument("--threads", type=int, default=None,
                        help="torch threads; default and only accepted value: training.threads (the weights depend on it)")
+
+    publish = sub.add_parser("publish-run", help="commit-ready copy of a finished run: REPORT.md, tables, linked "
+                                                 "figures and run.json (digests, commit) -> runs/<name>/")
+    publish.add_argument("--config", type=Path, required=True, help="the run's config file (as in the repository)")
+    publish.add_argument("--results", type=Path, default=None, help="the run's folder (default: output_dir)")
+    publish.add_argument("--out", type=Path, required=True, help="runs/<name> (replaced)")
+    readme = sub.add_parser("readme", help="regenerate the published-run blocks of README.md and docs/*.md")
+    readme.add_argument("--check", action="store_true", help="only check; exit 1 when a block is out of date")
 
     from denoisers.store.cli import add_parser as add_store_parser
 
@@ -151,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     from denoisers.evaluate import EvaluationError
     from denoisers.experiment import SettingsMismatchError
     from denoisers.errors import CheckpointError, MissingInputError, NonFiniteLossError
+    from denoisers.report.published import PublishError
     from denoisers.store import StoreError
     from denoisers.tuning import TuningError
     from scenegen.config import ConfigError
@@ -159,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(args)
     except (MissingInputError, EvaluationError, DatasetError, ConfigError, CheckpointError,
-            NonFiniteLossError, TuningError, SettingsMismatchError, CleanError, StoreError) as error:
+            NonFiniteLossError, TuningError, SettingsMismatchError, CleanError, StoreError,
+            PublishError) as error:
         # Expected failures get one clear line (the workflow prints the job's log), not a traceback.
         log.error("%s", error)
         return 1
@@ -181,7 +193,24 @@ def _run(args: argparse.Namespace) -> int:
             print(f"{'':16s} parameters: {params or 'none'}")
         return 0
 
+    if args.command == "readme":
+        from denoisers.provenance import REPO_ROOT
+        from denoisers.report.published import update_blocks
+
+        stale = [f"{path.name}: {run}" for path in [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").glob("*.md"))]
+                 for run in update_blocks(path, REPO_ROOT, check=args.check)]
+        print(("out of date: " if args.check else "regenerated: ") + (", ".join(stale) or "none"))
+        return 1 if args.check and stale else 0
+
     cfg = load_evaluation_config(args.config, build_models=args.command not in TORCH_FREE_COMMANDS)
+    if args.command == "publish-run":
+        from denoisers.report.published import publish_run
+        from scenegen.config import output_root
+
+        record = publish_run(cfg, args.config.as_posix(), args.results or output_root(cfg), args.out)
+        print(f"published {args.out}: {len(record['figures'])} figures ({record['figure_bytes'] / 1e6:.1f} MB), "
+              f"left out: {', '.join(record['figures_left_out']) or 'none'}")
+        return 0
     from denoisers import evaluate
 
     if args.command == "clean":

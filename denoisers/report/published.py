@@ -1,0 +1,155 @@
+"""Published runs: the small outputs of a finished run committed under ``runs/<name>/``, and the README's result
+numbers generated from them.
+
+``publish_run`` copies a finished run's ``REPORT.md``, ``tables/*.csv`` / ``*.md`` (claims and targets included)
+and the figures REPORT.md links (up to :data:`FIGURE_BUDGET_BYTES`; the rest are listed as left out) into the run
+folder, with ``run.json``: the config file, the report's settings digest, every model's store key, the commit the
+run's code came from and the date. ``run_status`` compares those digests with HEAD's, so a reader sees whether
+the published numbers still describe the code at hand.
+
+README blocks between ``<!-- published-run: <run folder> <config> -->`` and ``<!-- /published-run -->`` are
+generated (:func:`readme_block`, ``python -m denoisers readme``); a test regenerates them and fails on any
+difference, so no number there is typed by hand.
+"""
+from __future__ import annotations
+
+import datetime
+import json
+import re
+import shutil
+from pathlib import Path
+from typing import Any
+
+RUN_FILE = "run.json"
+#: Figures of one published run, in all (PNG/SVG that REPORT.md links).
+FIGURE_BUDGET_BYTES = 6_000_000
+BLOCK = re.compile(r"(<!-- published-run: (?P<run>\S+) (?P<config>\S+) -->\n)(?P<body>.*?)(<!-- /published-run -->)",
+                   re.DOTALL)
+_LINK = re.compile(r"\]\((figures/[^)\s]+)\)")
+_CODE_LINE = re.compile(r"Code: `([0-9a-f]{7,40})`")
+
+
+class PublishError(RuntimeError):
+    """A run cannot be published; the message names what is missing."""
+
+
+def _digests(cfg: dict) -> dict[str, Any]:
+    from denoisers.experiment import report_digest
+    from denoisers.store.keys import model_key
+    from denoisers.training.models import model_specs
+
+    return {"report_digest": report_digest(cfg), "model_keys": {s.id: model_key(cfg, s.id) for s in model_specs(cfg)}}
+
+
+def publish_run(cfg: dict, config_file: str, results: Path, out: Path) -> dict[str, Any]:
+    """Copy the finished run in ``results`` to ``out`` (replacing it); return run.json's record."""
+    from denoisers.provenance import git_state
+
+    results, out = Path(results), Path(out)
+    report = results / "REPORT.md"
+    if not report.is_file() or not (results / "tables" / "summary.csv").is_file():
+        raise PublishError(f"{results}: no finished report (REPORT.md and tables/summary.csv); run the workflow first")
+    text = report.read_text()
+    figures, left_out, used = [], [], 0
+    for name in dict.fromkeys(_LINK.findall(text)):
+        path = results / name
+        if not path.is_file():
+            continue
+        size = path.stat().st_size
+        if used + size > FIGURE_BUDGET_BYTES:
+            left_out.append(name)
+            continue
+        figures.append(name)
+        used += size
+    code = _CODE_LINE.search(text)
+    record = {"config": config_file, "results": results.as_posix(), **_digests(cfg),
+              "run_commit": code.group(1) if code else None, "published_at_commit": git_state(),
+              "published": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+              "figures": figures, "figures_left_out": left_out, "figure_bytes": used}
+    staging = out.with_name(f".{out.name}.staging")
+    shutil.rmtree(staging, ignore_errors=True)
+    (staging / "tables").mkdir(parents=True)
+    for table in sorted((results / "tables").iterdir()):
+        if table.suffix in (".csv", ".md"):
+            shutil.copy2(table, staging / "tables" / table.name)
+    shutil.copy2(report, staging / "REPORT.md")
+    for name in figures:
+        (staging / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(results / name, staging / name)
+    (staging / RUN_FILE).write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
+    shutil.rmtree(out, ignore_errors=True)
+    staging.rename(out)
+    return record
+
+
+def run_status(cfg: dict, run_dir: Path) -> list[str]:
+    """How the published run in ``run_dir`` differs from HEAD's settings and code (empty: it describes HEAD)."""
+    record = json.loads((Path(run_dir) / RUN_FILE).read_text())
+    now = _digests(cfg)
+    changes = []
+    if record.get("report_digest") != now["report_digest"]:
+        changes.append("the config's settings digest")
+    stale = sorted(m for m, key in now["model_keys"].items() if record.get("model_keys", {}).get(m) != key)
+    if stale:
+        changes.append(f"the keys (settings or code) of models {', '.join(stale)}")
+    return changes
+
+
+def _fmt(value: float, digits: int = 2) -> str:
+    return "–" if value != value else f"{value:.{digits}f}"
+
+
+def readme_block(repo: Path, run: str, config: str) -> str:
+    """The generated body of a README block for published run folder ``run`` of config file ``config``."""
+    import pandas as pd
+
+    from scenegen.config import load_config
+
+    run_dir = Path(repo) / run
+    if not (run_dir / RUN_FILE).is_file():
+        return (f"No run of `{config}` is published yet (`{run}/` is missing): no result number here is generated "
+                f"from a run of this code.\n")
+    record = json.loads((run_dir / RUN_FILE).read_text())
+    summary = pd.read_csv(run_dir / "tables" / "summary.csv")
+    claims = pd.read_csv(run_dir / "tables" / "claims.csv")
+    changes = run_status(load_config(Path(repo) / config), run_dir)
+    commit = record.get("run_commit") or "unknown"
+    lines = [f"Published run [`{run}/`]({run}/REPORT.md) of `{config}`, code `{commit[:12]}` "
+             f"(published {record['published'][:10]}). "
+             + ("Its settings and model keys equal HEAD's." if not changes else
+                "**It differs from HEAD in " + "; ".join(changes) + "**: rerun and republish it."), ""]
+    psnr = summary[summary["metric"] == "psnr"]
+    spps = sorted(psnr["spp"].unique())
+    n = int(psnr["n_scenes"].max()) if len(psnr) else 0
+    lines += [f"Mean PSNR (dB) over {n} evaluated scenes, with the 95 % interval:", "",
+              "| method | " + " | ".join(f"{s} spp" for s in spps) + " |",
+              "|---|" + "---|" * len(spps)]
+    for method in dict.fromkeys(psnr["method_id"]):
+        cells = []
+        for spp in spps:
+            row = psnr[(psnr["method_id"] == method) & (psnr["spp"] == spp)]
+            cells.append("" if row.empty else f"{_fmt(row['mean'].iloc[0])} [{_fmt(row['ci_low'].iloc[0])}, "
+                                               f"{_fmt(row['ci_high'].iloc[0])}]")
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    counts = claims["verdict"].value_counts()
+    lines += ["", "Claims: " + ", ".join(f"{int(count)} {verdict}" for verdict, count in counts.items())
+              + f" (of {len(claims)}; [claims table]({run}/tables/claims.md)).", ""]
+    return "\n".join(lines)
+
+
+def update_blocks(path: Path, repo: Path, check: bool = False) -> list[str]:
+    """Regenerate every published-run block of Markdown file ``path``; with ``check`` only report the blocks
+    that differ (returns their run folders)."""
+    text = Path(path).read_text()
+    stale: list[str] = []
+
+    def replace(match: re.Match) -> str:
+        body = readme_block(repo, match["run"], match["config"])
+        if body != match["body"]:
+            stale.append(match["run"])
+        return match.group(1) + body + match.group(5)
+
+    new = BLOCK.sub(replace, text)
+    if stale and not check:
+        Path(path).write_text(new)
+    return stale
