@@ -251,6 +251,17 @@ def _run(args: argparse.Namespace) -> int:
 
         from denoisers.experiment import DIGEST_KEY, Lineage
 
+        from denoisers.store import ModelStore, store_settings
+        from denoisers.store.tuning import install_tuning, tuning_entry
+
+        settings = store_settings(cfg)
+        stored = tuning_entry(ModelStore.of(cfg), cfg, args.method) \
+            if settings["use"] and not settings["force_training"] else None
+        if stored is not None:
+            result = install_tuning(stored, args.out)
+            log.info("tuning %s: installed from the store (%s); not searched", args.method, stored)
+            print(format_result(result))
+            return 0
         result = tune_method(cfg, args.method, {path.name: path for path in args.render_dirs}, threads=args.threads)
         result[DIGEST_KEY] = Lineage(cfg).tuning(args.method)
         print(format_result(result))

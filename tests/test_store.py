@@ -331,7 +331,7 @@ def test_the_store_stays_within_its_budget_and_every_entry_is_intact() -> None:
     assert store.size_bytes() <= budget, f"store/ holds {store.size_bytes() / 1e6:.1f} MB, budget {budget / 1e6} MB"
     from denoisers.store.entries import _check_files
 
-    for kind in ("models", "checkpoints"):
+    for kind in ("models", "checkpoints", "tuning"):
         for entry in store.entries(kind):
             record = entry.summary()
             _check_files(entry.path, (record.get("store") or record)["files"])
@@ -366,3 +366,40 @@ def test_the_dag_installs_a_stored_model_without_planning_its_training_renders(t
     assert "train_denoiser" in installed and "render_noisy" not in installed and "generate_scene" not in installed
     forced = _dry_run(tmp_path, f"store={{path: {tmp_path / 'store'}, force_training: true}}")
     assert "render_noisy" in forced and "train_denoiser" in forced
+
+
+# ----------------------------------------------------------------------------------------------- tuning
+def test_a_tuning_result_is_stored_installed_and_checked(tmp_path: Path) -> None:
+    from denoisers.experiment import DIGEST_KEY, Lineage
+    from denoisers.store.code import method_code_digest
+    from denoisers.store.tuning import install_tuning, publish_tuning, tuning_entry, tuning_key
+    from scenegen.config import load_config
+
+    cfg = load_config(REPO_ROOT / "config" / "config.yaml")
+    cfg["store"] = {**cfg["store"], "path": str(tmp_path / "store")}
+    store = ModelStore.of(cfg)
+    result = {"method": "eaw", "best_params": {"sigma_color": 4.0}, "results": [], DIGEST_KEY: Lineage(cfg).tuning("eaw")}
+    source = tmp_path / "results" / "tuning" / "eaw.json"
+    source.parent.mkdir(parents=True)
+    source.write_text(json.dumps(result))
+    assert tuning_entry(store, cfg, "eaw") is None
+    folder, what = publish_tuning(store, cfg, "eaw", source)
+    assert what == "published" and tuning_entry(store, cfg, "eaw") == folder
+    assert publish_tuning(store, cfg, "eaw", source)[1] == "already published"
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({**result, "best_params": {"sigma_color": 8.0}}))
+    with pytest.raises(StoreCollisionError):
+        publish_tuning(store, cfg, "eaw", other)
+    assert install_tuning(folder, tmp_path / "out.json")["best_params"] == {"sigma_color": 4.0}
+    # The key follows the tuning settings, the training renders and the method's code, not other methods'.
+    changed = copy.deepcopy(cfg)
+    changed["tuning"]["spp"] = [1]
+    assert tuning_key(changed, "eaw") != tuning_key(cfg, "eaw")
+    assert method_code_digest("rls") == method_code_digest("wrls") != method_code_digest("eaw")
+    stale = copy.deepcopy(cfg)
+    stale["tuning"]["max_frames"] = 2
+    with pytest.raises(StoreError, match="other settings"):
+        publish_tuning(store, stale, "eaw", source)
+    (folder / "result.json").write_text(json.dumps({**result, "best_params": {"sigma_color": 16.0}}))
+    with pytest.raises(StoreError, match="corrupt"):
+        install_tuning(folder, tmp_path / "out.json")

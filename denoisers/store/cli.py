@@ -41,6 +41,8 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
     configured = [spec.id for spec in model_specs(cfg)]
     models = args.model_id or configured
     if args.action == "list":
+        for entry in store.entries("tuning"):
+            print(f"tuning     {entry.path.parent.name:24s} {short(entry.key)}")
         for kind in ("models", "checkpoints"):
             for entry in store.entries(kind):
                 record = entry.summary()
@@ -65,6 +67,14 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
             entry, what = store.publish_model(cfg, model_dir)
             published += what == "published"
             print(f"{what}: {model_id} -> {entry.path}")
+        if args.model_id is None:
+            from denoisers.store.tuning import publish_tuning
+
+            for entry_cfg in cfg.get("tuning", {}).get("methods", []):
+                result_file = Path(results) / "tuning" / f"{entry_cfg['method']}.json"
+                if result_file.exists() and "installed" not in result_file.name:
+                    folder, what = publish_tuning(store, cfg, entry_cfg["method"], result_file)
+                    print(f"{what}: tuning {entry_cfg['method']} -> {folder}")
         print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")
         return 0
     if args.action == "checkpoint":
@@ -94,7 +104,7 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
         return 0
     # check
     problems = []
-    for kind in ("models", "checkpoints"):
+    for kind in ("models", "checkpoints", "tuning"):
         for entry in store.entries(kind):
             from denoisers.store.entries import _check_files
 

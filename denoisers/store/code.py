@@ -10,8 +10,12 @@ What is hashed, for a trainable method:
   ``denoisers.training.job`` (how a spec becomes the trainer's settings), transitively;
 * the C++ sources of ``denoisers.native`` when it is among them (comments stripped).
 
-The package ``denoisers.nets`` rebuilds networks by name and so imports every network; its own source is
-hashed but its imports are not followed, so another family's network does not re-key a model.
+The package ``denoisers.nets`` rebuilds networks by name and so imports every network (as ``denoisers.registry``
+and ``denoisers.methods`` do with the methods); their own source is hashed but their imports are not followed, so
+another family's network does not re-key a model.
+
+:func:`method_code_digest` is the same digest for a hand-set method's tuning (``store/tuning``): its registry
+module and ``denoisers.tuning``, transitively.
 
 How a module is hashed: ``ast.dump`` of its parsed source with every docstring removed and without line
 numbers. Comments are not in the tree, and formatting is not in the dump, so neither changes the digest;
@@ -31,7 +35,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 PROJECT_PACKAGES = ("denoisers", "scenegen")
 TASKS_MODULE = "denoisers.training.tasks"
 #: Modules whose source is hashed but whose imports are not followed (name-based dispatchers).
-DISPATCH_MODULES = frozenset({"denoisers.nets"})
+DISPATCH_MODULES = frozenset({"denoisers.nets", "denoisers.registry", "denoisers.methods"})
 #: Roots of every trainable method besides its builder: the training step and the data stream.
 STEP_MODULES = ("denoisers.training.loop", "denoisers.training.data")
 #: Functions of other modules that turn a spec into training settings: (module, function).
@@ -198,3 +202,31 @@ def code_modules(method: str, root: Path = REPO_ROOT) -> list[str]:
 
 def describe_modules(names: Iterable[str]) -> str:
     return ", ".join(names)
+
+
+def method_module(method: str, root: Path = REPO_ROOT) -> str:
+    """The module of ``denoisers/methods/`` whose ``@register("<method>", ...)`` defines registry method ``method``
+    (found in the source, without importing the methods)."""
+    for path in sorted((root / "denoisers" / "methods").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "register" and node.args \
+                    and isinstance(node.args[0], ast.Constant) and node.args[0].value == method:
+                return f"denoisers.methods.{path.stem}"
+    raise KeyError(f"no module of denoisers/methods registers method {method!r}")
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_method_digest(method: str, root: str) -> str:
+    base = Path(root)
+    roots = {name: ast.parse(module_path(name, base).read_text())  # type: ignore[union-attr]
+             for name in (method_module(method, base), "denoisers.tuning")}
+    digest = hashlib.sha256()
+    for name, tree in sorted(_closure(roots, base).items()):
+        text = ast.dump(_strip_docstrings(tree), annotate_fields=False, include_attributes=False)
+        digest.update(name.encode() + b"\0" + hashlib.sha256(text.encode()).hexdigest().encode() + b"\n")
+    return digest.hexdigest()
+
+
+def method_code_digest(method: str, root: Path = REPO_ROOT) -> str:
+    """Digest of the code a hand-set method's tuning result depends on (its module and the grid search)."""
+    return _cached_method_digest(method, str(root))

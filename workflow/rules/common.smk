@@ -35,6 +35,7 @@ from scenegen.overrides import coerce_override_strings
 from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, same_training_as,
                                        training_problems, training_runtime_minutes, training_split)
 from denoisers.store import ModelStore, model_key
+from denoisers.store.tuning import tuning_entry, tuning_key
 from denoisers.store.workflow import stored_model, verify_models, verify_problems
 
 
@@ -391,6 +392,8 @@ def training_chunk_dirs(kind: str, for_training: bool = False):
 
     def chunk_dirs_of_training(wildcards) -> list[str]:
         scenes = TRAIN_SCENES + VALIDATION_SCENES
+        if "method" in wildcards.keys() and tuning_stored(wildcards.method):
+            return []  # tune_method installs the stored result
         if "model" in wildcards.keys():
             if not for_training and model_source(wildcards.model) != "train":
                 return []  # installed from the store, or the weights of its same-training base
@@ -415,9 +418,18 @@ def model_store_source(wildcards) -> str:
     return f"{model_source(wildcards.model)}:{model_key(config, wildcards.model)[:16]}"
 
 
+def tuning_stored(method: str) -> bool:
+    """Whether tune_method installs ``method``'s result from the store (denoisers.store.tuning)."""
+    settings = config["store"]
+    return settings["use"] and not settings["force_training"] and \
+        tuning_entry(ModelStore.of(config), config, method) is not None
+
+
 def needs_training_renders() -> bool:
-    """Whether the DAG's default target needs the training scenes' renders: a model that trains, or tuning."""
-    return bool(tuning_methods()) or any(model_source(spec.id) == "train" for spec in model_specs(config))
+    """Whether the DAG's default target needs the training scenes' renders: a model that trains, or a tuning that
+    is not stored."""
+    return any(not tuning_stored(method) for method in tuning_methods()) or \
+        any(model_source(spec.id) == "train" for spec in model_specs(config))
 
 
 def default_scene_dirs() -> list[str]:
@@ -517,6 +529,11 @@ def method_tuning_file(wildcards) -> list[str]:
     """Input function: the tuning result an evaluation row with params {tuned: true} reads, or nothing."""
     spec = method_spec(wildcards.method)
     return [results_path(f"tuning/{spec.method}.json")] if spec.params.get("tuned") else []
+
+
+def tuning_store_source(wildcards) -> str:
+    """Param of tune_method: 'store' or 'search', with the key (a code change or force_training reruns it)."""
+    return f"{'store' if tuning_stored(wildcards.method) else 'search'}:{tuning_key(config, wildcards.method)[:16]}"
 
 
 def tuning_digest(wildcards) -> str:

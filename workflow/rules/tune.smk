@@ -1,7 +1,8 @@
 # Stage 3b: parameters of hand-set baselines chosen on the training scenes only (grid search).
 #   tune_method: <output_dir>/tuning/{method}.json (every grid point's score, the chosen parameters)
 # {method} is a registered method name with a tuning.methods entry. An evaluation row with
-# params {tuned: true} depends on its method's file (input function method_tuning_file).
+# params {tuned: true} depends on its method's file (input function method_tuning_file). A result in the model
+# store (store/tuning; denoisers.store.tuning) under its key is installed instead: no training render is needed.
 
 
 rule tune_method:
@@ -14,6 +15,7 @@ rule tune_method:
     params:
         config_file=resolved_config_file,
         config_digest=tuning_digest,
+        store=tuning_store_source,
         render_dirs=training_render_dirs,
     log:
         results_path("logs/tune/{method}.log"),
