@@ -403,3 +403,23 @@ def test_a_tuning_result_is_stored_installed_and_checked(tmp_path: Path) -> None
     (folder / "result.json").write_text(json.dumps({**result, "best_params": {"sigma_color": 16.0}}))
     with pytest.raises(StoreError, match="corrupt"):
         install_tuning(folder, tmp_path / "out.json")
+
+
+def test_curves_from_another_instruction_set_are_compared_within_the_stated_tolerance(tmp_path: Path) -> None:
+    from denoisers.store.verify import RELATIVE_TOLERANCE, compare_curves
+
+    stored = tmp_path / "stored.csv"
+    stored.write_text("step,train_loss,val_loss\n10,0.500000,\n20,0.400000,0.450000\n30,0.300000,\n")
+
+    def retrained(factor: float) -> Path:
+        path = tmp_path / f"retrained_{factor}.csv"
+        path.write_text(f"step,train_loss,val_loss\n10,{0.5 * factor:.6f},\n20,{0.4 * factor:.6f},{0.45 * factor:.6f}\n"
+                        f"30,{0.3 * factor:.6f},\n")
+        return path
+
+    assert compare_curves(stored, retrained(1.0), 30, exact=True)["passed"]
+    assert not compare_curves(stored, retrained(1.0 + 1e-5), 30, exact=True)["passed"]
+    close = compare_curves(stored, retrained(1 + RELATIVE_TOLERANCE / 2), 30, exact=False)
+    assert close["passed"] and close["values_compared"] == 4
+    assert not compare_curves(stored, retrained(1 + 2 * RELATIVE_TOLERANCE), 30, exact=False)["passed"]
+    assert compare_curves(stored, retrained(1.0), 20, exact=True)["values_compared"] == 3      # rows up to step 20
