@@ -15,8 +15,16 @@ def stored_model(cfg: dict, model_id: str) -> Entry | None:
 
 
 def verify_models(cfg: dict) -> list[str]:
-    """The model ids of ``store.verify.models``."""
-    return list((store_settings(cfg).get("verify") or {}).get("models") or [])
+    """The model ids of ``store.verify.models``; when it is empty, every model of ``cfg`` stored under its key
+    (variants reusing another model's weights left out)."""
+    models = list((store_settings(cfg).get("verify") or {}).get("models") or [])
+    if models:
+        return models
+    from denoisers.training.models import model_specs, same_training_as
+
+    store = ModelStore.of(cfg)
+    return [spec.id for spec in model_specs(cfg)
+            if not same_training_as(cfg, spec.id) and store.model_entry(cfg, spec.id) is not None]
 
 
 def verify_problems(cfg: dict) -> list[str]:

@@ -162,8 +162,8 @@ def default_volume_outputs(wildcards=None) -> list[str]:
     """The volumetric renders of the default target: the vol_train_* clips only when a model trains on them."""
     training = {scene for spec in model_specs(config) if model_source(spec.id) == "train"
                 for scene in sum(training_split(config, spec), [])}
-    return [path for path in volume_outputs() if not path.split("/renders/")[1].startswith("vol_train_")
-            or path.split("/renders/")[1].split("/")[0] in training]
+    scenes = [scene for scene in VOLUME_SCENES if not scene.startswith("vol_train_") or scene in training]
+    return [results_path(f"renders/{scene}/{kind}/chunk_000") for scene in scenes for kind in ("noisy", "reference")]
 
 
 def masks_digest(wildcards) -> str:
