@@ -240,6 +240,15 @@ class ModelStore:
         key = checkpoint_key(cfg, model_id)
         entry = Entry(model_id, key, self.root / "checkpoints" / model_id / short(key))
         step = int(data["step"])
+        try:
+            best_step = int(load_checkpoint(work_dir / "best.pt").get("step", 0))
+        except CheckpointError as error:
+            raise StoreError(f"cannot publish a checkpoint of {model_id!r} before its first validation: {error}") \
+                from error
+        best_recorded = (data.get("best") or {}).get("step")
+        if best_step > step or (best_recorded is not None and int(best_recorded) != best_step):
+            raise StoreError(f"{work_dir}: best.pt (step {best_step}) does not belong to checkpoint.pt (step {step}, "
+                             f"best step {best_recorded}): the trainer is writing; pause it (kill -STOP) and retry")
         if (entry.path / "meta.json").exists():
             stored = _read_json(entry.path / "meta.json")
             if int(stored["step"]) > step:
