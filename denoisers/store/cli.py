@@ -49,7 +49,10 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
                 current = (store.model_entry if kind == "models" else store.checkpoint_entry)(cfg, entry.model_id) \
                     if entry.model_id in configured else None
                 state = "this config" if current is not None and current.path == entry.path else "other key"
+                compute = record.get("compute") or {}
+                cpu = (record.get("provenance") or {}).get("cpu_model", "?")
                 print(f"{kind[:-1]:10s} {entry.model_id:24s} {short(entry.key)}  step {record.get('steps', record.get('step'))}"
+                      f"  {record.get('elapsed_seconds', 0) / 60:6.1f} min  {compute.get('precision', '?')}  {cpu}"
                       f"  {state}")
         print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")
         return 0
