@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -99,8 +100,9 @@ def _fmt(value: float, digits: int = 2) -> str:
     return "–" if value != value else f"{value:.{digits}f}"
 
 
-def readme_block(repo: Path, run: str, config: str) -> str:
-    """The generated body of a README block for published run folder ``run`` of config file ``config``."""
+def readme_block(repo: Path, run: str, config: str, link_prefix: str = "") -> str:
+    """The generated body of a README block for published run folder ``run`` of config file ``config``; links are
+    written as ``link_prefix + run`` (``../`` in docs/)."""
     import pandas as pd
 
     from scenegen.config import load_config
@@ -114,7 +116,7 @@ def readme_block(repo: Path, run: str, config: str) -> str:
     claims = pd.read_csv(run_dir / "tables" / "claims.csv")
     changes = run_status(load_config(Path(repo) / config), run_dir)
     commit = record.get("run_commit") or "unknown"
-    lines = [f"Published run [`{run}/`]({run}/REPORT.md) of `{config}`, code `{commit[:12]}` "
+    lines = [f"Published run [`{run}/`]({link_prefix}{run}/REPORT.md) of `{config}`, code `{commit[:12]}` "
              f"(published {record['published'][:10]}). "
              + ("Its settings and model keys equal HEAD's." if not changes else
                 "**It differs from HEAD in " + "; ".join(changes) + "**: rerun and republish it."), ""]
@@ -133,7 +135,7 @@ def readme_block(repo: Path, run: str, config: str) -> str:
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
     counts = claims["verdict"].value_counts()
     lines += ["", "Claims: " + ", ".join(f"{int(count)} {verdict}" for verdict, count in counts.items())
-              + f" (of {len(claims)}; [claims table]({run}/tables/claims.md)).", ""]
+              + f" (of {len(claims)}; [claims table]({link_prefix}{run}/tables/claims.md)).", ""]
     return "\n".join(lines)
 
 
@@ -143,8 +145,11 @@ def update_blocks(path: Path, repo: Path, check: bool = False) -> list[str]:
     text = Path(path).read_text()
     stale: list[str] = []
 
+    prefix = os.path.relpath(Path(repo).resolve(), Path(path).resolve().parent)
+    prefix = "" if prefix == "." else prefix.replace(os.sep, "/") + "/"
+
     def replace(match: re.Match) -> str:
-        body = readme_block(repo, match["run"], match["config"])
+        body = readme_block(repo, match["run"], match["config"], prefix)
         if body != match["body"]:
             stale.append(match["run"])
         return match.group(1) + body + match.group(5)
