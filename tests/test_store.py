@@ -263,6 +263,8 @@ def test_a_published_checkpoint_continues_in_a_fresh_process_and_folder(tmp_path
     local["store"]["use"] = False
     train(local, tmp_path / "straight")
     train(cfg, tmp_path / "first", stop_at_step=2)
+    with pytest.raises(StoreError, match="stopped early"):
+        ModelStore.of(cfg).publish_model(cfg, tmp_path / "first" / "models" / "rae")
     work = work_dir_for(tmp_path / "first" / "models", cfg, model_spec(cfg, "rae"))
     entry = ModelStore.of(cfg).publish_checkpoint(cfg, work)
     assert entry.summary()["step"] == 2 and (entry.path / "checkpoint.pt").exists()

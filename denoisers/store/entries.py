@@ -187,6 +187,9 @@ class ModelStore:
         if same_training_as(cfg, model_id) or summary.get("same_training_as"):
             raise StoreError(f"model {model_id!r} reuses the weights of {summary.get('same_training_as') or same_training_as(cfg, model_id)!r} "
                              f"(same training): publish that model; this one is installed from it")
+        if summary.get("stopped_by") == "stop_at_step":
+            raise StoreError(f"{model_dir}: stopped early at step {summary.get('steps')} of {summary.get('max_steps')} "
+                             "(stop_at_step); publish its checkpoint instead (store checkpoint)")
         expected = model_digest(cfg, spec)
         if summary.get("settings_digest") != expected:
             raise StoreError(f"{model_dir}: trained with other settings or data (digest {summary.get('settings_digest')}, "

@@ -139,6 +139,8 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
         entry = store.model_entry(cfg, model_id)
         if entry is not None:
             return store.install(entry, Path(out_dir))
+    # The key of the code that is about to run (a module edited while training must not re-key these weights).
+    key = model_key(cfg, model_id)
     builder = task_builder(spec.method)
     task = builder.build(spec)
     train_scenes, validation_scenes = training_split(cfg, spec)
@@ -196,7 +198,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
                     "train_scenes": train_scenes, "validation_scenes": validation_scenes, "stopped_by": stopped_by,
                     "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
                     "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1),
-                    "settings_digest": _model_digest(cfg, spec), "store_key": model_key(cfg, model_id),
+                    "settings_digest": _model_digest(cfg, spec), "store_key": key,
                     "provenance": provenance({"training": int(threads)})})
     if hasattr(task, "config") and hasattr(task.config, "width"):
         from denoisers.nets import build_net, count_parameters
