@@ -57,7 +57,6 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
         print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")
         return 0
     if args.action == "publish":
-        published = 0
         for model_id in models:
             model_dir = Path(results) / "models" / model_id
             if same_training_as(cfg, model_id) or not (model_dir / "summary.json").exists():
@@ -68,14 +67,13 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
             if args.model_id is None and "installed_from_store" in (model_dir / "summary.json").read_text():
                 continue
             entry, what = store.publish_model(cfg, model_dir)
-            published += what == "published"
             print(f"{what}: {model_id} -> {entry.path}")
         if args.model_id is None:
             from denoisers.store.tuning import publish_tuning
 
             for entry_cfg in cfg.get("tuning", {}).get("methods", []):
                 result_file = Path(results) / "tuning" / f"{entry_cfg['method']}.json"
-                if result_file.exists() and "installed" not in result_file.name:
+                if result_file.exists():
                     folder, what = publish_tuning(store, cfg, entry_cfg["method"], result_file)
                     print(f"{what}: tuning {entry_cfg['method']} -> {folder}")
         print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")

@@ -27,7 +27,6 @@ import ast
 import functools
 import hashlib
 import re
-from collections.abc import Iterable
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -193,15 +192,6 @@ def _cached_digest(method: str, root: str) -> str:
 def code_digest(method: str, root: Path = REPO_ROOT) -> str:
     """SHA-256 over :func:`code_files` of trainable method ``method`` (cached per process)."""
     return _cached_digest(method, str(root))
-
-
-def code_modules(method: str, root: Path = REPO_ROOT) -> list[str]:
-    """The names :func:`code_digest` covers (for summaries and docs)."""
-    return list(code_files(method, root))
-
-
-def describe_modules(names: Iterable[str]) -> str:
-    return ", ".join(names)
 
 
 def method_module(method: str, root: Path = REPO_ROOT) -> str:
