@@ -16,9 +16,10 @@ Shape identity: the XML is parsed with Mitsuba's mesh merging off, and ``merge``
 replaced by their children, so every authored shape stays a shape of its own. Every shape gets the
 per-face attributes the feature integrator reads (``scenegen.mitsuba_scene.attach_face_attributes``:
 shape index, material features, albedo source): meshes as mesh attributes, analytic shapes
-(sphere, disk, cylinder, ...) as constant texture attributes with the same values. Shapes inside
-a ``shapegroup`` are shared by all their instances (one id per authored shape, not per instance)
-and carry no material features (listed in ``shapes_without_material_features``).
+(sphere, disk, cylinder, ...) as constant texture attributes with the same values. Instancing
+(``shapegroup`` / ``instance``) and participating media are refused when the config is read
+(``scenegen.custom_check``): they would not render as authored. The manifest records each shape's
+material and area emitter, the other emitters, the ``$name`` params and the files the scene is made of.
 
 Camera paths (speeds relative to the scene's bounding-box diagonal D, per frame):
 dolly -- translate along the view direction by 0.01 D; orbit -- rotate about the target around
@@ -58,14 +59,19 @@ __all__ = ["CustomSceneError", "LoadedXml", "camera_path", "import_custom_scene"
 @dataclass
 class LoadedXml:
     """An XML scene ready to render: ``scene`` (every authored shape with its face attributes),
-    ``shapes`` (manifest records in authored order) and ``authored`` (custom_xml.authored_settings)."""
+    ``shapes`` (manifest records in authored order), ``authored`` (custom_xml.authored_settings), the
+    ``materials`` the shapes index, the ``emitters`` that are not area lights ({name, type}) and the
+    ``files`` the scene is made of ({path: SHA-256}, custom_check.scene_files)."""
 
     scene: object
     shapes: list[dict]
     authored: dict
+    materials: list[dict]
+    emitters: list[dict]
+    files: dict[str, str]
 
 
-_scene_cache: dict[tuple[str, str], LoadedXml] = {}   # (resolved path, SHA-256 of the file) -> loaded scene
+_scene_cache: dict[tuple[str, str], LoadedXml] = {}   # (resolved path, digest of its files and params) -> scene
 
 
 def _material_record(bsdf) -> dict:
@@ -119,24 +125,49 @@ def _attribute_rows(bsdf, index: int, material: dict) -> dict[str, list[float]]:
     return rows
 
 
-def load_xml(xml: Path) -> LoadedXml:
-    """Load ``xml`` once per process (see the module docstring); CustomSceneError naming the file."""
+def _emitter_record(emitter) -> dict | None:
+    """The manifest record of a shape's area emitter (None without one): its type and, for a constant
+    radiance, the RGB value; a textured radiance is named by its texture class."""
     import mitsuba as mi
+
+    if emitter is None:
+        return None
+    params = mi.traverse(emitter)
+    record: dict = {"type": "area"}
+    if "radiance.value" in params.keys():
+        record["radiance"] = [round(float(v), 6) for v in np.asarray(params["radiance.value"]).ravel()[:3]]
+    else:
+        # The texture's class (BitmapTexture, ...): SceneParameters.properties holds (value, type, node, flags).
+        nodes = [params.properties[key][2] for key in params.keys() if key.startswith("radiance.")]
+        name = nodes[0].class_name() if nodes else "texture"
+        record["radiance_texture"] = "bitmap" if name.startswith("BitmapTexture") else name.lower()
+    return record
+
+
+def load_xml(xml: Path, params: dict | None = None) -> LoadedXml:
+    """Load ``xml`` with the ``$name`` ``params`` once per process (see the module docstring); CustomSceneError
+    naming the file. ``shapes`` records each authored shape's material (an index into ``materials``, None
+    inside a shape group) and area emitter."""
+    import mitsuba as mi
+
+    from scenegen.custom_check import scene_files
 
     path = Path(xml).resolve()
     if not path.is_file():
         raise CustomSceneError(f"custom scene XML not found: {path}")
-    key = (str(path), hashlib.sha256(path.read_bytes()).hexdigest())
+    files = scene_files({"name": path.stem, "xml": str(path), "params": params})
+    key = (str(path), hashlib.sha256(json.dumps([files, params or {}], sort_keys=True, default=str)
+                                     .encode()).hexdigest())
     if key in _scene_cache:
         return _scene_cache[key]
     # Pass 1 instantiates the XML as authored (separate shapes) to read each shape's BSDF; pass 2
     # re-parses it with constant texture attributes on the analytic shapes (they take attributes only
     # at construction), then meshes get theirs as mesh attributes.
-    first: ParsedXml = parse_xml(path)
+    first: ParsedXml = parse_xml(path, params)
     scene = first.instantiate()
     by_id = {shape.id(): shape for shape in scene.shapes()}
-    second = parse_xml(path)
-    shapes, materials = [], {}
+    second = parse_xml(path, params)
+    shapes, materials, records = [], {}, []
     for index, (node_id, name, plugin) in enumerate(first.shapes):
         shape = by_id.get(node_id)
         material = _material_record(shape.bsdf()) if shape is not None else None
@@ -144,9 +175,14 @@ def load_xml(xml: Path) -> LoadedXml:
         if shape is not None and not is_mesh:
             second.set_texture_attributes(index, _attribute_rows(shape.bsdf(), index, material))
         materials[node_id] = material
+        if material is not None:
+            bsdf_id = shape.bsdf().id()
+            records.append({"name": bsdf_id if bsdf_id and not bsdf_id.startswith("_unnamed") else f"{name}.bsdf",
+                            **material})
         shapes.append({"index": index, "name": name, "type": plugin, "kind": "custom", "mesh": None,
-                       "material": None, "emitter": None, "to_world": IDENTITY, "to_world_per_frame": None,
-                       "material_features": shape is not None})
+                       "material": len(records) - 1 if material is not None else None,
+                       "emitter": _emitter_record(shape.emitter()) if shape is not None else None,
+                       "to_world": IDENTITY, "to_world_per_frame": None, "material_features": shape is not None})
     final = second.instantiate()
     from scenegen.mitsuba_scene import attach_face_attributes
 
@@ -154,9 +190,20 @@ def load_xml(xml: Path) -> LoadedXml:
     for shape in final.shapes():
         if isinstance(shape, mi.Mesh) and shape.id() in index_of:
             attach_face_attributes(shape, {"index": index_of[shape.id()]}, materials[shape.id()])
-    loaded = LoadedXml(final, shapes, authored_settings(first, scene))
+    emitters = [{"name": emitter.id() or f"emitter_{index:03d}", "type": _emitter_plugin(emitter)}
+                for index, emitter in enumerate(e for e in scene.emitters() if e.get_shape() is None)]
+    loaded = LoadedXml(final, shapes, authored_settings(first, scene), records, emitters, files)
     _scene_cache[key] = loaded
     return loaded
+
+
+def _emitter_plugin(emitter) -> str:
+    """Plugin name of a loaded emitter from its class (PointLight -> point, EnvironmentMapEmitter -> envmap)."""
+    name = emitter.class_name()
+    known = {"PointLight": "point", "SpotLight": "spot", "DirectionalEmitter": "directional",
+             "EnvironmentMapEmitter": "envmap", "ConstantBackgroundEmitter": "constant",
+             "AreaLight": "area", "ProjectiveLight": "projector", "SunSkyEmitter": "sunsky"}
+    return known.get(name, name.lower())
 
 
 def _rotate_about(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -194,7 +241,7 @@ def import_custom_scene(entry: dict, scene_id: str, out_dir: Path) -> dict:
     import mitsuba as mi
 
     xml = Path(entry["xml"]).resolve()
-    loaded = load_xml(xml)
+    loaded = load_xml(xml, entry.get("params"))
     scene = loaded.scene
     sensors = scene.sensors()
     params = mi.traverse(sensors[0]) if sensors else {}
@@ -219,7 +266,9 @@ def import_custom_scene(entry: dict, scene_id: str, out_dir: Path) -> dict:
     manifest = {
         "format_version": 1, "kind": "custom", "scene_id": scene_id,
         "xml": str(xml), "xml_sha256": hashlib.sha256(xml.read_bytes()).hexdigest(),
-        "n_frames": n_frames, "redraws": [], "materials": [], "emitters": [], "shapes": loaded.shapes,
+        "params": dict(entry.get("params") or {}), "files": loaded.files,
+        "n_frames": n_frames, "redraws": [], "materials": loaded.materials, "emitters": loaded.emitters,
+        "shapes": loaded.shapes,
         "camera": {"fov_x_deg": fov, "path": camera["path"], "frames": camera_path(
             camera["path"], origin, target, up / np.linalg.norm(up), n_frames, diagonal)},
         "animation": {"animated_light": None, "moving_shapes": [], "camera_cut_frame": None},
@@ -258,7 +307,12 @@ def load_custom_frame_scene(manifest: dict, frame: int, *, width: int, height: i
         raise CustomSceneError(f"custom scene XML not found: {xml}")
     if hashlib.sha256(xml.read_bytes()).hexdigest() != manifest["xml_sha256"]:
         raise CustomSceneError(f"{xml} changed since the scene was imported; re-run generate_scene")
-    scene = load_xml(xml).scene
+    loaded = load_xml(xml, manifest.get("params"))
+    if "files" in manifest and loaded.files != manifest["files"]:
+        changed = sorted(set(loaded.files.items()) ^ set(manifest["files"].items()))
+        raise CustomSceneError(f"the files of {xml} changed since the scene was imported "
+                               f"({', '.join(sorted({name for name, _ in changed}))}); re-run generate_scene")
+    scene = loaded.scene
     settings = {**integrator, **integrator_settings(manifest)}
     if settings["type"] == "path" and settings.get("max_depth") == UNBOUNDED_DEPTH:
         settings["max_depth"] = -1   # Mitsuba's own integrators take a signed int: -1 is "no limit"

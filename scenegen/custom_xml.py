@@ -6,9 +6,17 @@ matched to their authored position. ``authored_settings`` reads what the author 
 integrator's ``max_depth`` / ``rr_depth`` / ``hide_emitters``, film size, pixel filter, sampler,
 sensor); ``render_settings`` is what the harness renders with and ``substitutions`` lists every
 replacement it has to make, each as {what, authored, used, why}.
+
+Relative paths resolve as ``mi.load_file`` resolves them: the XML's own folder is on Mitsuba's file
+resolver while it is parsed *and* instantiated (``xml_folder_on_resolver``), so ``meshes/x.obj`` of a
+downloaded scene folder loads wherever the harness runs; an ``<include>`` is found beside the file that
+includes it, and the paths inside it resolve against the main XML's folder, as Mitsuba does.
+``<default name=... value=.../>`` parameters take the values of the extra_scenes entry's ``params``.
 """
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,6 +46,7 @@ class ParsedXml:
     state: Any
     shapes: list[tuple[str, str, str]]
     shape_nodes: list[int]
+    params: dict[str, str]
 
     def nodes_of(self, object_type: str) -> list[Any]:
         """Parser nodes of one mi.ObjectType name ('Integrator', 'Film', ...) in document order."""
@@ -60,10 +69,35 @@ class ParsedXml:
         import mitsuba as mi
 
         try:
-            mi.parser.transform_all(self.config, self.state)
-            return mi.parser.instantiate(self.config, self.state)
+            with xml_folder_on_resolver(self.path):
+                mi.parser.transform_all(self.config, self.state)
+                return mi.parser.instantiate(self.config, self.state)
         except Exception as exc:  # noqa: BLE001 -- Mitsuba raises RuntimeError with parser details
             raise CustomSceneError(f"cannot load custom scene XML {self.path}: {exc}") from exc
+
+
+@contextlib.contextmanager
+def xml_folder_on_resolver(xml: Path) -> Iterator[Any]:
+    """Put ``xml``'s folder first on Mitsuba's file resolver (of this thread) for the ``with`` block, as
+    ``mi.load_file`` does; yields the resolver. The resolver's previous search path is restored."""
+    import mitsuba as mi
+
+    resolver = mi.file_resolver()
+    before = [str(resolver[i]) for i in range(len(resolver))]
+    resolver.prepend(str(Path(xml).resolve().parent))
+    try:
+        yield resolver
+    finally:
+        resolver.clear()
+        for folder in before:
+            resolver.append(folder)
+
+
+def parser_params(params: Mapping[str, Any] | None) -> dict[str, str]:
+    """The extra_scenes entry's ``params`` as the parser's ``$name`` substitutions (strings; booleans as
+    Mitsuba writes them)."""
+    return {str(name): (str(value).lower() if isinstance(value, bool) else str(value))
+            for name, value in (params or {}).items()}
 
 
 def _references(props) -> list[tuple[str, Any]]:
@@ -96,20 +130,33 @@ def _flatten_merges(state) -> None:
                     node.props[f"{key}_merged_{number}"] = child
 
 
-def parse_xml(path: Path) -> ParsedXml:
-    """Parse ``path`` without mesh merging, undo ``merge`` shapes and name unnamed shapes."""
+def parse_state(path: Path, params: Mapping[str, Any] | None = None, variant: str | None = None) -> tuple[Any, Any]:
+    """Mitsuba's parser (config, state) of ``path`` with ``params`` for its ``$name`` defaults, mesh merging
+    off, the XML's folder on the resolver. ``variant`` defaults to the active one (parsing needs none set:
+    the config-time checks parse with ``scalar_rgb`` without selecting it). CustomSceneError naming the file
+    (Mitsuba's message carries the line of a malformed XML)."""
     import mitsuba as mi
 
     path = Path(path)
     if not path.is_file():
         raise CustomSceneError(f"custom scene XML not found: {path}")
-    config = mi.parser.ParserConfig(mi.variant())
+    config = mi.parser.ParserConfig(variant or mi.variant())
     config.merge_meshes = False
     config.merge_equivalent = False
     try:
-        state = mi.parser.parse_file(config, str(path))
+        with xml_folder_on_resolver(path):
+            state = mi.parser.parse_file(config, str(path), **parser_params(params))
     except Exception as exc:  # noqa: BLE001 -- Mitsuba raises RuntimeError with parser details
         raise CustomSceneError(f"cannot load custom scene XML {path}: {exc}") from exc
+    return config, state
+
+
+def parse_xml(path: Path, params: Mapping[str, Any] | None = None) -> ParsedXml:
+    """Parse ``path`` (parse_state) without mesh merging, undo ``merge`` shapes and name unnamed shapes."""
+    import mitsuba as mi
+
+    path = Path(path)
+    config, state = parse_state(path, params)
     _flatten_merges(state)
     shapes, nodes = [], []
     for index, node in enumerate(state.nodes):
@@ -121,7 +168,7 @@ def parse_xml(path: Path) -> ParsedXml:
             node.props.set_id(f"{ID_PREFIX}{len(shapes):03d}")
         shapes.append((node.props.id(), authored_id or f"shape_{len(shapes):03d}", plugin))
         nodes.append(index)
-    return ParsedXml(path, config, state, shapes, nodes)
+    return ParsedXml(path, config, state, shapes, nodes, parser_params(params))
 
 
 def _plugin(nodes: list[Any], instance: Any) -> tuple[str, bool]:

@@ -3,7 +3,9 @@
 SHA-256 of canonical JSON (scenegen.config.config_digest). The workflow passes them as params of
 generate_scene, render_noisy and render_reference, so Snakemake reruns exactly the jobs whose settings
 changed; denoisers.experiment combines them into the lineage digests that outputs record, and the
-training job keys its data on the training scenes' render digests. Config level only (no Mitsuba).
+training job keys its data on the training scenes' render digests. Config level (no rendering), except that a
+custom scene's digest covers the contents of its XML and of every file the XML references
+(scenegen.custom_check.scene_files: Mitsuba's parser, no instantiation).
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from scenegen.config import (STABILITY_CONTROL_SUFFIX, STABILITY_PREFIX, VOLUME_
                              config_digest, extra_scene, scene_frame_count, scene_frames_per_chunk,
                              scene_reference_spp, scene_render_config, stability_scenario, volume_clip_spec,
                              volume_extra)
+from scenegen.custom_check import scene_files
 
 #: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
 SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})
@@ -54,7 +57,9 @@ def scene_settings(cfg: dict, scene: str) -> dict[str, Any]:
                     **{key: volumes[key] for key in ("frames", "width", "height", "resolution", "max_depth")}},
                 "render_shared": config_digest(cfg, *shared)}
     if scene.startswith("custom_"):
-        procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
+        # The XML and every file it references, by content: an edited mesh or texture reruns the import.
+        entry = extra_scene(cfg, scene)
+        procedural: dict[str, Any] = {"extra_scene": entry, "files": scene_files(entry)}
     else:
         # A scene depends on its own frame count only: train_frames (null or absent changes no digest) enters
         # a train_* scene's settings as its frames, and no other scene's.

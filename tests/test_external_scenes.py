@@ -20,6 +20,7 @@ from denoisers.reproductions import all_claims
 from tests.test_report import FRAMES, PSNR, SCENE_OFFSET, psnr_of, report_config, write_results
 
 CUSTOM = "custom_room"
+EXAMPLE_XML = Path(__file__).resolve().parents[1] / "examples" / "scenes" / "spheres_room" / "scene.xml"
 CUSTOM_OFFSET = 2.0
 SUBSTITUTIONS = [
     {"what": "integrator", "authored": "path", "used": "mcdn_features", "why": "feature buffers"},
@@ -32,7 +33,8 @@ SUBSTITUTIONS = [
 
 def external_config() -> dict:
     cfg = report_config()
-    cfg["extra_scenes"] = [{"name": "room", "xml": "room.xml", "frames": FRAMES,
+    # A real XML: a custom scene's digest covers its files (the results tree itself is hand-made).
+    cfg["extra_scenes"] = [{"name": "room", "xml": str(EXAMPLE_XML), "frames": FRAMES,
                             "camera": {"path": "dolly", "up": [0.0, 1.0, 0.0]}}]
     return cfg
 

@@ -19,6 +19,7 @@ from scenegen.config import (
     volume_extra,
     volume_scene_ids,
 )
+from scenegen.custom_check import custom_scene_problems
 from scenegen.digests import masks_digest as scene_masks_digest
 from scenegen.scenarios import stability_control_ids
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
@@ -55,6 +56,8 @@ config_errors = config_problems(config) or ([str(schema_error)] if schema_error 
 if not config_errors:
     config_errors = (evaluation_problems(config) + training_problems(config) + tuning_problems(config)
                      + volume_problems(config) + verify_problems(config))
+if not config_errors:   # every custom scene parsed (not rendered): bad XML, unknown plugins, missing files
+    config_errors = custom_scene_problems(config)
 if config_errors:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
 
