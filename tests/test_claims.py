@@ -18,8 +18,8 @@ import yaml
 from scipy import stats
 
 from denoisers import evaluate
-from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED, Part, claims_table,
-                                     evaluate_claim)
+from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SPEED_ROUNDS, NOT_RUN, REPRODUCED, Part,
+                                     claims_table, evaluate_claim)
 from denoisers.report.collect import Results
 from denoisers.timing import TIMING_SCHEMA, TimingJob
 from denoisers.reproductions import all_claims, all_reproductions
@@ -118,7 +118,9 @@ def results_for(claim: str, d: list[float], cfg: dict | None = None, **kwargs) -
     spiked, timing = None, None
     if claim in SPEED_PARTS:
         a, _ = SPEED_PARTS[claim]
-        timing = timing_job(cfg, {a: [1.0 - 0.1 * di for di in d]}, rounds=len(d))
+        # A speed part needs MIN_SPEED_ROUNDS rounds: the 4-value fixtures get a fifth round at their mean.
+        rounds = d + [float(np.mean(d))] if len(d) == MIN_SPEED_ROUNDS - 1 else d
+        timing = timing_job(cfg, {a: [1.0 - 0.1 * di for di in rounds]}, rounds=len(rounds))
     elif claim in PARTS:
         for a, a_spp, b, b_spp, metric, claimed in PARTS[claim]:
             table.shift((a, a_spp), (b, b_spp), metric, claimed, d)
@@ -141,7 +143,8 @@ CLAIMS = {claim.id: claim for claim in all_claims()}
 def test_every_claim_has_each_outcome(claim: str, d: list[float], expected: str) -> None:
     decision = evaluate_claim(results_for(claim, d), CLAIMS[claim])
     assert decision.verdict == expected, (claim, [(p.claim_text(), p.interval_text()) for p in decision.parts])
-    assert all(part.n == len(d) for part in decision.parts)
+    units = MIN_SPEED_ROUNDS if claim in SPEED_PARTS and len(d) == MIN_SPEED_ROUNDS - 1 else len(d)
+    assert all(part.n == units for part in decision.parts)
 
 
 def test_spanning_case_is_what_the_rule_calls_inconclusive() -> None:
@@ -260,17 +263,25 @@ def test_every_claim_of_the_targets_is_in_one_paper_module() -> None:
     assert [r.key for r in all_reproductions()] == ["chaitanya2017", "hasselgren2020", "isik2021", "iglesias2022"]
 
 
-def test_speed_claims_are_decided_on_the_timing_jobs_ratio_spread() -> None:
-    """C4.4 compares per-round ratios of the timing job: one round where wRLS is not faster makes the claim
-    inconclusive however fast the other rounds were; without the timing job the claim is not run."""
+def test_speed_claims_are_decided_on_a_t_interval_of_log_time_ratios() -> None:
+    """C4.4 compares per-round time ratios of the timing job by the t-interval of their logarithms (scipy
+    here): one slow round among fast ones widens the interval; fewer than MIN_SPEED_ROUNDS rounds decide
+    nothing; without the timing job the claim is not run."""
     cfg = claims_config()
     table = Table(cfg, 4)
-    mixed = timing_job(cfg, {("wrls", 2): [0.2, 0.3, 0.25, 1.05]})
-    decision = evaluate_claim(build(cfg, table, timing=mixed), CLAIMS["C4.4"])
-    assert decision.verdict == INCONCLUSIVE and decision.parts[0].interval[2] == pytest.approx(1.05)
-    three_rounds = timing_job(cfg, {("wrls", 2): [0.5, 0.6, 0.7], ("rae", 2): [1.0, 1.0, 1.0]}, rounds=3)
-    decision = evaluate_claim(build(cfg, table, timing=three_rounds), CLAIMS["C4.4"])
-    assert decision.verdict == REPRODUCED and decision.parts[0].n == 3
+    for factors, expected in (([0.2, 0.3, 0.25, 1.05, 0.22], REPRODUCED), ([0.2, 0.3, 0.25, 3.0, 0.22], INCONCLUSIVE),
+                              ([1.2, 1.3, 1.25, 1.1, 1.22], CONTRADICTED)):
+        timing = timing_job(cfg, {("wrls", 2): factors}, rounds=5)
+        decision = evaluate_claim(build(cfg, table, timing=timing), CLAIMS["C4.4"])
+        logs = np.log(factors)
+        low, high = stats.t.interval(0.95, 4, loc=logs.mean(), scale=stats.sem(logs))
+        assert decision.verdict == expected, factors
+        assert decision.parts[0].interval == pytest.approx((logs.mean(), low, high))
+        shown = re.match(r"time ratio (\S+) \[(\S+), (\S+)\] over 5 rounds", decision.parts[0].interval_text())
+        assert [float(v) for v in shown.groups()] == pytest.approx(np.exp([logs.mean(), low, high]), rel=2e-3)
+    four_rounds = timing_job(cfg, {("wrls", 2): [0.5, 0.6, 0.7, 0.55], ("rae", 2): [1.0] * 4}, rounds=4)
+    decision = evaluate_claim(build(cfg, table, timing=four_rounds), CLAIMS["C4.4"])
+    assert decision.verdict == INCONCLUSIVE and decision.parts[0].n == 4 and MIN_SPEED_ROUNDS == 5
     results = build(cfg, table)
     results.timing = None
     decision = evaluate_claim(results, CLAIMS["C4.4"])

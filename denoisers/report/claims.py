@@ -11,12 +11,19 @@ Its outcome:
 * ``inconclusive`` -- otherwise (the interval touches or spans 0, or n < MIN_UNITS).
 
 Speed parts (:class:`SpeedPart`) are the exception: the timing job times every row on one scene in
-interleaved rounds, so their units are the rounds and the statistic is the per-round time ratio a / b;
-reproduced when every round's ratio is on the claimed side of 1 (the whole spread), contradicted when
-every round's is on the other side, inconclusive otherwise or with fewer than MIN_UNITS rounds.
+interleaved rounds, so their units are the rounds and the statistic is the per-round log time ratio
+ln(a / b), with the same t-interval (shown back as a ratio), and at least :data:`MIN_SPEED_ROUNDS` rounds.
 
-A claim is reproduced when every part is, contradicted when any part is (a conjunction with one false
-part is false), inconclusive otherwise, and ``not run`` when a row, spp or model it needs is missing.
+A claim is reproduced when every part is (an intersection-union test: no multiplicity correction is
+needed), ``not run`` when a row, spp or model it needs is missing. It is contradicted when at least one
+part is contradicted *after Holm's correction over its parts*: each part's one-sided p-value for the
+other side (t-test of its mean difference) is compared, smallest first, with 0.025 / (m - i), the one-sided
+level of the 95 % interval shared among the m parts. A single-part claim is contradicted exactly when its
+interval lies wholly on the other side. Otherwise inconclusive.
+
+Means shown beside a part are over the scenes it is decided on (the joined scenes of a and b). For an
+inconclusive part, :func:`scenes_needed` is the number of scenes at which a t-interval with the observed
+mean difference and spread would exclude 0.
 *Facts* (e.g. "needs no training", read from the method registry) are shown beside the parts and do
 not decide the verdict.
 """
@@ -39,11 +46,16 @@ if TYPE_CHECKING:
 REPRODUCED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "reproduced", "contradicted", "inconclusive", "not run"
 VERDICTS = (REPRODUCED, CONTRADICTED, INCONCLUSIVE, NOT_RUN)
 MIN_UNITS = 3
+MIN_SPEED_ROUNDS = 5
+#: One-sided level of each side of the 95 % two-sided interval; Holm shares it among a claim's parts.
+ALPHA_ONE_SIDED = 0.025
+#: Largest scene count :func:`scenes_needed` searches (beyond it: "more than" this).
+MAX_SCENES_NEEDED = 10_000
 RULE = (f"each part: paired per-scene difference a−b; reproduced if its 95 % t-interval lies wholly on the "
         f"claimed side of 0 (n ≥ {MIN_UNITS}), contradicted if wholly on the other side, else inconclusive; "
-        "the claim needs every part")
-SPEED_RULE = (f"; a speed part: per-round time ratio a/b of the timing job, reproduced if every round's ratio is on "
-              f"the claimed side of 1 (≥ {MIN_UNITS} rounds)")
+        "the claim needs every part and is contradicted when a part is after Holm's correction over its parts")
+SPEED_RULE = (f"; a speed part: per-round log time ratio ln(a/b) of the timing job, t-interval over ≥ {MIN_SPEED_ROUNDS} "
+              "rounds, shown as a ratio")
 
 
 @dataclass
@@ -70,7 +82,8 @@ class Part:
             raise ValueError(f"claimed must be 'higher' or 'lower', got {claimed!r}")
         joined = a.to_frame("a").join(b.to_frame("b"), how="inner").astype(float).dropna()
         return cls(quantity, a_label, b_label, claimed, (joined["a"] - joined["b"]).to_numpy(np.float64),
-                   [str(u) for u in joined.index], float(a.mean()), float(b.mean()), tuple(rows))
+                   [str(u) for u in joined.index], float(joined["a"].mean()), float(joined["b"].mean()),
+                   tuple(rows))
 
     @property
     def n(self) -> int:
@@ -82,9 +95,29 @@ class Part:
         return mean, low, high
 
     @property
+    def min_units(self) -> int:
+        return MIN_UNITS
+
+    @property
+    def p_other_side(self) -> float:
+        """One-sided p-value of the t-test that the mean difference lies on the side opposite to the claim
+        (small: evidence against the claim); NaN with fewer than two units. Zero spread: 0 when the mean is
+        on the other side, 1 when on the claimed side, 0.5 at exactly 0."""
+        from scipy import stats
+
+        if self.n < 2:
+            return math.nan
+        sign = 1.0 if self.claimed == "higher" else -1.0
+        mean, spread = float(np.mean(self.diffs)), float(np.std(self.diffs, ddof=1))
+        if spread == 0.0:
+            return 0.5 if mean == 0.0 else (0.0 if sign * mean < 0 else 1.0)
+        t_value = sign * mean / (spread / math.sqrt(self.n))
+        return float(stats.t.cdf(t_value, self.n - 1))
+
+    @property
     def outcome(self) -> str:
         mean, low, high = self.interval
-        if self.n < MIN_UNITS or math.isnan(low):
+        if self.n < self.min_units or math.isnan(low):
             return INCONCLUSIVE
         sign = 1.0 if self.claimed == "higher" else -1.0
         if sign * low > 0 and sign * high > 0:
@@ -109,38 +142,62 @@ class Part:
 
 @dataclass
 class SpeedPart(Part):
-    """A speed part: per-round ratios ms_a / ms_b of the timing job (``diffs`` holds the ratios), claimed
-    < 1 (a faster, 'lower') or > 1 ('higher'); decided on the whole spread of the ratios."""
+    """A speed part: per-round log time ratios ln(ms_a / ms_b) of the timing job (``diffs``), claimed < 0 (a
+    faster, 'lower') or > 0 ('higher'); decided like a Part with the rounds as units (at least
+    MIN_SPEED_ROUNDS) and shown as ratios exp(.)."""
 
     @property
-    def interval(self) -> tuple[float, float, float]:
-        if not self.n:
-            return math.nan, math.nan, math.nan
-        return float(np.median(self.diffs)), float(self.diffs.min()), float(self.diffs.max())
-
-    @property
-    def outcome(self) -> str:
-        _, low, high = self.interval
-        if self.n < MIN_UNITS or math.isnan(low):
-            return INCONCLUSIVE
-        faster = high < 1.0 and low < 1.0
-        slower = low > 1.0 and high > 1.0
-        if (faster and self.claimed == "lower") or (slower and self.claimed == "higher"):
-            return REPRODUCED
-        if faster or slower:
-            return CONTRADICTED
-        return INCONCLUSIVE
+    def min_units(self) -> int:
+        return MIN_SPEED_ROUNDS
 
     def measured_text(self) -> str:
         return (f"ms/frame (timing job, median over {self.n} rounds): {self.a} {fmt(self.mean_a, 'ms_per_frame')} "
                 f"vs {self.b} {fmt(self.mean_b, 'ms_per_frame')}")
 
     def interval_text(self) -> str:
-        median, low, high = self.interval
-        return f"time ratio {median:.3g} [{low:.3g}, {high:.3g}] over {self.n} rounds"
+        mean, low, high = self.interval
+        if math.isnan(low):
+            return f"time ratio {math.exp(mean):.3g} over {self.n} rounds (no interval)"
+        return f"time ratio {math.exp(mean):.3g} [{math.exp(low):.3g}, {math.exp(high):.3g}] over {self.n} rounds"
 
     def claim_text(self) -> str:
         return f"{self.a} / {self.b} time {'<' if self.claimed == 'lower' else '>'} 1 ({self.outcome})"
+
+
+def holm_rejected(p_values: Sequence[float], alpha: float = ALPHA_ONE_SIDED) -> list[bool]:
+    """Holm's step-down procedure: which hypotheses are rejected at family-wise level ``alpha``. Sorted
+    ascending, p_(i) (i = 0..m-1) is rejected while p_(i) <= alpha / (m - i); the first that is not stops it.
+    NaN p-values are never rejected."""
+    order = sorted(range(len(p_values)), key=lambda k: (math.isnan(p_values[k]), p_values[k]))
+    rejected = [False] * len(p_values)
+    m = len(p_values)
+    for rank, index in enumerate(order):
+        p = p_values[index]
+        if math.isnan(p) or p > alpha / (m - rank):
+            break
+        rejected[index] = True
+    return rejected
+
+
+def scenes_needed(diffs: Sequence[float], confidence: float = 0.95) -> int | None:
+    """The smallest number of scenes n at which a Student-t interval with the observed mean difference and
+    standard deviation would exclude 0: t_{(1+c)/2, n-1} s / sqrt(n) < |mean|. None when it cannot (fewer than
+    two values, or a zero mean); MAX_SCENES_NEEDED + 1 when it needs more than that."""
+    from scipy import stats
+
+    data = np.asarray(diffs, dtype=np.float64)
+    if len(data) < 2:
+        return None
+    mean, spread = abs(float(data.mean())), float(data.std(ddof=1))
+    if mean == 0.0:
+        return None
+    if spread == 0.0:
+        return 2
+    quantile = 0.5 + confidence / 2.0
+    for n in range(2, MAX_SCENES_NEEDED + 1):
+        if stats.t.ppf(quantile, n - 1) * spread / math.sqrt(n) < mean:
+            return n
+    return MAX_SCENES_NEEDED + 1
 
 
 @dataclass
@@ -161,15 +218,31 @@ class Decision:
     not_run: str = ""            # non-empty: a needed row, spp or model is missing (the reason)
 
     @property
+    def contradicting_parts(self) -> list[bool]:
+        """Per part: contradicted after Holm's correction over the claim's parts (see the module docstring)."""
+        # Holm over all m parts; a part with too few units has no p-value (never rejected) but counts in m.
+        family = [part.p_other_side if part.n >= part.min_units else math.nan for part in self.parts]
+        return [part.outcome == CONTRADICTED and hit for part, hit in zip(self.parts, holm_rejected(family))]
+
+    @property
     def verdict(self) -> str:
         if self.not_run or not self.parts:
             return NOT_RUN
         outcomes = [part.outcome for part in self.parts]
         if all(o == REPRODUCED for o in outcomes):
             return REPRODUCED
-        if any(o == CONTRADICTED for o in outcomes):
+        if any(self.contradicting_parts):
             return CONTRADICTED
         return INCONCLUSIVE
+
+    def holm_note(self) -> str:
+        """Why a part whose interval lies on the other side does not contradict the claim ('' otherwise)."""
+        kept = [part for part, hit in zip(self.parts, self.contradicting_parts)
+                if part.outcome == CONTRADICTED and not hit]
+        if not kept:
+            return ""
+        return (f"{len(kept)} part(s) on the other side do not survive Holm's correction over {len(self.parts)} "
+                f"parts ({'; '.join(part.claim_text() for part in kept)}); ")
 
 
 def not_run(reason: str) -> Decision:
@@ -238,8 +311,8 @@ def compare_speed(res: Results, a: str, b: str, spp: int, claimed: str = "lower"
     if row_a is None or row_b is None:
         absent = [f"{r} @ {spp} spp" for r, row in ((a, row_a), (b, row_b)) if row is None]
         return f"the timing job did not time {', '.join(absent)}"
-    ratios = speed_ratios(res.timing, (a, spp), (b, spp))
-    return SpeedPart("ms_per_frame", f"{a} @ {spp} spp", f"{b} @ {spp} spp", claimed, ratios,
+    ratios = np.asarray(speed_ratios(res.timing, (a, spp), (b, spp)), np.float64)
+    return SpeedPart("ms_per_frame", f"{a} @ {spp} spp", f"{b} @ {spp} spp", claimed, np.log(ratios),
                      [f"round {k + 1}" for k in range(len(ratios))], float(row_a["ms_per_frame"]),
                      float(row_b["ms_per_frame"]), ((a, spp), (b, spp)))
 
@@ -254,8 +327,17 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
             if text and text not in flags:
                 flags.append(text)
     ns = sorted({part.n for part in parts})
+    needed = []
+    for part in parts:
+        if part.outcome == INCONCLUSIVE and not isinstance(part, SpeedPart):
+            count = scenes_needed(part.diffs)
+            needed.append("–" if count is None else (f"> {MAX_SCENES_NEEDED}" if count > MAX_SCENES_NEEDED
+                                                     else str(count)))
+        else:
+            needed.append("")
     return {"claim": claim.id, "paper": claim.paper, "statement": claim.statement, "verdict": decision.verdict,
             "n": ", ".join(map(str, ns)) if parts else "",
+            "scenes_needed": "; ".join(needed) if any(needed) else "",
             "mean_diff_ci_95": "; ".join(p.interval_text() for p in parts),
             "parts": "; ".join(p.claim_text() for p in parts),
             "measured": "; ".join(p.measured_text() for p in parts),
@@ -263,15 +345,15 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
                                for f in decision.facts),
             "flags": "; ".join(flags),
             "note": decision.not_run or (UNDERTRAINED_NOTE if any(UNDERTRAINED in f for f in flags) else "")
-            + decision.note,
+            + decision.holm_note() + decision.note,
             "rule": (RULE + (SPEED_RULE if any(isinstance(p, SpeedPart) for p in parts) else "")) if parts else ""}
 
 
 UNDERTRAINED = "under-trained"
 UNDERTRAINED_NOTE = ("involves an under-trained model (see flags): the verdict tests the training budget, not the "
                      "method; ")
-CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "mean_diff_ci_95", "parts", "measured", "facts",
-                 "flags", "note", "rule")
+CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "mean_diff_ci_95", "scenes_needed", "parts",
+                 "measured", "facts", "flags", "note", "rule")
 
 
 def claims_table(res: Results, claims: Sequence[Claim]) -> pd.DataFrame:

@@ -13,7 +13,8 @@ from denoisers.report import tables as tab
 from denoisers.report import targets
 from denoisers.report.atlas import report_section as atlas_section
 from denoisers.report.capacity import capacity_section
-from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, MIN_UNITS, NOT_RUN, REPRODUCED, claims_table
+from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SPEED_ROUNDS, MIN_UNITS, NOT_RUN, REPRODUCED,
+                                     claims_table)
 from denoisers.report.collect import CROP_GAP_DB, MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.color_balance import color_balance_section
 from denoisers.report.outputs import report_outputs
@@ -27,7 +28,8 @@ if TYPE_CHECKING:
 
 TRAINING_COLUMNS = ("train_minutes", "step_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim",
                     "val_psnr", "val_rmse", "whole_frame_gap_db")
-CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "mean_diff_ci_95", "parts", "measured", "facts", "flags", "note"]
+CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "mean_diff_ci_95", "scenes_needed", "parts", "measured", "facts",
+                "flags", "note"]
 
 
 def _setup_lines(res: Results) -> list[str]:
@@ -98,14 +100,17 @@ def _claims_section(claims: pd.DataFrame) -> list[str]:
             "are the independent units). "
             f"A part is **reproduced** when the 95 % Student-t interval of the mean difference lies wholly on the "
             f"claimed side of 0, **contradicted** when it lies wholly on the other side, **inconclusive** otherwise "
-            f"(always with fewer than {MIN_UNITS} scenes); a claim needs every part, and any contradicted part "
-            "contradicts it. **not run**: a row, spp or model it needs is missing (a claim stated at an spp that was "
+            f"(always with fewer than {MIN_UNITS} scenes); a claim needs every part, and a contradicted part "
+            "contradicts it when it survives Holm's correction over the claim's parts (one-sided p-values against "
+            "0.025 / (m − i), smallest first). Means are over the scenes both sides ran on. `scenes_needed`: per "
+            "inconclusive part, the scene count at which the observed mean difference and spread would decide it. "
+            "**not run**: a row, spp or model it needs is missing (a claim stated at an spp that was "
             "not evaluated is never moved to another). Facts (declared, not measured) do not decide. Flags name "
             "rows whose outputs held non-finite values or values far outside the input's range, and rows whose "
             f"model trained fewer than {MIN_TRAINING_STEPS} steps or is under-trained (its best validation loss still "
             "fell over the last part of its run; see the training table): their numbers test the budget, not the "
-            "method. Speed parts are decided on the timing job instead: the per-round time ratio a/b, reproduced "
-            f"when every round is on the claimed side of 1 (at least {MIN_UNITS} rounds).",
+            "method. Speed parts are decided on the timing job instead: a t-interval of the per-round log time "
+            f"ratio ln(a/b) over at least {MIN_SPEED_ROUNDS} rounds, shown as a ratio.",
             "",
             f"Verdicts: {tally}.", "", frame_to_markdown(claims[CLAIMS_SHOWN]), "",
             "[claims (CSV)](tables/claims.csv)", ""]
