@@ -261,10 +261,22 @@ def _converged(reason: str) -> str:
     return "no (under-trained)" if "under-trained" in reason else "unknown" if reason else "yes"
 
 
+def _doubling_gain(curves: pd.DataFrame) -> float:
+    """Validation-PSNR gain (dB) of doubling the model's budget, from a power law fitted to its validation
+    curve (denoisers.report.budget); NaN without val_psnr."""
+    from denoisers.report.budget import doubling_gain
+
+    if "val_psnr" not in curves or "step" not in curves:
+        return math.nan
+    val = curves.dropna(subset=["val_psnr"])
+    return doubling_gain(val["step"].to_numpy(), val["val_psnr"].to_numpy())
+
+
 def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFrame:
     """One row per configured model: size, budget used, validation metrics of best.pt and convergence (the
     relative fall of the best validation loss over the last part of the run, training.convergence, which
-    decides; beside it the line fit's fall with its 95 % half-width and the validation PSNR gained there), and
+    decides; beside it the line fit's fall with its 95 % half-width, the validation PSNR gained there and the gain
+    a doubled budget would bring by a power law fitted to the validation curve, denoisers.report.budget), and
     whole_frame_gap_db: whole validation frames minus crop-sized windows of them, lowest scene (NaN: not checked;
     denoisers.crop_check)."""
     import pandas as pd
@@ -293,6 +305,7 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
                         "val_loss_trend_in_window": trend,
                         "val_loss_trend_ci95": trend_half,
                         "val_psnr_gain_in_window": model.validation_psnr_gain(rule["window_fraction"]),
+                        "val_psnr_gain_if_doubled": _doubling_gain(model.curves),
                         "converged": _converged(model.undertrained(cfg or {})),
                         "whole_frame_gap_db": (s.get("crop_check") or {}).get("gap_db", math.nan),
                         "commit": (s.get("provenance", {}).get("commit") or "")[:12],
