@@ -73,3 +73,18 @@ def test_means_are_over_the_joined_scenes() -> None:
     b = pd.Series([9.0, 11.0], index=["s0", "s1"])
     joined = Part.paired(a, b, "psnr", "a", "b")
     assert joined.n == 2 and joined.mean_a == pytest.approx(11.0) and joined.mean_b == pytest.approx(10.0)
+
+
+def test_a_stated_margin_moves_the_bound() -> None:
+    """"Much worse" (C3.2, MUCH_WORSE_MARGIN_DB): a - b > 0.5 dB. Worse by about 0.3 dB is not much worse
+    (contradicted); by about 0.8 dB it is. The p-value is scipy's t-test against 0.5."""
+    from denoisers.report.stats import MUCH_WORSE_MARGIN_DB
+
+    assert MUCH_WORSE_MARGIN_DB == 0.5
+    mild, clear = [0.3, 0.25, 0.35, 0.28, 0.32], [0.8, 0.75, 0.85, 0.78, 0.82]
+    for diffs, expected in ((mild, CONTRADICTED), (clear, REPRODUCED)):
+        shifted = Part("psnr", "a", "b", "higher", np.asarray(diffs), ["s"] * 5, 0.0, 0.0, threshold=0.5)
+        assert shifted.outcome == expected
+        assert shifted.p_other_side == pytest.approx(stats.ttest_1samp(diffs, 0.5, alternative="less").pvalue)
+        assert "> 0.50" in shifted.claim_text()
+    assert part(mild).outcome == REPRODUCED      # without the margin: merely worse

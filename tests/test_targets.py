@@ -28,10 +28,26 @@ def test_spanning_fixture_interval_spans_zero_and_clear_does_not() -> None:
         assert (low < 0 < high) == spans
 
 
+#: FLIP's non-inferiority margin (denoisers.report.stats.NON_INFERIORITY_MARGIN): RAE may be worse by < 0.01.
+FLIP_MARGIN = 0.01
+
+
+def test_flip_fixtures_lie_where_the_cases_below_assume() -> None:
+    """scipy's intervals of the FLIP differences against the margin (independent of the code under test)."""
+    def interval(d: list[float]) -> tuple[float, float]:
+        return stats.t.interval(0.95, len(d) - 1, loc=sum(d) / len(d), scale=stats.sem(d))
+    assert interval([0.001 * d for d in SPANNING])[1] < FLIP_MARGIN                      # within the margin
+    assert interval([0.01 * d for d in SPANNING])[1] > FLIP_MARGIN > interval([0.01 * d for d in SPANNING])[0]
+    assert interval([0.01 * d for d in CLEAR])[0] < FLIP_MARGIN < interval([0.01 * d for d in CLEAR])[1]
+    assert interval([0.03 * d for d in CLEAR])[0] > FLIP_MARGIN                          # beyond the margin
+
+
 @pytest.mark.parametrize("psnr2, flip, expected", [
     (CLEAR, [0.0] * 4, targets.MET),                          # better PSNR, identical FLIP: no worse holds
-    (CLEAR, [0.01 * d for d in SPANNING], targets.MET),       # FLIP difference spans 0: no evidence of worse
-    (CLEAR, [0.01 * d for d in CLEAR], targets.NOT_MET),      # FLIP wholly higher (worse)
+    (CLEAR, [0.001 * d for d in SPANNING], targets.MET),      # FLIP difference wholly within the margin
+    (CLEAR, [0.01 * d for d in SPANNING], targets.OPEN),      # FLIP interval reaches beyond the margin
+    (CLEAR, [0.01 * d for d in CLEAR], targets.OPEN),         # worse, but not shown worse by more than 0.01
+    (CLEAR, [0.03 * d for d in CLEAR], targets.NOT_MET),      # FLIP wholly worse by more than the margin
     (SPANNING, [0.0] * 4, targets.OPEN),                      # PSNR at 2 spp undecided
     (AGAINST, [0.0] * 4, targets.NOT_MET),                    # PSNR at 2 spp wholly lower
 ])

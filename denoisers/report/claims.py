@@ -71,10 +71,14 @@ class Part:
     mean_a: float
     mean_b: float
     rows: tuple[tuple[str, int], ...] = ()   # (row id, spp) the part is computed from (for flags)
+    #: The claimed bound: a - b > threshold ('higher') or < threshold ('lower'); 0 unless a claim states a
+    #: margin ("much worse": a positive margin on the claimed side; "no worse": the non-inferiority margin on
+    #: the other side).
+    threshold: float = 0.0
 
     @classmethod
     def paired(cls, a: pd.Series, b: pd.Series, quantity: str, a_label: str, b_label: str,
-               claimed: str | None = None, rows: Sequence[tuple[str, int]] = ()) -> Part:
+               claimed: str | None = None, rows: Sequence[tuple[str, int]] = (), threshold: float = 0.0) -> Part:
         """From two per-scene series (indexed by scene); ``claimed`` defaults to 'a is better' for the metric."""
         if claimed is None:
             claimed = "higher" if HIGHER_IS_BETTER.get(quantity, True) else "lower"
@@ -83,7 +87,7 @@ class Part:
         joined = a.to_frame("a").join(b.to_frame("b"), how="inner").astype(float).dropna()
         return cls(quantity, a_label, b_label, claimed, (joined["a"] - joined["b"]).to_numpy(np.float64),
                    [str(u) for u in joined.index], float(joined["a"].mean()), float(joined["b"].mean()),
-                   tuple(rows))
+                   tuple(rows), float(threshold))
 
     @property
     def n(self) -> int:
@@ -108,7 +112,7 @@ class Part:
         if self.n < 2:
             return math.nan
         sign = 1.0 if self.claimed == "higher" else -1.0
-        mean, spread = float(np.mean(self.diffs)), float(np.std(self.diffs, ddof=1))
+        mean, spread = float(np.mean(self.diffs)) - self.threshold, float(np.std(self.diffs, ddof=1))
         if spread == 0.0:
             return 0.5 if mean == 0.0 else (0.0 if sign * mean < 0 else 1.0)
         t_value = sign * mean / (spread / math.sqrt(self.n))
@@ -120,6 +124,7 @@ class Part:
         if self.n < self.min_units or math.isnan(low):
             return INCONCLUSIVE
         sign = 1.0 if self.claimed == "higher" else -1.0
+        low, high = low - self.threshold, high - self.threshold
         if sign * low > 0 and sign * high > 0:
             return REPRODUCED
         if sign * low < 0 and sign * high < 0:
@@ -137,7 +142,8 @@ class Part:
         return f"{fmt(mean, self.quantity)} [{fmt(low, self.quantity)}, {fmt(high, self.quantity)}]"
 
     def claim_text(self) -> str:
-        return f"{self.a} − {self.b} {'>' if self.claimed == 'higher' else '<'} 0 ({self.outcome})"
+        bound = fmt(self.threshold, self.quantity) if self.threshold else "0"
+        return f"{self.a} − {self.b} {'>' if self.claimed == 'higher' else '<'} {bound} ({self.outcome})"
 
 
 @dataclass
@@ -293,11 +299,13 @@ def spp_available(res: Results, spp: int, rows: Sequence[str | None]) -> str:
 
 
 def compare_rows(res: Results, a: str, b: str, metric: str, spp: int, claimed: str | None = None,
-                 b_spp: int | None = None) -> Part:
-    """Part comparing row a at ``spp`` with row b at ``b_spp`` (default the same) on a per-scene metric."""
+                 b_spp: int | None = None, threshold: float = 0.0) -> Part:
+    """Part comparing row a at ``spp`` with row b at ``b_spp`` (default the same) on a per-scene metric, claimed
+    beyond ``threshold`` (Part.threshold)."""
     b_spp = spp if b_spp is None else b_spp
     return Part.paired(res.scene_values(a, spp, metric), res.scene_values(b, b_spp, metric), metric,
-                       f"{a} @ {spp} spp", f"{b} @ {b_spp} spp", claimed, rows=((a, spp), (b, b_spp)))
+                       f"{a} @ {spp} spp", f"{b} @ {b_spp} spp", claimed, rows=((a, spp), (b, b_spp)),
+                       threshold=threshold)
 
 
 def compare_speed(res: Results, a: str, b: str, spp: int, claimed: str = "lower") -> SpeedPart | str:

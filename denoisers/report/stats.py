@@ -24,6 +24,13 @@ LABELS = {"psnr": "PSNR (dB, frame mean)", "video_psnr": "video PSNR (dB, Isik E
           "rmse": "RMSE", "relmse": "rMSE", "smape": "SMAPE", "flip": "FLIP", "tpsnr": "tPSNR (dB)",
           "trmae": "TRMAE", "ms_per_frame": "ms/frame", "mpix_per_s": "Mpix/s", "peak_memory_mb": "peak MB",
           "psnr_drop": "PSNR drop under spikes (dB)"}
+#: Non-inferiority margins ("a is no worse than b"): a - b may be worse by at most this much, in the metric's
+#: units. Chosen well below the differences between methods the papers report and below this harness's
+#: seed-to-seed spread (about 0.5 dB PSNR): 0.1 dB PSNR (2.3 % in MSE), 0.005 SSIM, 0.01 FLIP and SMAPE (both
+#: in [0, 1]; denoised 1-spp frames score about 0.1-0.3 here). A "no worse" on another metric is an error.
+NON_INFERIORITY_MARGIN = {"psnr": 0.1, "video_psnr": 0.1, "tpsnr": 0.1, "ssim": 0.005, "flip": 0.01, "smape": 0.01}
+#: "Much worse" (Isik et al. C3.2: affinity dimension d = 1): worse by more than this many dB PSNR.
+MUCH_WORSE_MARGIN_DB = 0.5
 DECIMALS = {"psnr": 2, "video_psnr": 2, "tpsnr": 2, "ssim": 4, "flip": 4, "smape": 4, "trmae": 4, "rmse": 4,
             "relmse": 4, "ms_per_frame": 2, "mpix_per_s": 3, "peak_memory_mb": 1, "psnr_drop": 2}
 

@@ -6,8 +6,9 @@ one spp, paired over the evaluated scenes as the claims are (denoisers.report.cl
 
 * a *better* comparison holds when the 95 % interval of the mean difference lies wholly on the better side of
   0, fails when it lies wholly on the worse side, and is open otherwise;
-* a *no worse* comparison fails only when the interval lies wholly on the worse side (a measured
-  non-inferiority at margin 0: no evidence that a is worse).
+* a *no worse* comparison is a non-inferiority test at the metric's stated margin δ
+  (``stats.NON_INFERIORITY_MARGIN``): it holds when the interval lies wholly on the better side of −δ (a is
+  worse by less than δ, if at all), fails when it lies wholly beyond −δ, and is open otherwise.
 
 A target is **met** when every comparison holds, **not met** when any fails, **inconclusive** otherwise, and
 **not run** when a row or spp it needs did not run.
@@ -19,7 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from denoisers.report.claims import CONTRADICTED, REPRODUCED, Part, RowNeed, compare_rows
-from denoisers.report.stats import HIGHER_IS_BETTER
+from denoisers.report.stats import HIGHER_IS_BETTER, NON_INFERIORITY_MARGIN
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -29,8 +30,9 @@ if TYPE_CHECKING:
 MET, NOT_MET, OPEN, NOT_RUN = "met", "not met", "inconclusive", "not run"
 BETTER, NO_WORSE = "better", "no worse"
 RULE = ("paired per-scene difference a−b per comparison; 'better' holds if its 95 % t-interval lies wholly on the "
-        "better side of 0 and fails if wholly on the worse side; 'no worse' fails only if wholly on the worse "
-        "side; met = every comparison holds, not met = any fails")
+        "better side of 0 and fails if wholly on the worse side; 'no worse' holds if wholly on the better side of the "
+        "metric's non-inferiority margin −δ and fails if wholly beyond it; met = every comparison holds, not met = "
+        "any fails")
 
 #: Finds the evaluation row of one side at an spp (None: no such row configured).
 RowFinder = Callable[["Results", int], "str | None"]
@@ -99,7 +101,7 @@ def comparison_state(part: Part, mode: str) -> str:
     outcome = part.outcome
     if outcome == CONTRADICTED:
         return NOT_MET
-    if outcome == REPRODUCED or mode == NO_WORSE:
+    if outcome == REPRODUCED:
         return MET
     return OPEN
 
@@ -117,8 +119,11 @@ def decide(res: Results, target: Target) -> tuple[str, list[tuple[Part, str]], s
     parts = []
     for comp in target.comparisons:
         better = "higher" if HIGHER_IS_BETTER.get(comp.metric, True) else "lower"
-        parts.append((compare_rows(res, comp.a(res, comp.spp), comp.b(res, comp.spp), comp.metric, comp.spp, better),
-                      comp.mode))
+        # "no worse": a - b beyond -delta on the better side (the margin moves the bound to the worse side).
+        threshold = 0.0 if comp.mode == BETTER else (-1.0 if better == "higher" else 1.0) * \
+            NON_INFERIORITY_MARGIN[comp.metric]
+        parts.append((compare_rows(res, comp.a(res, comp.spp), comp.b(res, comp.spp), comp.metric, comp.spp, better,
+                                   threshold=threshold), comp.mode))
     states = [comparison_state(part, mode) for part, mode in parts]
     status = MET if all(s == MET for s in states) else NOT_MET if NOT_MET in states else OPEN
     return status, parts, ""

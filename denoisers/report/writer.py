@@ -18,7 +18,8 @@ from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SPEED_ROUND
 from denoisers.report.collect import CROP_GAP_DB, MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.color_balance import color_balance_section
 from denoisers.report.outputs import report_outputs
-from denoisers.report.stats import LABELS, formatted, frame_to_markdown, markdown_table, with_ci_columns
+from denoisers.report.stats import (LABELS, NON_INFERIORITY_MARGIN, formatted, frame_to_markdown, markdown_table,
+                                   with_ci_columns)
 from denoisers.reproductions import all_claims, all_reproductions
 from scenegen.atomic import write_text_atomic
 from scenegen.config import output_root
@@ -122,8 +123,9 @@ def _targets_section(res: Results, tables: Path) -> list[str]:
     tab.write_table(table, tables, "targets")
     return ["## Quality targets", "",
             "What the harness's issues expect a working build to show, not the papers' claims; decided like the "
-            f"claims, from paired per-scene differences ({targets.RULE}). Flags name rows that are suspect or "
-            "under-trained.", "", frame_to_markdown(table[list(targets.SHOWN)]), "",
+            f"claims, from paired per-scene differences ({targets.RULE}). Non-inferiority margins δ: "
+            + ", ".join(f"{metric} {margin:g}" for metric, margin in NON_INFERIORITY_MARGIN.items())
+            + ". Flags name rows that are suspect or under-trained.", "", frame_to_markdown(table[list(targets.SHOWN)]), "",
             "[targets (CSV)](tables/targets.csv)", ""]
 
 

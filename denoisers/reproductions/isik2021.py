@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from denoisers.report.claims import Claim, Decision, Part, RowNeed, compare_rows, not_run
-from denoisers.report.stats import LABELS, fmt_ci, frame_to_markdown, mean_ci
+from denoisers.report.stats import LABELS, MUCH_WORSE_MARGIN_DB, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions import _isik2021_paper as paper
 from denoisers.reproductions.base import Reproduction
 
@@ -98,8 +98,10 @@ def claim_spps(res: Results, rows: list[str | None]) -> list[int]:
 
 
 # ------------------------------------------------------------------------------------------ claims
-def _pairs(res: Results, pairs: list[tuple[str | None, str | None, str, str, str]], note: str) -> Decision:
-    """Parts (row a, row b, metric, claimed, label) at every claim spp both rows ran at."""
+def _pairs(res: Results, pairs: list[tuple[str | None, str | None, str, str, str]], note: str,
+           threshold: float = 0.0) -> Decision:
+    """Parts (row a, row b, metric, claimed, label) at every claim spp both rows ran at, claimed beyond
+    ``threshold`` (claims.Part.threshold)."""
     missing = sorted({label for a, b, _, _, label in pairs if a is None or b is None})
     if missing:
         return not_run("missing rows: " + "; ".join(missing))
@@ -108,7 +110,8 @@ def _pairs(res: Results, pairs: list[tuple[str | None, str | None, str, str, str
     if not spps:
         return not_run(f"no row set ran at any of {list(CLAIM_SPP)} spp (evaluation.spp = "
                        f"{res.cfg['evaluation']['spp']})")
-    parts = [compare_rows(res, a, b, metric, spp, claimed) for a, b, metric, claimed, _ in pairs for spp in spps]
+    parts = [compare_rows(res, a, b, metric, spp, claimed, threshold=threshold)
+             for a, b, metric, claimed, _ in pairs for spp in spps]
     return Decision(parts, note=f"{note}; at {', '.join(map(str, spps))} spp")
 
 
@@ -128,7 +131,8 @@ def decide_c32(res: Results) -> Decision:
     if d1 is None or not others:
         return not_run("missing rows: a single-frame afn model with net.affinity_dim 1 and one with 2, 4 or 8")
     return _pairs(res, [(other, d1, "psnr", "higher", "") for other in others],
-                  "single-frame models, d >= 2 minus d = 1 (the paper calls d = 1 'much worse'; judged as worse)")
+                  f"single-frame models, d >= 2 minus d = 1; 'much worse' = by more than {MUCH_WORSE_MARGIN_DB:g} dB",
+                  threshold=MUCH_WORSE_MARGIN_DB)
 
 
 def decide_c33(res: Results) -> Decision:
