@@ -189,16 +189,19 @@ def spatial_filter(image: torch.Tensor, features: torch.Tensor, bandwidth: torch
 def joint_filter(image: torch.Tensor, features: torch.Tensor, bandwidth: torch.Tensor, center: torch.Tensor,
                  size: int, dilation: int, history: torch.Tensor | None, history_features: torch.Tensor | None,
                  history_bandwidth: torch.Tensor | None, history_size: int,
-                 backend: str = "auto") -> torch.Tensor:
+                 backend: str = "auto", history_valid: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 8: the last spatial kernel on ``image`` and the temporal kernel (Eq. 7, dilation 1, no special centre)
     on the warped previous output ``history`` (features: the warped previous last-kernel features), normalised
-    together. ``history`` None (a shot's first frame, omega = 0) reduces it to Eq. 6."""
+    together. ``history`` None (a shot's first frame, omega = 0) reduces it to Eq. 6, and so does
+    ``history_valid`` (N, 1, H, W) = 0 at a pixel whose reprojection failed (its temporal taps are dropped)."""
     num, den = affinity_sums(image, features, bandwidth, center, size, dilation, backend=backend)
     if history is not None:
         if history_features is None or history_bandwidth is None:
             raise ValueError("affinity: the temporal kernel needs the warped previous features and its bandwidth")
         num_t, den_t = affinity_sums(history, features, history_bandwidth, None, history_size, 1,
                                      neighbours=history_features, backend=backend)
+        if history_valid is not None:
+            num_t, den_t = num_t * history_valid, den_t * history_valid
         num, den = num + num_t, den + den_t
     return num / (EPS + den)
 

@@ -104,10 +104,12 @@ def frame_step(model: AFNNet, features: torch.Tensor, radiance: torch.Tensor, mo
             validity = valid.float()
         else:
             validity = torch.zeros_like(radiance[:, :1])
+        # Sec. 4.1: motion vectors that fail the reprojection test are discarded, so a pixel with valid = 0 has
+        # no history: the U-Net sees none there, Eq. 3 / 5 keep the current value and the temporal kernel is off.
         if c.history_input == "embedding":
-            previous = warped.embedding if warped is not None else torch.zeros_like(embedding)
+            previous = warped.embedding * validity if warped is not None else torch.zeros_like(embedding)
         else:
-            previous = torch.log1p(warped.output) if warped is not None else torch.zeros_like(radiance)
+            previous = torch.log1p(warped.output) * validity if warped is not None else torch.zeros_like(radiance)
         x = torch.cat([embedding, previous, validity], dim=1)
     else:
         x = embedding
@@ -117,6 +119,8 @@ def frame_step(model: AFNNet, features: torch.Tensor, radiance: torch.Tensor, mo
         blend = params.blend if c.fixed_lambda is None else torch.full_like(params.blend, float(c.fixed_lambda))
         if warped is None:
             blend = torch.zeros_like(blend)           # ebar_0 = e_0, Lbar_0 = L_0
+        else:
+            blend = blend * validity                  # no history where the reprojection failed (Sec. 4.1)
     accumulated_embedding = None
     if c.temporal:                                    # Eq. 3 (ours-wpred feeds the prediction instead)
         carried = warped.embedding if warped is not None and c.history_input == "embedding" else None
@@ -134,7 +138,7 @@ def frame_step(model: AFNNet, features: torch.Tensor, radiance: torch.Tensor, mo
         elif last and c.temporal and c.temporal_kernel and warped is not None:
             image = affinity.joint_filter(image, params.features[k], params.bandwidth[k], params.center[k], size,
                                           dilation, warped.output, warped.features, params.temporal_bandwidth,
-                                          temporal_size, backend=backend)
+                                          temporal_size, backend=backend, history_valid=validity)
         else:
             image = affinity.spatial_filter(image, params.features[k], params.bandwidth[k], params.center[k], size,
                                             dilation, backend=backend)

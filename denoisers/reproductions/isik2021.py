@@ -40,7 +40,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "ours-heur": {**FULL_FLAGS, "fixed_lambda": 0.8},
     "ours-ntk": {**FULL_FLAGS, "temporal_kernel": False},
     "ours-nar": {**FULL_FLAGS, "accumulate_radiance": False},
-    "ours-wpred": {**FULL_FLAGS, "history_input": "prediction"},
+    # Sec. 5.5.4: both accumulations (Eq. 3 and 5) off, the warped previous prediction fed instead, temporal kernel kept.
+    "ours-wpred": {**FULL_FLAGS, "history_input": "prediction", "accumulate_radiance": False},
     **{f"d={d}": {**SINGLE_FLAGS, "affinity_dim": d} for d in (1, 2, 4)},
     "gather K1": {"temporal": False, "kernels": 1, "kernel_kind": "gather"},
     "gather K3": {"temporal": False, "kernels": 3, "kernel_kind": "gather"},
