@@ -88,3 +88,30 @@ def test_a_stated_margin_moves_the_bound() -> None:
         assert shifted.p_other_side == pytest.approx(stats.ttest_1samp(diffs, 0.5, alternative="less").pvalue)
         assert "> 0.50" in shifted.claim_text()
     assert part(mild).outcome == REPRODUCED      # without the margin: merely worse
+
+
+def test_steady_frames_leave_out_each_shots_warm_up() -> None:
+    """Frames 0-7 with a cut at 4 and warm-up 2: frames 0, 1 (clip start) and 4, 5 (after the cut) are left out."""
+    from denoisers.report.collect import steady_frames
+
+    frames = pd.DataFrame({"method_id": ["a"] * 8 + ["b"] * 3, "spp": [1] * 11, "scene": ["s"] * 11,
+                           "frame": [*range(8), 0, 1, 2], "camera_cut": [False] * 4 + [True] + [False] * 6})
+    assert steady_frames(frames, 2).tolist() == [False, False, True, True, False, False, True, True,
+                                                 False, False, True]
+    assert steady_frames(frames, 0).all()
+
+
+def test_claims_decide_on_steady_frames_and_pool_video_psnr_over_them() -> None:
+    """A temporal row bad in its two warm-up frames only: the claim values are the steady frames' means (by
+    hand), the report's scene_values keep every frame."""
+    from denoisers.report.collect import Results
+    from denoisers.report.stats import pooled_psnr
+
+    psnr = [20.0, 25.0, 30.0, 31.0, 32.0, 33.0]
+    frames = pd.DataFrame({"method_id": "t", "spp": 1, "scene": "s0", "frame": range(6), "camera_cut": False,
+                           "psnr": psnr})
+    per_scene = pd.DataFrame({"method_id": ["t"], "spp": [1], "scene": ["s0"], "psnr": [np.mean(psnr)]})
+    res = Results({"evaluation": {"warmup_frames": 2}, "output_dir": "."}, [], ["s0"], [], frames, per_scene)
+    assert res.claim_values("t", 1, "psnr")["s0"] == pytest.approx(31.5)
+    assert res.scene_values("t", 1, "psnr")["s0"] == pytest.approx(np.mean(psnr))
+    assert res.claim_values("t", 1, "video_psnr")["s0"] == pytest.approx(pooled_psnr(psnr[2:]))

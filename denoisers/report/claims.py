@@ -21,7 +21,10 @@ other side (t-test of its mean difference) is compared, smallest first, with 0.0
 level of the 95 % interval shared among the m parts. A single-part claim is contradicted exactly when its
 interval lies wholly on the other side. Otherwise inconclusive.
 
-Means shown beside a part are over the scenes it is decided on (the joined scenes of a and b). For an
+Frame metrics enter a part as each clip's mean over its steady frames (``Results.claim_values``: the first
+``evaluation.warmup_frames`` frames of a clip and after each camera cut are left out for every method, since
+a temporal method is still warming up there). Means shown beside a part are over the scenes it is decided on
+(the joined scenes of a and b). For an
 inconclusive part, :func:`scenes_needed` is the number of scenes at which a t-interval with the observed
 mean difference and spread would exclude 0.
 *Facts* (e.g. "needs no training", read from the method registry) are shown beside the parts and do
@@ -51,7 +54,7 @@ MIN_SPEED_ROUNDS = 5
 ALPHA_ONE_SIDED = 0.025
 #: Largest scene count :func:`scenes_needed` searches (beyond it: "more than" this).
 MAX_SCENES_NEEDED = 10_000
-RULE = (f"each part: paired per-scene difference a−b; reproduced if its 95 % t-interval lies wholly on the "
+RULE = (f"each part: paired per-scene difference a−b of steady-frame means (warm-up frames of each shot left out); reproduced if its 95 % t-interval lies wholly on the "
         f"claimed side of 0 (n ≥ {MIN_UNITS}), contradicted if wholly on the other side, else inconclusive; "
         "the claim needs every part and is contradicted when a part is after Holm's correction over its parts")
 SPEED_RULE = (f"; a speed part: per-round log time ratio ln(a/b) of the timing job, t-interval over ≥ {MIN_SPEED_ROUNDS} "
@@ -303,7 +306,7 @@ def compare_rows(res: Results, a: str, b: str, metric: str, spp: int, claimed: s
     """Part comparing row a at ``spp`` with row b at ``b_spp`` (default the same) on a per-scene metric, claimed
     beyond ``threshold`` (Part.threshold)."""
     b_spp = spp if b_spp is None else b_spp
-    return Part.paired(res.scene_values(a, spp, metric), res.scene_values(b, b_spp, metric), metric,
+    return Part.paired(res.claim_values(a, spp, metric), res.claim_values(b, b_spp, metric), metric,
                        f"{a} @ {spp} spp", f"{b} @ {b_spp} spp", claimed, rows=((a, spp), (b, b_spp)),
                        threshold=threshold)
 

@@ -301,6 +301,23 @@ class Results:
         rows = self.per_scene[(self.per_scene.method_id == method_id) & (self.per_scene.spp == spp)]
         return rows.set_index("scene")[column]
 
+    def claim_values(self, method_id: str, spp: int, column: str) -> pd.Series:
+        """Per-scene values the claims decide on, indexed by scene: a frame metric averaged over each clip's
+        steady frames only (:func:`steady_frames`: the first evaluation.warmup_frames frames of the clip and of
+        every shot after a camera cut left out, for every method alike, since they bias against temporal
+        methods); video_psnr pooled over the same frames. Other columns, and results without per-frame tables
+        (hand-built ones), are scene_values."""
+        if self.frames.empty or column not in self.frames.columns and column != "video_psnr":
+            return self.scene_values(method_id, spp, column)
+        rows = self.frames[(self.frames.method_id == method_id) & (self.frames.spp == spp)]
+        if rows.empty:
+            return self.scene_values(method_id, spp, column)
+        warmup = int(self.cfg["evaluation"].get("warmup_frames", 0))
+        steady = rows[steady_frames(rows, warmup)]
+        grouped = steady.groupby("scene", sort=False)
+        values = grouped["psnr"].agg(pooled_psnr) if column == "video_psnr" else grouped[column].mean()
+        return values.reindex(rows["scene"].unique())
+
     def flag(self, method_id: str, spp: int) -> str:
         """'' or why this row's outputs are suspect: non-finite values or values far outside the input range."""
         rows = self.per_scene[(self.per_scene.method_id == method_id) & (self.per_scene.spp == spp)]
@@ -433,6 +450,24 @@ def collect(cfg: dict, results_dir: Path | None = None) -> Results:
     ledger.raise_if_mixed(cfg, results_dir)
     return Results(cfg, specs, scenes, runs, frames, per_scene, robustness, results_dir, models,
                    external_manifests(results_dir, scenes), ledger, timing, training_speed, volumes)
+
+
+def steady_frames(frames: pd.DataFrame, warmup: int) -> pd.Series:
+    """Boolean mask of the rows of a per-frame table (method_id, spp, scene, frame, camera_cut) that are at
+    least ``warmup`` frames after the start of their shot: the clip's first frame, or a frame with
+    camera_cut true."""
+    import pandas as pd
+
+    if warmup <= 0:
+        return pd.Series(True, index=frames.index)
+    keys = ["method_id", "spp", "scene"]
+    ordered = frames.sort_values([*keys, "frame"])
+    cut = ordered["camera_cut"].fillna(False).astype(bool) if "camera_cut" in ordered else False
+    first = ordered.groupby(keys, sort=False)["frame"].transform("min")
+    shot_start = ordered["frame"].where(cut | (ordered["frame"] == first))
+    shot_start = shot_start.groupby([ordered[key] for key in keys], sort=False).ffill()
+    since = ordered["frame"] - shot_start
+    return (since >= warmup).reindex(frames.index)
 
 
 def external_manifests(results_dir: Path, scenes: list[str]) -> dict[str, dict | None]:

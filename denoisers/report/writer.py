@@ -93,12 +93,14 @@ def _timing_line(res: Results) -> str:
             "sgemm in the [timing table](tables/timing.md).")
 
 
-def _claims_section(claims: pd.DataFrame) -> list[str]:
+def _claims_section(claims: pd.DataFrame, res_warmup: int) -> list[str]:
     counts = claims["verdict"].value_counts()
     tally = ", ".join(f"{counts.get(v, 0)} {v}" for v in (REPRODUCED, CONTRADICTED, INCONCLUSIVE, NOT_RUN))
     return ["## Claims", "",
             "Each claim is decided from paired per-scene differences a − b (the evaluated scenes, test and external, "
-            "are the independent units). "
+            "are the independent units) of frame metrics averaged over each clip's steady frames: the first "
+            f"{res_warmup} frame(s) of a clip and after each camera cut (evaluation.warmup_frames) are left out for "
+            "every method, as they bias against temporal methods; the report's tables keep every frame. "
             f"A part is **reproduced** when the 95 % Student-t interval of the mean difference lies wholly on the "
             f"claimed side of 0, **contradicted** when it lies wholly on the other side, **inconclusive** otherwise "
             f"(always with fewer than {MIN_UNITS} scenes); a claim needs every part, and a contradicted part "
@@ -321,7 +323,7 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
              "![Quality versus speed](figures/quality_vs_speed.png)", "",
              "[Quality vs speed (SVG)](figures/quality_vs_speed.svg)", "", *color_balance_section(res, tables),
              *_external_section(res, tables),
-             *_tuning_section(res, tables), *_claims_section(claims), *_targets_section(res, tables)]
+             *_tuning_section(res, tables), *_claims_section(claims, int(res.cfg['evaluation'].get('warmup_frames', 0))), *_targets_section(res, tables)]
     for reproduction in all_reproductions():
         section = reproduction.write(res, tables, figures)
         ids = [c.id for c in reproduction.claims]

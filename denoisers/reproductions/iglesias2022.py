@@ -82,7 +82,7 @@ def decide_c43(res: Results) -> Decision:
     if len(spps) < 2:
         return not_run("needs two or more evaluated spp (RAE's gain at the lowest versus the highest)")
     parts = [compare_rows(res, wrls, noisy, "psnr", s, "higher") for s in spps]
-    gain = {s: res.scene_values(rae, s, "psnr") - res.scene_values(noisy, s, "psnr") for s in (spps[0], spps[-1])}
+    gain = {s: res.claim_values(rae, s, "psnr") - res.claim_values(noisy, s, "psnr") for s in (spps[0], spps[-1])}
     parts.append(Part.paired(gain[spps[-1]], gain[spps[0]], "psnr", f"RAE gain over input @ {spps[-1]} spp",
                              f"RAE gain @ {spps[0]} spp", "lower",
                              rows=((rae, spps[0]), (rae, spps[-1]), (noisy, spps[0]), (noisy, spps[-1]))))
