@@ -165,3 +165,21 @@ def test_tables_and_figure_are_written(tmp_path: Path) -> None:
     assert table5.loc["affinity K=3, 7x7 (trained 13x13)", "paper @ 2 spp"] == 30.19
     assert table5.loc["affinity K=1, 17x17", "paper @ 4 spp"] == 31.87
     assert pd.isna(table5.loc["gather K=1, 5x5", "paper @ 4 spp"])   # the paper has no 5 x 5 gather K = 1
+
+
+def test_c31_compares_kpcn_at_every_trained_width() -> None:
+    """KPCN's capacity is not matched to AFN's: ours-single must beat it at every width of the kpcn capacity
+    sweep as well. Beating the base KPCN but losing to the wider one (at the sweep's 4 spp) contradicts C3.1."""
+    cfg = config()
+    cfg["training"]["ablations"] = [{"id": "kpcn_capacity", "kind": "capacity", "model": "kpcn", "spp": [4],
+                                     "variants": [{"id": "width05", "net": {"width": 0.5}}]}]
+    cfg = validate_config(cfg)
+    _, table = shifted("C3.1", CLEAR, cfg)
+    shift(table, ("kpcn_capacity_width05", 4), ("afn_single", 4), "psnr", "higher", CLEAR)   # the wide KPCN wins
+    decision = evaluate_claim(build(cfg, table), CLAIMS["C3.1"])
+    wide = [part for part in decision.parts if "kpcn_capacity_width05" in part.b]
+    assert [part.outcome for part in wide] == [CONTRADICTED] and wide[0].a == "afn_single @ 4 spp"
+    assert decision.verdict == CONTRADICTED and "kpcn_capacity_width05" in decision.note
+    _, table = shifted("C3.1", CLEAR, cfg)
+    # Every row starts equal, so afn_single = base + d already beats the untouched wide KPCN by d at 4 spp.
+    assert evaluate_claim(build(cfg, table), CLAIMS["C3.1"]).verdict == REPRODUCED
