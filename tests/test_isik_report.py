@@ -6,6 +6,7 @@ Results are built in memory with the helpers of tests/test_claims.py; the models
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pandas as pd
@@ -141,6 +142,11 @@ def test_tables_and_figure_are_written(tmp_path: Path) -> None:
     for name in isik.TABLES:
         assert (tmp_path / "tables" / f"{name}.csv").is_file() and (tmp_path / "tables" / f"{name}.md").is_file()
     assert (tmp_path / "figures" / f"{isik.FIG8}.png").stat().st_size > 0 and "isik_fig8.png" in section
+    # The section goes into REPORT.md beside tables/ and figures/: every link resolves from there.
+    links = re.findall(r"\]\(([^)]+)\)", section)
+    assert f"figures/{isik.FIG8}.png" in links
+    for link in links:
+        assert (tmp_path / link).is_file(), link
     # No denoised outputs in this fixture: the lambda figure is a placeholder and the section says why.
     assert (tmp_path / "figures" / f"{isik.FIG5}.png").stat().st_size > 0
     assert "no lambda maps of the full AFN model" in section

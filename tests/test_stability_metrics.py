@@ -206,3 +206,20 @@ def test_an_atlas_sentence_reads_ghosting_against_the_noisy_inputs_ratio() -> No
     assert "ghosting" not in content.split(",")[0] and "noisy input's 1.80" in content
     lagging = sentence("svgf", "moving_shadow", {**record, "ghosting_ratio": 28.0}, -9.0, 0.1, input_ratio=1.8)
     assert lagging.startswith("- **svgf**: ghosting under moving shadows, not back within 10%")
+
+
+def test_the_atlas_names_the_rows_stability_rows_leaves_out() -> None:
+    """ATLAS.md and the report say which rows the atlas holds: all configured rows, or the ones stability.rows
+    names with the others listed (the smoke config keeps noisy, svgf and oidn)."""
+    from pathlib import Path
+
+    from denoisers.report.atlas import rows_sentence
+    from scenegen.config import load_config
+
+    repo = Path(__file__).resolve().parents[1]
+    smoke = load_config(repo / "config" / "smoke.yaml")
+    sentence = rows_sentence(smoke)
+    assert smoke["stability"]["rows"] == ["noisy", "svgf", "oidn"]
+    assert sentence.startswith("The rows named by `stability.rows` (noisy, svgf, oidn; not in the atlas: ")
+    assert "eaw" in sentence and "rae" in sentence
+    assert rows_sentence(load_config(repo / "config" / "config.yaml")) == "Every configured row of `evaluation.methods`"

@@ -204,7 +204,7 @@ def build_atlas(cfg: dict, results_dir: Path) -> list[Path]:
     write_table(scores, base / "tables", "failures", frame_to_markdown(formatted(
         scores[shown], {c: "" for c in shown[4:] if c not in ("event_frame", "frames_to_recover")})))
     lines = ["# Failure atlas (stability scenarios)", "",
-             f"Every configured row of `evaluation.methods` denoised every scenario clip (`stability`: "
+             f"{rows_sentence(cfg)} denoised every scenario clip (`stability`: "
              f"{cfg['stability']['frames']} frames at {cfg['stability']['width']}x{cfg['stability']['height']}) at "
              f"{', '.join(map(str, settings['denoise_spp']))} spp (rule denoise_scenario) and was scored against the "
              "reference inside the scenario's masks (rule score_scenario, `denoisers/stability_metrics.py`).", "",
@@ -269,6 +269,20 @@ def build_atlas(cfg: dict, results_dir: Path) -> list[Path]:
     return [Path(p) for p in atlas_outputs(cfg, str(results_dir))["all"]]
 
 
+def rows_sentence(cfg: dict) -> str:
+    """Which rows the atlas holds: every configured row of evaluation.methods, or those ``stability.rows`` names
+    with the ones it leaves out named."""
+    from denoisers.evaluate import METHOD_ROLE, method_specs
+    from denoisers.stability_job import stability_rows
+
+    configured = [spec.id for spec in method_specs(cfg) if spec.role == METHOD_ROLE]
+    chosen = [spec.id for spec in stability_rows(cfg)]
+    left_out = [row for row in configured if row not in chosen]
+    if not left_out:
+        return "Every configured row of `evaluation.methods`"
+    return (f"The rows named by `stability.rows` ({', '.join(chosen)}; not in the atlas: {', '.join(left_out)})")
+
+
 def report_section(cfg: dict, results_dir: Path) -> list[str]:
     """REPORT.md's section: the atlas table and sentences (tables/atlas.md), linked to stability/ATLAS.md; or why
     there is none."""
@@ -278,6 +292,6 @@ def report_section(cfg: dict, results_dir: Path) -> list[str]:
     lines = ["## Failure atlas (stability scenarios)", ""]
     if not table.is_file():
         return lines + [f"Not run ({table} missing; rule build_atlas, stage target `stability`).", ""]
-    return lines + ["Where each method fails: masked PSNR of every configured row on every stability scenario, the "
-                    "worst scenario per row in bold; per-frame curves, image strips and quality-versus-speed charts "
+    return lines + [f"Where each method fails: masked PSNR on every stability scenario of {rows_sentence(cfg)[0].lower()}"
+                    f"{rows_sentence(cfg)[1:]}, the worst scenario per row in bold; per-frame curves, image strips and quality-versus-speed charts "
                     "per scenario family in [stability/ATLAS.md](stability/ATLAS.md).", "", table.read_text(), ""]

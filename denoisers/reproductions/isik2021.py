@@ -327,12 +327,12 @@ def write(res: Results, tables_dir: Path, figures: Path) -> str:
         lines += ["", f"### {titles[name]}", "", markdown]
     reason = plot_fig8(res, figures / f"{FIG8}.png")
     lines += ["", "### Fig. 8 layout: PSNR against throughput", "",
-              f"![PSNR against Mpix/s]({FIG8}.png)" if not reason else f"Not drawn: {reason}."]
+              f"![PSNR against Mpix/s](figures/{FIG8}.png)" if not reason else f"Not drawn: {reason}."]
     full = variant_row(res, "ours")
     spp = next((s for s in (4, 2, 8) if full and res.ran(full, s)), None)
     reason = plot_lambda_maps(res, figures / f"{FIG5}.png", full, spp)
     lines += ["", "### Fig. 5 layout: temporal accumulation weight lambda", "",
-              f"![lambda maps]({FIG5}.png)" if not reason else f"Not drawn: {reason}."]
+              f"![lambda maps](figures/{FIG5}.png)" if not reason else f"Not drawn: {reason}."]
     return "\n".join(lines)
 
 
