@@ -237,6 +237,33 @@ class Run:
         return self.spp * self.samples_factor
 
 
+def _row_key(cfg: dict, spec: MethodSpec) -> str:
+    """The config key that defines row ``spec`` (its method name): evaluation.methods[i], volumes.rows[i] or the
+    training ablation that adds it."""
+    for section, rows in (("evaluation.methods", cfg["evaluation"]["methods"]),
+                          ("volumes.rows", (cfg.get("volumes") or {}).get("rows", []))):
+        for index, entry in enumerate(rows):
+            if entry["id"] == spec.id:
+                return f"{section}[{index}].method"
+    return f"training (the row of trained model {spec.id!r})"
+
+
+def check_method_name(cfg: dict, spec: MethodSpec) -> None:
+    """EvaluationError naming the row, its config key, the closest registered name and every one, when the row's
+    method is not registered."""
+    import difflib
+
+    from denoisers import registry
+
+    names = registry.available()
+    if spec.method in names:
+        return
+    close = difflib.get_close_matches(spec.method, names, n=1)
+    raise EvaluationError(f"config key '{_row_key(cfg, spec)}' (row {spec.id!r}) = {spec.method!r} is not a "
+                          f"registered method{f' (did you mean {close[0]!r}?)' if close else ''}; allowed: "
+                          f"{', '.join(names)}")
+
+
 def _plan(cfg: dict, specs: Sequence[MethodSpec], spps_of) -> list[Run]:
     from denoisers import registry
 
@@ -246,6 +273,7 @@ def _plan(cfg: dict, specs: Sequence[MethodSpec], spps_of) -> list[Run]:
         spps = spps_of(spec)
         if not spps:
             continue
+        check_method_name(cfg, spec)
         method = registry.build(spec.method, resolve_method_params(cfg, spec.params), row=spec.id)
         for spp in spps:
             layers = spp * method.samples_factor

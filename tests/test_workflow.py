@@ -731,3 +731,13 @@ def test_conda_env_mirrors_the_project_dependencies() -> None:
     pip_section = next(item["pip"] for item in env["dependencies"] if isinstance(item, dict))
     project = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]
     assert sorted(pip_section) == sorted(project["dependencies"])
+
+
+def test_an_unknown_method_name_fails_the_dry_run_naming_the_row(workflow_copy: Path, tmp_path: Path) -> None:
+    """A misspelt method of a row is named with its config key, its row and the closest registered name."""
+    cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
+    index = next(i for i, entry in enumerate(cfg["evaluation"]["methods"]) if entry["method"] == "svgf")
+    cfg["evaluation"]["methods"][index]["method"] = "svfg"
+    output = failing_dry_run(workflow_copy, tmp_path, cfg)
+    assert f"config key 'evaluation.methods[{index}].method' (row 'svgf') = 'svfg'" in output
+    assert "did you mean 'svgf'?" in output
