@@ -159,7 +159,7 @@ def test_an_atlas_sentence_without_static_pixels_says_so_instead_of_nan() -> Non
 
 def test_atlas_rows_get_distinct_styles_beyond_ten_rows() -> None:
     """The default config's 15 rows share tab10's ten colours: colour, marker and line style together differ."""
-    from denoisers.report.atlas_figures import row_styles
+    from denoisers.report.figures import row_styles
 
     rows = [f"row{i}" for i in range(15)]
     styles = row_styles(rows)

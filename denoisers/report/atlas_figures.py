@@ -6,27 +6,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from denoisers.report.figures import placeholder, pyplot
+from denoisers.report.figures import placeholder, pyplot, row_styles
 
 if TYPE_CHECKING:
     import pandas as pd
-
-
-#: Markers and line styles that tell apart rows sharing one of tab10's ten colours (the default has 15 rows).
-_MARKERS = ("o", "s", "^", "D")
-_LINESTYLES = ("-", "--", ":", "-.")
-
-
-def row_styles(rows: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """row -> matplotlib style (color, marker, linestyle): tab10's colours in order, then again with the next
-    marker and line style, so up to 40 rows get distinct styles."""
-    cmap = pyplot().get_cmap("tab10")
-    return {row: {"color": cmap(i % 10), "marker": _MARKERS[(i // 10) % len(_MARKERS)],
-                  "linestyle": _LINESTYLES[(i // 10) % len(_LINESTYLES)]} for i, row in enumerate(rows)}
 
 
 def plot_family(scores: pd.DataFrame, scenarios: Sequence[str], rows: Sequence[str], path: Path, title: str) -> None:

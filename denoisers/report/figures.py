@@ -35,11 +35,51 @@ def pyplot():
     return plt
 
 
-def _colours(specs: Sequence[MethodSpec]) -> dict[str, Any]:
-    """A distinct colour per row (tab10, or tab20 beyond ten rows)."""
-    size = 10 if len(specs) <= 10 else 20
-    cmap = pyplot().get_cmap(f"tab{size}")
-    return {spec.id: cmap(i % size) for i, spec in enumerate(specs)}
+#: Markers and line styles that tell apart rows sharing one of tab10's ten colours (the default config has 22 rows).
+_MARKERS = ("o", "s", "^", "D")
+_LINESTYLES = ("-", "--", ":", "-.")
+
+
+def row_styles(rows: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """row -> matplotlib style (color, marker, linestyle): tab10's colours in order, then again with the next
+    marker and line style, so up to 40 rows get distinct styles."""
+    cmap = pyplot().get_cmap("tab10")
+    return {row: {"color": cmap(i % 10), "marker": _MARKERS[(i // 10) % len(_MARKERS)],
+                  "linestyle": _LINESTYLES[(i // 10) % len(_LINESTYLES)]} for i, row in enumerate(rows)}
+
+
+def _styles(specs: Sequence[MethodSpec]) -> dict[str, dict[str, Any]]:
+    """:func:`row_styles` of the rows of ``specs``."""
+    return row_styles([spec.id for spec in specs])
+
+
+def legend_entries(axes: Sequence[Any]) -> tuple[list[Any], list[str]]:
+    """(handles, labels) of every labelled line of every axis, each label once, in first-seen order (a row that
+    ran only at some spp is missing from the first panel)."""
+    legend: dict[str, Any] = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, handle)
+    return list(legend.values()), list(legend)
+
+
+#: A log axis is cut this many times above the median of the rows' per-frame medians (an exploding model
+#: would otherwise flatten every other row).
+LOG_AXIS_SPAN = 1e3
+
+
+def _cut_log_axis(ax: Any, values: Sequence[np.ndarray]) -> None:
+    """Cut a log y axis at LOG_AXIS_SPAN x the median row median, and say so on the axis, when some row lies above."""
+    finite = [v[np.isfinite(v) & (v > 0)] for v in values]
+    medians = [float(np.median(v)) for v in finite if len(v)]
+    if not medians:
+        return
+    top = LOG_AXIS_SPAN * float(np.median(medians))
+    highest = max(float(v.max()) for v in finite if len(v))
+    if highest > top:
+        ax.set_ylim(top=top)
+        ax.annotate(f"cut: values up to {highest:.3g} above", (0.99, 0.98), xycoords="axes fraction", ha="right",
+                    va="top", fontsize=7, color="firebrick")
 
 
 def smoothed(values: Any, window: int) -> np.ndarray:
@@ -74,7 +114,8 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     (summary.json ``elapsed_seconds``), so a method's training cost is charted beside its inference speed."""
     plt = pyplot()
     lookup = summary_lookup(summary)
-    colours = _colours(res.main_specs)
+    styles = _styles(res.main_specs)
+    colours = {row: style["color"] for row, style in styles.items()}
     fig, (ax, train_ax) = plt.subplots(1, 2, figsize=(13.0, 5.0), gridspec_kw={"width_ratios": [3, 2]})
     xs = []
     for spec in res.main_specs:
@@ -88,8 +129,8 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
         fastest = [row["mpix_per_s"] * row["ms_per_frame"] / row["ms_per_frame_min"] for row in speeds]
         xerr = [[xi - lo for xi, lo in zip(x, slowest)], [hi - xi for xi, hi in zip(x, fastest)]]
         y = [lookup[(spec.id, s, "psnr")] for s in spps]
-        ax.errorbar(x, [v[0] for v in y], xerr=xerr, yerr=_ci_yerr(y), marker="o", color=colours[spec.id], label=spec.id,
-                    capsize=3)
+        ax.errorbar(x, [v[0] for v in y], xerr=xerr, yerr=_ci_yerr(y), marker=styles[spec.id]["marker"],
+                    color=colours[spec.id], label=spec.id, capsize=3)
         # Only the spp next to each point (the colour says the method): long labels overlapped.
         for xi, yi, s in zip(x, y, spps):
             ax.annotate(str(s), (xi, yi[0]), textcoords="offset points", xytext=(4, -9), fontsize=7,
@@ -185,29 +226,33 @@ def plot_frame_curves(res: Results, scene: str, path: Path) -> None:
     from matplotlib.ticker import MaxNLocator
 
     spps = res.cfg["evaluation"]["spp"]
-    colours = _colours(res.main_specs)
+    styles = _styles(res.main_specs)
     panels = (("relmse", "rMSE (log)"), ("ssim", "1 − SSIM"), ("tpsnr", "tPSNR (dB)"))
     fig, axes = plt.subplots(len(spps), len(panels), figsize=(12, 2.6 * len(spps)), squeeze=False)
     data = res.frames[res.frames.scene == scene]
     for row, spp in enumerate(spps):
         for col, (metric, label) in enumerate(panels):
             ax = axes[row][col]
+            plotted = []
             for spec in res.main_specs:
                 part = data[(data.method_id == spec.id) & (data.spp == spp)].sort_values("frame")
                 if part.empty:
                     continue
                 values = 1.0 - part[metric] if metric == "ssim" else part[metric]
-                ax.plot(part["frame"], values, marker=".", color=colours[spec.id], label=spec.id)
+                ax.plot(part["frame"], values, marker=styles[spec.id]["marker"], markersize=3,
+                        color=styles[spec.id]["color"], label=spec.id)
+                plotted.append(np.asarray(values, np.float64))
                 for t in part.loc[part.camera_cut.astype(bool), "frame"]:
                     ax.axvline(t, color="grey", linestyle=":", linewidth=0.8)
             if metric == "relmse" and ax.has_data():
                 ax.set_yscale("log")
+                _cut_log_axis(ax, plotted)
             ax.set_title(f"{label}, {spp} spp", fontsize=9)
             ax.set_ylabel(label, fontsize=8)
             ax.set_xlabel("frame")
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.grid(True, alpha=0.3)
-    handles, labels = axes[0][0].get_legend_handles_labels()
+    handles, labels = legend_entries(axes.ravel())
     if handles:
         from matplotlib.lines import Line2D
 
