@@ -21,7 +21,7 @@ import shutil
 from pathlib import Path
 
 from denoisers.training.job import WORK_DIR_NAME, work_dir_for
-from denoisers.training.models import model_specs
+from denoisers.training.models import trained_model_specs
 from scenegen.config import OUTPUT_ENTRIES, output_root
 
 #: Hidden temporaries of scenegen.atomic (.<name>.tmp-<pid>) and of the resolved config (.<name>.<pid>.tmp).
@@ -67,7 +67,7 @@ def stale_entries(cfg: dict, real: Path) -> list[Path]:
     found = []
     work = real / "models" / WORK_DIR_NAME
     if work.is_dir() and not work.is_symlink():
-        keep = {work_dir_for(work.parent, cfg, spec).name for spec in model_specs(cfg)}
+        keep = {work_dir_for(work.parent, cfg, spec).name for spec in trained_model_specs(cfg)}
         found += [entry for entry in sorted(work.iterdir()) if entry.name not in keep]
     tops = [real / name for name in OUTPUT_ENTRIES if (real / name).is_dir() and not (real / name).is_symlink()]
     found += [entry for entry in sorted(real.iterdir()) if TEMPORARY.match(entry.name)] if real.is_dir() else []

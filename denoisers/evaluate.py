@@ -58,6 +58,9 @@ class EvaluationError(ValueError):
 
 #: MethodSpec.role of the rows of ``evaluation.methods`` and of the rows added for ablation variants.
 METHOD_ROLE, ABLATION_ROLE, VOLUME_ROLE = "method", "ablation", "volume"
+#: Role of a row that evaluates a seed replica (training.seeds > 1) of another row's model: id
+#: ``{row}_seed{k}``; tables fold it into its row's seed mean and spread, claims into seed-averaged values.
+SEED_ROLE = "seed"
 #: Default of ``evaluation.out_of_range_factor`` (the schema's default).
 OUT_OF_RANGE_FACTOR = 10.0
 
@@ -75,6 +78,9 @@ class MethodSpec:
     spp: tuple[int, ...] = ()
     robustness: bool = True
     role: str = METHOD_ROLE
+    #: A seed row's (role ``seed``) first-seed row and replica index k >= 1; None and 0 for every other row.
+    seed_of: str | None = None
+    replica: int = 0
 
     @property
     def label(self) -> str:
@@ -109,13 +115,27 @@ def ablation_method_specs(cfg: dict) -> list[MethodSpec]:
     return specs
 
 
+def seed_method_specs(cfg: dict, rows: Sequence[MethodSpec]) -> list[MethodSpec]:
+    """For every row of ``rows`` that uses a trained model (``params.model``) and k = 1 .. training.seeds - 1:
+    row ``{row}_seed{k}`` with the model's seed replica k (denoisers.training.models.replica_id), at the row's
+    spp, not in the robustness scenario, role ``seed``. Empty with one seed."""
+    from denoisers.training.models import SEED_SUFFIX, method_model, replica_id, seed_count
+
+    return [MethodSpec(f"{row.id}{SEED_SUFFIX}{k}", row.method,
+                       {**row.params, "model": replica_id(method_model(row.params), k)}, row.spp, robustness=False,
+                       role=SEED_ROLE, seed_of=row.id, replica=k)
+            for row in rows if method_model(row.params) for k in range(1, seed_count(cfg))]
+
+
 def method_specs(cfg: dict) -> list[MethodSpec]:
     """The evaluation rows in table order: ``evaluation.methods`` (spp default: every evaluated spp;
-    robustness default: true), then one row per trained ablation variant (:func:`ablation_method_specs`)."""
+    robustness default: true), then one row per trained ablation variant (:func:`ablation_method_specs`), then
+    the seed rows of both (:func:`seed_method_specs`)."""
     configured = [MethodSpec(entry["id"], entry["method"], dict(entry.get("params") or {}),
                              _row_spp(cfg, entry.get("spp")), bool(entry.get("robustness", True)), METHOD_ROLE)
                   for entry in cfg["evaluation"]["methods"]]
-    return configured + ablation_method_specs(cfg)
+    rows = configured + ablation_method_specs(cfg)
+    return rows + seed_method_specs(cfg, rows)
 
 
 def volume_method_specs(cfg: dict) -> list[MethodSpec]:
@@ -125,10 +145,11 @@ def volume_method_specs(cfg: dict) -> list[MethodSpec]:
     if not volumes.get("enabled", False):
         return []
     denoise_spp = [int(s) for s in volumes.get("denoise_spp", [])]
-    return [MethodSpec(entry["id"], entry["method"], dict(entry.get("params") or {}),
+    rows = [MethodSpec(entry["id"], entry["method"], dict(entry.get("params") or {}),
                        tuple(s for s in denoise_spp if entry.get("spp") is None or s in entry["spp"]),
                        robustness=False, role=VOLUME_ROLE)
             for entry in volumes.get("rows", [])]
+    return rows + seed_method_specs(cfg, rows)
 
 
 def method_spec(cfg: dict, method_id: str) -> MethodSpec:
@@ -190,6 +211,11 @@ def evaluation_problems(cfg: dict) -> list[str]:
         problems.append(f"config key 'evaluation.ablation_spp' = {ablation_spp!r} has values {outside} that are not in "
                         f"'evaluation.spp' = {evaluated!r}; allowed: values of evaluation.spp, or [] to not "
                         "evaluate the ablation variants")
+    rows = method_specs(cfg) + volume_method_specs(cfg)
+    seed_rows = {spec.id for spec in rows if spec.role == SEED_ROLE}
+    for method_id in sorted(seed_rows & {spec.id for spec in rows if spec.role != SEED_ROLE}):
+        problems.append(f"evaluation row id {method_id!r} is also the id of a seed row (training.seeds > 1 adds "
+                        "{row}_seed{k} for every row of a trained model); allowed: another row id")
     evaluated_variants = [spec.id for spec in ablation_method_specs(cfg)]
     for method_id in sorted(set(ids) & set(evaluated_variants)):
         problems.append(f"config key 'evaluation.methods' has the id {method_id!r}, which is the id of the row "

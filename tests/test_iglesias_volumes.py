@@ -85,6 +85,9 @@ def synthetic(cfg: dict, diffs: list[float], rows: dict[tuple[str, int], list[fl
         for (row, s), v in values.items():
             if s == spp:
                 table[row] = np.asarray(v)
+        for spec in volume_method_specs(cfg):   # seed rows repeat their row unless given
+            if spec.seed_of in table and spec.id not in table:
+                table[spec.id] = table[spec.seed_of]
         for row, psnr in table.items():
             trmae = 1.0 - (np.array(diffs) if row == "vol_wrls" else 0.0)
             for scene, p, t in zip(scenes, psnr, np.broadcast_to(trmae, psnr.shape)):
@@ -122,6 +125,7 @@ def test_c41_without_a_volume_svgf_row_or_without_volumes_is_not_run() -> None:
 
 def test_c43_needs_a_volume_rae_and_then_both_halves() -> None:
     cfg = volume_config()
+    cfg["training"]["seeds"] = 3      # a learned part needs three seeds (each seed row repeats vol_rae here)
     noisy = {s: np.linspace(20.0, 26.0, 4) + s for s in (1, 2, 4)}
     # RAE 5 dB above the input at 1 spp, 5 - d at 4 spp: its gain shrinks by d.
     rae = {("vol_rae", 1): noisy[1] + 5.0, ("vol_rae", 2): noisy[2] + 5.0,
@@ -134,6 +138,10 @@ def test_c43_needs_a_volume_rae_and_then_both_halves() -> None:
     # not run is named.
     decision = iglesias2022.decide_c43_volumes(synthetic(cfg, CLEAR, rae, ran={"vol_noisy", "vol_wrls", "vol_svgf"}))
     assert decision.verdict == NOT_RUN and "vol_rae @ 1 spp" in decision.not_run
+    # One training seed: the learned part is not decided, and the note says why.
+    decision = iglesias2022.decide_c43_volumes(synthetic(volume_config(), CLEAR, rae))
+    assert decision.verdict == INCONCLUSIVE and decision.parts[-1].outcome == REPRODUCED
+    assert "1 training seed(s), fewer than the 3" in decision.seed_note()
     no_rae = volume_config(rows=[{"id": "vol_noisy", "method": "noisy"}, {"id": "vol_wrls", "method": "wrls"}])
     decision = iglesias2022.decide_c43_volumes(synthetic(no_rae, CLEAR))
     assert decision.verdict == NOT_RUN and "colour-only" in decision.not_run

@@ -18,6 +18,7 @@ from denoisers.experiment import Lineage
 from denoisers.training.models import training_split
 from scenegen.config import (ConfigError, config_digest, extra_scene, load_config, scene_frame_count,
                              scene_ids, scene_reference_spp, validate_config)
+from scenegen.custom_check import scene_files
 from scenegen.digests import NOISY_FORMAT_VERSION, render_digest, scene_digest
 from scenegen.exr import read_exr
 
@@ -111,7 +112,9 @@ def _legacy_render_digest(cfg: dict, scene: str, kind: str) -> str:
     """render_digest as it was before render.train_reference_spp existed (for a config without the key)."""
     noisy, reference = {"spp", "extra_radiance_spp"}, {"reference_spp", "reference_batch_spp", "reference_integrator"}
     if scene.startswith("custom_"):
-        procedural: dict[str, Any] = {"extra_scene": extra_scene(cfg, scene)}
+        # Since added: the referenced files' contents (an edited mesh reruns the import; not this key's doing).
+        entry = extra_scene(cfg, scene)
+        procedural: dict[str, Any] = {"extra_scene": entry, "files": scene_files(entry)}
     else:
         procedural = {k: v for k, v in cfg["scenes"].items()
                       if k not in {"n_train", "n_test", "frames_per_chunk", "train_frames"}}

@@ -45,18 +45,23 @@ if TYPE_CHECKING:
     import pandas as pd
 
     from denoisers.report.collect import Results
+    from denoisers.report.seeds import SeedAveraged
 
 REPRODUCED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "reproduced", "contradicted", "inconclusive", "not run"
 VERDICTS = (REPRODUCED, CONTRADICTED, INCONCLUSIVE, NOT_RUN)
 MIN_UNITS = 3
 MIN_SPEED_ROUNDS = 5
+#: Training seeds a part with a learned row needs before it can be decided (issue 46: at least 3).
+MIN_SEEDS = 3
 #: One-sided level of each side of the 95 % two-sided interval; Holm shares it among a claim's parts.
 ALPHA_ONE_SIDED = 0.025
 #: Largest scene count :func:`scenes_needed` searches (beyond it: "more than" this).
 MAX_SCENES_NEEDED = 10_000
 RULE = (f"each part: paired per-scene difference a−b of steady-frame means (warm-up frames of each shot left out); reproduced if its 95 % t-interval lies wholly on the "
         f"claimed side of 0 (n ≥ {MIN_UNITS}), contradicted if wholly on the other side, else inconclusive; "
-        "the claim needs every part and is contradicted when a part is after Holm's correction over its parts")
+        "the claim needs every part and is contradicted when a part is after Holm's correction over its parts; "
+        f"a part with a trained model is decided on seed-averaged per-scene values, needs ≥ {MIN_SEEDS} seeds and "
+        "must be seed-robust (each seed alone on the decided side), else inconclusive")
 SPEED_RULE = (f"; a speed part: per-round log time ratio ln(a/b) of the timing job, t-interval over ≥ {MIN_SPEED_ROUNDS} "
               "rounds, shown as a ratio")
 
@@ -78,19 +83,32 @@ class Part:
     #: margin ("much worse": a positive margin on the claimed side; "no worse": the non-inferiority margin on
     #: the other side).
     threshold: float = 0.0
+    #: Training seeds behind the part's trained models (the fewest of its learned rows'); 0: no learned row;
+    #: None: not known yet (:func:`attach_seeds` fills it from the rows).
+    seeds: int | None = None
+    #: Per seed k (seed k of every learned side; a side without seeds repeats): mean of a - b over the scenes.
+    seed_means: tuple[float, ...] = ()
 
     @classmethod
     def paired(cls, a: pd.Series, b: pd.Series, quantity: str, a_label: str, b_label: str,
-               claimed: str | None = None, rows: Sequence[tuple[str, int]] = (), threshold: float = 0.0) -> Part:
-        """From two per-scene series (indexed by scene); ``claimed`` defaults to 'a is better' for the metric."""
+               claimed: str | None = None, rows: Sequence[tuple[str, int]] = (), threshold: float = 0.0,
+               a_seeds: Sequence[pd.Series] = (), b_seeds: Sequence[pd.Series] = (), seeds: int | None = None) -> Part:
+        """From two per-scene series (indexed by scene); ``claimed`` defaults to 'a is better' for the metric.
+        ``a_seeds`` / ``b_seeds``: the same per seed (a side with one entry is paired with every seed of the
+        other), for the seed-robustness of a part with ``seeds`` trained seeds."""
         if claimed is None:
             claimed = "higher" if HIGHER_IS_BETTER.get(quantity, True) else "lower"
         if claimed not in ("higher", "lower"):
             raise ValueError(f"claimed must be 'higher' or 'lower', got {claimed!r}")
         joined = a.to_frame("a").join(b.to_frame("b"), how="inner").astype(float).dropna()
+        seed_means = []
+        for k in range(max(len(a_seeds), len(b_seeds)) if a_seeds and b_seeds else 0):
+            one = a_seeds[min(k, len(a_seeds) - 1)].to_frame("a").join(
+                b_seeds[min(k, len(b_seeds) - 1)].to_frame("b"), how="inner").astype(float).dropna()
+            seed_means.append(float((one["a"] - one["b"]).mean()))
         return cls(quantity, a_label, b_label, claimed, (joined["a"] - joined["b"]).to_numpy(np.float64),
                    [str(u) for u in joined.index], float(joined["a"].mean()), float(joined["b"].mean()),
-                   tuple(rows), float(threshold))
+                   tuple(rows), float(threshold), seeds, tuple(seed_means))
 
     @property
     def n(self) -> int:
@@ -133,6 +151,39 @@ class Part:
         if sign * low < 0 and sign * high < 0:
             return CONTRADICTED
         return INCONCLUSIVE
+
+    def seed_problem(self) -> str:
+        """'' when the part's outcome stands for its trained models' seeds; else why not: fewer than
+        :data:`MIN_SEEDS` seeds, or a seed whose own mean difference is not on the decided side (seed-sensitive).
+        Parts without a learned row, and undecided parts, have none."""
+        outcome = self.outcome
+        if not self.seeds or outcome not in (REPRODUCED, CONTRADICTED):
+            return ""
+        if self.seeds < MIN_SEEDS:
+            return (f"{self.a} vs {self.b}: {self.seeds} training seed(s), fewer than the {MIN_SEEDS} a learned "
+                    "verdict needs (training.seeds)")
+        if len(self.seed_means) < self.seeds:
+            return f"{self.a} vs {self.b}: the per-seed differences are not computed (seed-robustness unknown)"
+        side = self.claimed if outcome == REPRODUCED else ("lower" if self.claimed == "higher" else "higher")
+        sign = 1.0 if side == "higher" else -1.0
+        off = [k for k, mean in enumerate(self.seed_means) if not sign * (mean - self.threshold) > 0]
+        if not off:
+            return ""
+        means = ", ".join(fmt(mean, self.quantity) for mean in self.seed_means)
+        return (f"{self.a} vs {self.b}: seed-sensitive (seed(s) {', '.join(map(str, off))} alone not on the "
+                f"{outcome} side; per-seed mean a−b: {means})")
+
+    @property
+    def decided(self) -> str:
+        """:attr:`outcome`, except inconclusive when :meth:`seed_problem` says the seeds do not carry it."""
+        return INCONCLUSIVE if self.seed_problem() else self.outcome
+
+    @property
+    def seed_robust(self) -> bool | None:
+        """Whether every seed alone lies on the decided side (None: no learned row, or no decided outcome)."""
+        if not self.seeds or self.outcome not in (REPRODUCED, CONTRADICTED):
+            return None
+        return not self.seed_problem()
 
     def measured_text(self) -> str:
         label = LABELS.get(self.quantity, self.quantity)
@@ -231,13 +282,13 @@ class Decision:
         """Per part: contradicted after Holm's correction over the claim's parts (see the module docstring)."""
         # Holm over all m parts; a part with too few units has no p-value (never rejected) but counts in m.
         family = [part.p_other_side if part.n >= part.min_units else math.nan for part in self.parts]
-        return [part.outcome == CONTRADICTED and hit for part, hit in zip(self.parts, holm_rejected(family))]
+        return [part.decided == CONTRADICTED and hit for part, hit in zip(self.parts, holm_rejected(family))]
 
     @property
     def verdict(self) -> str:
         if self.not_run or not self.parts:
             return NOT_RUN
-        outcomes = [part.outcome for part in self.parts]
+        outcomes = [part.decided for part in self.parts]
         if all(o == REPRODUCED for o in outcomes):
             return REPRODUCED
         if any(self.contradicting_parts):
@@ -247,11 +298,17 @@ class Decision:
     def holm_note(self) -> str:
         """Why a part whose interval lies on the other side does not contradict the claim ('' otherwise)."""
         kept = [part for part, hit in zip(self.parts, self.contradicting_parts)
-                if part.outcome == CONTRADICTED and not hit]
+                if part.decided == CONTRADICTED and not hit]
         if not kept:
             return ""
         return (f"{len(kept)} part(s) on the other side do not survive Holm's correction over {len(self.parts)} "
                 f"parts ({'; '.join(part.claim_text() for part in kept)}); ")
+
+
+    def seed_note(self) -> str:
+        """Why parts whose interval is decided do not decide the claim: too few seeds or seed-sensitive."""
+        problems = [part.seed_problem() for part in self.parts if part.seed_problem()]
+        return "".join(f"{problem}; " for problem in problems)
 
 
 def not_run(reason: str) -> Decision:
@@ -290,7 +347,31 @@ def evaluate_claim(res: Results, claim: Claim) -> Decision:
         return not_run("missing rows: " + "; ".join(f"{n.description} (method '{n.method}')" for n in missing))
     if claim.decide is None:
         return not_run("no decision implemented")
-    return claim.decide(res)
+    decision = claim.decide(res)
+    for part in decision.parts:
+        attach_seeds(res, part)
+    return decision
+
+
+def attach_seeds(res: Results, part: Part) -> Part:
+    """Fill ``part.seeds`` when its decide function left it unknown: the fewest seeds (Results.seed_rows) of its
+    learned rows, 0 without one. A part so filled has no per-seed differences, so a learned part with two or more
+    seeds stays undecided (:meth:`Part.seed_problem`) until its decide function computes them."""
+    if part.seeds is None:
+        part.seeds = seeds_of(res, part.rows)
+    return part
+
+
+def seeds_of(res: SeedAveraged, rows: Sequence[tuple[str, int]]) -> int:
+    """The fewest seed rows (Results.seed_rows) among the learned rows of ``rows`` ((row, spp) pairs); 0 when
+    none is learned."""
+    counts = [len(res.seed_rows(row, spp)) for row, spp in rows if res.learned(row)]
+    return min(counts) if counts else 0
+
+
+def seed_differences(a: Sequence[pd.Series], b: Sequence[pd.Series]) -> list[pd.Series]:
+    """Per seed k: a[k] - b[k] per scene, a side with one Series paired with every seed of the other."""
+    return [a[min(k, len(a) - 1)] - b[min(k, len(b) - 1)] for k in range(max(len(a), len(b)))]
 
 
 def spp_available(res: Results, spp: int, rows: Sequence[str | None]) -> str:
@@ -308,7 +389,8 @@ def compare_rows(res: Results, a: str, b: str, metric: str, spp: int, claimed: s
     b_spp = spp if b_spp is None else b_spp
     return Part.paired(res.claim_values(a, spp, metric), res.claim_values(b, b_spp, metric), metric,
                        f"{a} @ {spp} spp", f"{b} @ {b_spp} spp", claimed, rows=((a, spp), (b, b_spp)),
-                       threshold=threshold)
+                       threshold=threshold, a_seeds=res.claim_values_per_seed(a, spp, metric),
+                       b_seeds=res.claim_values_per_seed(b, b_spp, metric), seeds=seeds_of(res, ((a, spp), (b, b_spp))))
 
 
 def compare_speed(res: Results, a: str, b: str, spp: int, claimed: str = "lower") -> SpeedPart | str:
@@ -323,9 +405,10 @@ def compare_speed(res: Results, a: str, b: str, spp: int, claimed: str = "lower"
         absent = [f"{r} @ {spp} spp" for r, row in ((a, row_a), (b, row_b)) if row is None]
         return f"the timing job did not time {', '.join(absent)}"
     ratios = np.asarray(speed_ratios(res.timing, (a, spp), (b, spp)), np.float64)
+    # A network's speed does not depend on its training seed: no seed condition.
     return SpeedPart("ms_per_frame", f"{a} @ {spp} spp", f"{b} @ {spp} spp", claimed, np.log(ratios),
                      [f"round {k + 1}" for k in range(len(ratios))], float(row_a["ms_per_frame"]),
-                     float(row_b["ms_per_frame"]), ((a, spp), (b, spp)))
+                     float(row_b["ms_per_frame"]), ((a, spp), (b, spp)), seeds=0)
 
 
 def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, object]:
@@ -338,6 +421,8 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
             if text and text not in flags:
                 flags.append(text)
     ns = sorted({part.n for part in parts})
+    learned = [part for part in parts if part.seeds]
+    robust = [part.seed_robust for part in learned if part.seed_robust is not None]
     needed = []
     for part in parts:
         if part.outcome == INCONCLUSIVE and not isinstance(part, SpeedPart):
@@ -348,6 +433,8 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
             needed.append("")
     return {"claim": claim.id, "paper": claim.paper, "statement": claim.statement, "verdict": decision.verdict,
             "n": ", ".join(map(str, ns)) if parts else "",
+            "seeds": min(part.seeds for part in learned) if learned else "",
+            "seed_robust": ("yes" if all(robust) else "no") if robust else "",
             "scenes_needed": "; ".join(needed) if any(needed) else "",
             "mean_diff_ci_95": "; ".join(p.interval_text() for p in parts),
             "parts": "; ".join(p.claim_text() for p in parts),
@@ -356,14 +443,14 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
                                for f in decision.facts),
             "flags": "; ".join(flags),
             "note": decision.not_run or (UNDERTRAINED_NOTE if any(UNDERTRAINED in f for f in flags) else "")
-            + decision.holm_note() + decision.note,
+            + decision.seed_note() + decision.holm_note() + decision.note,
             "rule": (RULE + (SPEED_RULE if any(isinstance(p, SpeedPart) for p in parts) else "")) if parts else ""}
 
 
 UNDERTRAINED = "under-trained"
 UNDERTRAINED_NOTE = ("involves an under-trained model (see flags): the verdict tests the training budget, not the "
                      "method; ")
-CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "mean_diff_ci_95", "scenes_needed", "parts",
+CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "seeds", "seed_robust", "mean_diff_ci_95", "scenes_needed", "parts",
                  "measured", "facts", "flags", "note", "rule")
 
 

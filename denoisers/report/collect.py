@@ -33,10 +33,11 @@ from denoisers.evaluate import (
     robustness_dir,
 )
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
+from denoisers.report.seeds import SeedAveraged, seed_mean
 from denoisers.report.stats import pooled_psnr
 from denoisers.report.volumes import VolumeResults, collect_volumes
 from denoisers.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timed_runs, timing_scene, timing_settings
-from denoisers.training.models import ModelSpec, model_dir, model_specs
+from denoisers.training.models import ModelSpec, model_dir, model_specs, seed_replicas
 from denoisers.training.speed import TRAINING_SPEED_FILE, read_training_speed, speed_models
 from denoisers.tuning import TUNED_KEY, tuning_file
 from scenegen.config import CUSTOM_PREFIX, output_root
@@ -208,9 +209,12 @@ class TrainedModel:
 class TrainedModels:
     specs: list[ModelSpec]
     models: dict[str, TrainedModel] = field(default_factory=dict)   # models whose directory is complete
+    replicas: frozenset[str] = frozenset()   # ids of seed replicas ({id}_seed{k}) among specs
 
     def variants(self, ablation: str) -> dict[str, TrainedModel]:
-        return {m.spec.variant: m for m in self.models.values() if m.spec.ablation == ablation}
+        """variant id -> the first seed's model of each trained variant of ``ablation``."""
+        return {m.spec.variant: m for m in self.models.values()
+                if m.spec.ablation == ablation and m.spec.id not in self.replicas}
 
     @property
     def missing(self) -> list[str]:
@@ -222,7 +226,9 @@ def collect_models(cfg: dict, results_dir: Path, ledger: DigestLedger | None = N
     settings digests go to ``ledger``."""
     import pandas as pd
 
-    found, lineage = TrainedModels(model_specs(cfg)), Lineage(cfg)
+    replicas = seed_replicas(cfg)
+    found = TrainedModels(model_specs(cfg) + replicas, replicas=frozenset(spec.id for spec in replicas))
+    lineage = Lineage(cfg)
     for spec in found.specs:
         folder = model_dir(results_dir, spec.id)
         files = [folder / name for name in ("summary.json", "curves.csv", "validation.csv")]
@@ -236,7 +242,7 @@ def collect_models(cfg: dict, results_dir: Path, ledger: DigestLedger | None = N
 
 # ------------------------------------------------------------------------------------------ results
 @dataclass
-class Results:
+class Results(SeedAveraged):
     """Everything the report is computed from."""
 
     cfg: dict
@@ -296,22 +302,25 @@ class Results:
     def spec(self, method_id: str) -> MethodSpec:
         return next(spec for spec in self.specs if spec.id == method_id)
 
-    def scene_values(self, method_id: str, spp: int, column: str) -> pd.Series:
-        """Per-scene values of one column, indexed by scene."""
-        rows = self.per_scene[(self.per_scene.method_id == method_id) & (self.per_scene.spp == spp)]
-        return rows.set_index("scene")[column]
-
     def claim_values(self, method_id: str, spp: int, column: str) -> pd.Series:
+        """:meth:`claim_values_per_seed` averaged over the row's seeds per scene (on the scenes every seed has)."""
+        return seed_mean(self.claim_values_per_seed(method_id, spp, column))
+
+    def claim_values_per_seed(self, method_id: str, spp: int, column: str) -> list[pd.Series]:
+        """The per-scene values the claims decide on of each seed of the row (:meth:`seed_rows`), seed order."""
+        return [self._own_claim_values(row, spp, column) for row in self.seed_rows(method_id, spp)]
+
+    def _own_claim_values(self, method_id: str, spp: int, column: str) -> pd.Series:
         """Per-scene values the claims decide on, indexed by scene: a frame metric averaged over each clip's
         steady frames only (:func:`steady_frames`: the first evaluation.warmup_frames frames of the clip and of
         every shot after a camera cut left out, for every method alike, since they bias against temporal
         methods); video_psnr pooled over the same frames. Other columns, and results without per-frame tables
         (hand-built ones), are scene_values."""
         if self.frames.empty or column not in self.frames.columns and column != "video_psnr":
-            return self.scene_values(method_id, spp, column)
+            return self.own_scene_values(method_id, spp, column)
         rows = self.frames[(self.frames.method_id == method_id) & (self.frames.spp == spp)]
         if rows.empty:
-            return self.scene_values(method_id, spp, column)
+            return self.own_scene_values(method_id, spp, column)
         warmup = int(self.cfg["evaluation"].get("warmup_frames", 0))
         steady = rows[steady_frames(rows, warmup)]
         grouped = steady.groupby("scene", sort=False)
@@ -329,12 +338,13 @@ class Results:
         if absurd > 0:
             factor = rows["out_of_range_factor"].max()
             parts.append(f"{int(absurd):,} output values beyond {factor:g}x the largest input sample")
-        model = self.model_of(method_id)
-        steps = model.summary.get("steps") if model else None
-        if steps is not None and steps < MIN_TRAINING_STEPS:
-            parts.append(f"model {model.spec.id} trained only {steps} steps")
-        elif model is not None and model.undertrained(self.cfg):
-            parts.append(model.undertrained(self.cfg))
+        for row in self.seed_rows(method_id, spp):     # every seed's model
+            model = self.model_of(row)
+            steps = model.summary.get("steps") if model else None
+            if steps is not None and steps < MIN_TRAINING_STEPS:
+                parts.append(f"model {model.spec.id} trained only {steps} steps")
+            elif model is not None and model.undertrained(self.cfg):
+                parts.append(model.undertrained(self.cfg))
         return f"{method_id} @ {spp} spp: " + ", ".join(parts) if parts else ""
 
     def speed(self, method_id: str | None, spp: int) -> dict[str, Any] | None:

@@ -37,9 +37,9 @@ class PublishError(RuntimeError):
 def _digests(cfg: dict) -> dict[str, Any]:
     from denoisers.experiment import report_digest
     from denoisers.store.keys import model_key
-    from denoisers.training.models import model_specs
+    from denoisers.training.models import trained_model_specs
 
-    return {"report_digest": report_digest(cfg), "model_keys": {s.id: model_key(cfg, s.id) for s in model_specs(cfg)}}
+    return {"report_digest": report_digest(cfg), "model_keys": {s.id: model_key(cfg, s.id) for s in trained_model_specs(cfg)}}
 
 
 def publish_run(cfg: dict, config_file: str, results: Path, out: Path) -> dict[str, Any]:

@@ -31,7 +31,10 @@ def speed_text(res: Results, method_id: str, spp: int) -> str:
 
 
 def summary_table(res: Results) -> pd.DataFrame:
-    """Long table: row x spp x metric -> mean, 95 % CI over evaluated scenes, number of scenes."""
+    """Long table: row x spp x metric -> mean, 95 % CI over evaluated scenes, number of scenes; for a row of a
+    trained model with seed rows (training.seeds > 1) the mean is over its seeds' per-scene means, ``n_seeds``
+    says how many and ``seed_sd`` is the standard deviation over seeds of each seed's mean over scenes (NaN
+    with one seed). Seed rows keep their own (one-seed) lines, role 'seed'."""
     import pandas as pd
 
     rows = []
@@ -40,15 +43,25 @@ def summary_table(res: Results) -> pd.DataFrame:
             continue
         for metric in SUMMARY_METRICS:
             mean, low, high, n = mean_ci(res.scene_values(run["id"], run["spp"], metric).to_numpy(np.float64))
+            seeds = [float(values.mean()) for values in res.scene_values_per_seed(run["id"], run["spp"], metric)]
             rows.append({"method_id": run["id"], "method": run["method"], "role": run["role"], "spp": run["spp"],
                          "metric": metric, "higher_is_better": HIGHER_IS_BETTER[metric], "mean": mean,
-                         "ci_low": low, "ci_high": high, "n_scenes": n})
+                         "ci_low": low, "ci_high": high, "n_scenes": n, "n_seeds": len(seeds),
+                         "seed_sd": float(np.std(seeds, ddof=1)) if len(seeds) > 1 else math.nan})
     return pd.DataFrame(rows, columns=["method_id", "method", "role", "spp", "metric", "higher_is_better", "mean",
-                                       "ci_low", "ci_high", "n_scenes"])
+                                       "ci_low", "ci_high", "n_scenes", "n_seeds", "seed_sd"])
 
 
 def summary_lookup(summary: pd.DataFrame) -> dict[tuple[str, int, str], tuple[float, float, float, int]]:
     return {(r.method_id, r.spp, r.metric): (r.mean, r.ci_low, r.ci_high, r.n_scenes) for r in summary.itertuples()}
+
+
+def _seed_label(summary: pd.DataFrame, method_id: str, spp: int) -> str:
+    """The row's name, with its seed count and the PSNR spread over seeds when it has more than one seed."""
+    line = summary[(summary.method_id == method_id) & (summary.spp == spp) & (summary.metric == "psnr")]
+    if line.empty or int(line.n_seeds.iloc[0]) < 2:
+        return method_id
+    return f"{method_id} ({int(line.n_seeds.iloc[0])} seeds, PSNR sd {float(line.seed_sd.iloc[0]):.2f} dB)"
 
 
 def summary_markdown(res: Results, summary: pd.DataFrame) -> str:
@@ -57,7 +70,7 @@ def summary_markdown(res: Results, summary: pd.DataFrame) -> str:
     arrows = {True: "↑", False: "↓"}
     parts = []
     for spp in res.cfg["evaluation"]["spp"]:
-        rows = [[spec.id, *[fmt_ci(*lookup[(spec.id, spp, m)][:3], m) for m in SUMMARY_SHOWN],
+        rows = [[_seed_label(summary, spec.id, spp), *[fmt_ci(*lookup[(spec.id, spp, m)][:3], m) for m in SUMMARY_SHOWN],
                  speed_text(res, spec.id, spp), "⚠" if res.flag(spec.id, spp) else "ok"]
                 for spec in res.main_specs if res.ran(spec.id, spp)]
         flags = [res.flag(spec.id, spp) for spec in res.main_specs if res.ran(spec.id, spp)]

@@ -97,8 +97,9 @@ TARGETS: tuple[Target, ...] = (
 
 
 def comparison_state(part: Part, mode: str) -> str:
-    """MET (holds), NOT_MET (fails) or OPEN for one measured comparison."""
-    outcome = part.outcome
+    """MET (holds), NOT_MET (fails) or OPEN for one measured comparison (a learned one needs its seeds:
+    Part.decided)."""
+    outcome = part.decided
     if outcome == CONTRADICTED:
         return NOT_MET
     if outcome == REPRODUCED:
@@ -149,7 +150,8 @@ def targets_table(res: Results, targets: tuple[Target, ...] = TARGETS) -> pd.Dat
             "mean_diff_ci_95": "; ".join(p.interval_text() for p, _ in parts),
             "measured": "; ".join(p.measured_text() for p, _ in parts),
             "n": ", ".join(map(str, sorted({p.n for p, _ in parts}))),
-            "flags": "; ".join(flags), "note": reason})
+            "flags": "; ".join(flags),
+            "note": reason + "".join(f"; {p.seed_problem()}" for p, _ in parts if p.seed_problem())})
     return pd.DataFrame(lines, columns=list(COLUMNS))
 
 

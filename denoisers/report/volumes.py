@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_CSV, ROBUSTNESS_SUMMARY, TIMING_FILE, MethodSpec, metrics_sidecar,
                                 volume_method_specs)
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
+from denoisers.report.seeds import SeedAveraged
 from denoisers.report.stats import pooled_psnr
 from denoisers.volume_eval import (volume_denoised_dir, volume_metrics_csv, volume_robustness_dir, volume_robustness_runs,
                                    volume_runs, volume_test_scene_ids)
@@ -21,7 +22,7 @@ if TYPE_CHECKING:
 
 
 @dataclass
-class VolumeResults:
+class VolumeResults(SeedAveraged):
     """The volume rows' results. ``runs``: every (row, spp) with status 'ran' or 'not run' and the reason;
     ``frames``: per-frame metrics (method_id, spp, scene, scenario, frame, ...); ``per_scene``: their means per
     (method_id, spp, scene) with the clip's scenario and its video PSNR."""
@@ -49,10 +50,6 @@ class VolumeResults:
     def reason(self, method_id: str, spp: int) -> str:
         return next((r["reason"] for r in self.runs if r["id"] == method_id and r["spp"] == spp), "not configured")
 
-    def scene_values(self, method_id: str, spp: int, column: str) -> pd.Series:
-        """Per-clip values of one column, indexed by clip."""
-        rows = self.per_scene[(self.per_scene.method_id == method_id) & (self.per_scene.spp == spp)]
-        return rows.set_index("scene")[column]
 
 
 def collect_volumes(cfg: dict, results_dir: Path, ledger: DigestLedger) -> VolumeResults | None:

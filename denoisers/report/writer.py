@@ -13,7 +13,7 @@ from denoisers.report import tables as tab
 from denoisers.report import targets
 from denoisers.report.atlas import report_section as atlas_section
 from denoisers.report.capacity import capacity_section
-from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SPEED_ROUNDS, MIN_UNITS, NOT_RUN, REPRODUCED,
+from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_SPEED_ROUNDS, MIN_UNITS, NOT_RUN, REPRODUCED,
                                      claims_table)
 from denoisers.report.collect import CROP_GAP_DB, MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.color_balance import color_balance_section
@@ -29,8 +29,8 @@ if TYPE_CHECKING:
 
 TRAINING_COLUMNS = ("train_minutes", "step_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim",
                     "val_psnr", "val_rmse", "whole_frame_gap_db")
-CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "mean_diff_ci_95", "scenes_needed", "parts", "measured", "facts",
-                "flags", "note"]
+CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "seeds", "seed_robust", "mean_diff_ci_95", "scenes_needed", "parts",
+                "measured", "facts", "flags", "note"]
 
 
 def _setup_lines(res: Results) -> list[str]:
@@ -113,7 +113,11 @@ def _claims_section(claims: pd.DataFrame, res_warmup: int) -> list[str]:
             f"model trained fewer than {MIN_TRAINING_STEPS} steps or is under-trained (its best validation loss still "
             "fell over the last part of its run; see the training table): their numbers test the budget, not the "
             "method. Speed parts are decided on the timing job instead: a t-interval of the per-round log time "
-            f"ratio ln(a/b) over at least {MIN_SPEED_ROUNDS} rounds, shown as a ratio.",
+            f"ratio ln(a/b) over at least {MIN_SPEED_ROUNDS} rounds, shown as a ratio. A part with a trained model "
+            "is decided on per-scene values averaged over the model's training seeds (training.seeds; `seeds`: the "
+            f"fewest among its learned rows), needs at least {MIN_SEEDS} seeds and must be *seed-robust*: each seed "
+            "alone (its mean difference over the scenes) on the decided side; otherwise it is inconclusive and the "
+            "note says why (`seed_robust`: yes / no over the decided learned parts).",
             "",
             f"Verdicts: {tally}.", "", frame_to_markdown(claims[CLAIMS_SHOWN]), "",
             "[claims (CSV)](tables/claims.csv)", ""]

@@ -13,7 +13,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from denoisers.report.claims import Claim, Decision, Fact, Part, RowNeed, compare_rows, compare_speed, not_run, spp_available
+from denoisers.report.claims import (Claim, Decision, Fact, Part, RowNeed, compare_rows, compare_speed, not_run,
+                                     seed_differences, seeds_of, spp_available)
 from denoisers.report.stats import LABELS, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction
 
@@ -83,9 +84,12 @@ def decide_c43(res: Results) -> Decision:
         return not_run("needs two or more evaluated spp (RAE's gain at the lowest versus the highest)")
     parts = [compare_rows(res, wrls, noisy, "psnr", s, "higher") for s in spps]
     gain = {s: res.claim_values(rae, s, "psnr") - res.claim_values(noisy, s, "psnr") for s in (spps[0], spps[-1])}
+    seed_gain = {s: seed_differences(res.claim_values_per_seed(rae, s, "psnr"), res.claim_values_per_seed(noisy, s, "psnr"))
+                 for s in (spps[0], spps[-1])}
+    rows = ((rae, spps[0]), (rae, spps[-1]), (noisy, spps[0]), (noisy, spps[-1]))
     parts.append(Part.paired(gain[spps[-1]], gain[spps[0]], "psnr", f"RAE gain over input @ {spps[-1]} spp",
-                             f"RAE gain @ {spps[0]} spp", "lower",
-                             rows=((rae, spps[0]), (rae, spps[-1]), (noisy, spps[0]), (noisy, spps[-1]))))
+                             f"RAE gain @ {spps[0]} spp", "lower", rows=rows, a_seeds=seed_gain[spps[-1]],
+                             b_seeds=seed_gain[spps[0]], seeds=seeds_of(res, rows)))
     return Decision(parts, note=f"wRLS above its input at every evaluated spp {spps}, and RAE's PSNR gain smaller "
                                 f"at {spps[-1]} than at {spps[0]} spp; {SURFACES}")
 
@@ -126,7 +130,9 @@ def _volume_rows(res: Results, *needs: tuple[str, dict]) -> tuple[list[str | Non
 def _volume_part(res: Results, a: str, b: str, metric: str, spp: int, claimed: str) -> Part:
     vol = res.volumes
     return Part.paired(vol.scene_values(a, spp, metric), vol.scene_values(b, spp, metric), metric,
-                       f"{a} @ {spp} spp", f"{b} @ {spp} spp", claimed)
+                       f"{a} @ {spp} spp", f"{b} @ {spp} spp", claimed,
+                       a_seeds=vol.scene_values_per_seed(a, spp, metric), b_seeds=vol.scene_values_per_seed(b, spp, metric),
+                       seeds=seeds_of(vol, ((a, spp), (b, spp))))
 
 
 def decide_c41_volumes(res: Results) -> Decision:
@@ -186,8 +192,11 @@ def decide_c43_volumes(res: Results) -> Decision:
         return not_run("; ".join(missing))
     parts = [_volume_part(res, wrls, noisy, "psnr", s, "higher") for s in spps]
     gain = {s: vol.scene_values(rae, s, "psnr") - vol.scene_values(noisy, s, "psnr") for s in (spps[0], spps[-1])}
+    seed_gain = {s: seed_differences(vol.scene_values_per_seed(rae, s, "psnr"), vol.scene_values_per_seed(noisy, s, "psnr"))
+                 for s in (spps[0], spps[-1])}
     parts.append(Part.paired(gain[spps[-1]], gain[spps[0]], "psnr", f"RAE gain over input @ {spps[-1]} spp",
-                             f"RAE gain @ {spps[0]} spp", "lower"))
+                             f"RAE gain @ {spps[0]} spp", "lower", a_seeds=seed_gain[spps[-1]],
+                             b_seeds=seed_gain[spps[0]], seeds=seeds_of(vol, ((rae, spps[0]), (rae, spps[-1])))))
     return Decision(parts, note=f"{VOLUMES}: wRLS above its input at every spp {spps}, and RAE's PSNR gain smaller "
                                 f"at {spps[-1]} than at {spps[0]} spp")
 

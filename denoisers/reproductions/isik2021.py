@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from denoisers.report.claims import Claim, Decision, Part, RowNeed, compare_rows, not_run
+from denoisers.report.claims import Claim, Decision, Part, RowNeed, compare_rows, not_run, seed_differences, seeds_of
 from denoisers.report.stats import LABELS, MUCH_WORSE_MARGIN_DB, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions import _isik2021_paper as paper
 from denoisers.reproductions.base import Reproduction
@@ -182,8 +182,11 @@ def decide_c35(res: Results) -> Decision:
     if high != low:
         gain_low = res.scene_values(large, low, "psnr") - res.scene_values(small, low, "psnr")
         gain_high = res.scene_values(large, high, "psnr") - res.scene_values(small, high, "psnr")
+        rows = ((large, low), (small, low), (large, high), (small, high))
+        seed_gain = {s: seed_differences(res.scene_values_per_seed(large, s, "psnr"),
+                                         res.scene_values_per_seed(small, s, "psnr")) for s in (low, high)}
         parts.append(Part.paired(gain_low, gain_high, "psnr", f"gain @ {low} spp", f"gain @ {high} spp", "higher",
-                                 rows=((large, low), (small, low), (large, high), (small, high))))
+                                 rows=rows, a_seeds=seed_gain[low], b_seeds=seed_gain[high], seeds=seeds_of(res, rows)))
     else:
         note += "; only one claim spp ran, so part (b) (larger gain at low spp) is not decided"
     return Decision(parts, note=note)

@@ -33,12 +33,12 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
     from denoisers.store.entries import ModelStore, StoreError
     from denoisers.store.keys import short
     from denoisers.training.job import work_dir_for
-    from denoisers.training.models import model_specs, same_training_as
+    from denoisers.training.models import same_training_as, trained_model_specs
     from scenegen.config import output_root
 
     store = ModelStore.of(cfg)
     results = args.results or output_root(cfg)
-    configured = [spec.id for spec in model_specs(cfg)]
+    configured = [spec.id for spec in trained_model_specs(cfg)]
     models = args.model_id or configured
     if args.action == "list":
         for entry in store.entries("tuning"):

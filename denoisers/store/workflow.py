@@ -20,18 +20,18 @@ def verify_models(cfg: dict) -> list[str]:
     models = list((store_settings(cfg).get("verify") or {}).get("models") or [])
     if models:
         return models
-    from denoisers.training.models import model_specs, same_training_as
+    from denoisers.training.models import same_training_as, trained_model_specs
 
     store = ModelStore.of(cfg)
-    return [spec.id for spec in model_specs(cfg)
+    return [spec.id for spec in trained_model_specs(cfg)
             if not same_training_as(cfg, spec.id) and store.model_entry(cfg, spec.id) is not None]
 
 
 def verify_problems(cfg: dict) -> list[str]:
     """Config problems of ``store.verify``: unknown model ids, models not stored under this config's key."""
-    from denoisers.training.models import model_specs, same_training_as
+    from denoisers.training.models import same_training_as, trained_model_specs
 
-    known = {spec.id for spec in model_specs(cfg)}
+    known = {spec.id for spec in trained_model_specs(cfg)}
     problems = []
     for model_id in verify_models(cfg):
         if model_id not in known:

@@ -128,12 +128,63 @@ def _build_model_specs(cfg: dict) -> list[ModelSpec]:
     return specs
 
 
-def model_spec(cfg: dict, model_id: str) -> ModelSpec:
-    """The spec of model ``model_id``; KeyError listing the configured ids otherwise."""
+#: Id suffix of a seed replica: model ``{id}`` trains again as ``{id}_seed{k}``, k = 1 .. training.seeds - 1.
+SEED_SUFFIX = "_seed"
+
+
+def seed_count(cfg: dict) -> int:
+    """``training.seeds``: how many times every model trains (1: once, no replicas)."""
+    return int((cfg.get("training") or {}).get("seeds") or 1)
+
+
+def replica_id(model_id: str, k: int) -> str:
+    """The id of seed replica ``k`` of ``model_id`` (k = 0: the model itself)."""
+    return model_id if k == 0 else f"{model_id}{SEED_SUFFIX}{k}"
+
+
+def replica_seed(seed: int, k: int) -> int:
+    """The training seed of replica ``k`` of a model trained with ``seed`` (k = 0: ``seed``). A function of the
+    model's seed alone, so variants of one ablation, which share the base model's seed, share every replica's."""
+    if k == 0:
+        return int(seed)
+    digest = hashlib.sha256(f"{int(seed)}/replica/{k}".encode()).digest()
+    return int.from_bytes(digest[:4], "little")
+
+
+def seed_replicas(cfg: dict) -> list[ModelSpec]:
+    """The extra trainings of ``training.seeds``: for every model of :func:`model_specs` and k = 1 .. seeds - 1,
+    its spec with id ``{id}_seed{k}`` and seed :func:`replica_seed` (every other setting, ablation labels
+    included, unchanged). Empty with one seed."""
+    return [ModelSpec(**{**spec.__dict__, "id": replica_id(spec.id, k), "seed": replica_seed(spec.seed, k)})
+            for k in range(1, seed_count(cfg)) for spec in model_specs(cfg)]
+
+
+def trained_model_specs(cfg: dict) -> list[ModelSpec]:
+    """Every training the config runs: :func:`model_specs`, then the seed replicas (:func:`seed_replicas`)."""
+    return model_specs(cfg) + seed_replicas(cfg)
+
+
+def replica_ids(cfg: dict, model_id: str) -> list[str]:
+    """``model_id`` and the ids of its seed replicas, seed order."""
+    return [replica_id(model_id, k) for k in range(seed_count(cfg))]
+
+
+def replica_of(cfg: dict, model_id: str) -> tuple[str, int] | None:
+    """(model id, k) when ``model_id`` is seed replica k >= 1 of a configured model, else None."""
     for spec in model_specs(cfg):
+        for k in range(1, seed_count(cfg)):
+            if replica_id(spec.id, k) == model_id:
+                return spec.id, k
+    return None
+
+
+def model_spec(cfg: dict, model_id: str) -> ModelSpec:
+    """The spec of model ``model_id`` (a seed replica included); KeyError listing the configured ids otherwise."""
+    specs = trained_model_specs(cfg)
+    for spec in specs:
         if spec.id == model_id:
             return spec
-    known = ", ".join(spec.id for spec in model_specs(cfg)) or "none"
+    known = ", ".join(spec.id for spec in specs) or "none"
     raise KeyError(f"no trained model with id {model_id!r}; configured models: {known}")
 
 
@@ -147,6 +198,10 @@ def same_training_as(cfg: dict, model_id: str) -> str | None:
 
     Such a variant is not trained again: its job publishes the base's weights under its own id
     (``denoisers.training.job``), so the comparison still has its row and the DAG pays for one training."""
+    replica = replica_of(cfg, model_id)
+    if replica is not None:   # replica k of a variant equal to its base is the base's replica k
+        same = same_training_as(cfg, replica[0])
+        return replica_id(same, replica[1]) if same else None
     spec = model_spec(cfg, model_id)
     if spec.ablation is None:
         return None
@@ -289,9 +344,11 @@ def training_problems(cfg: dict, build_tasks: bool = True) -> list[str]:
             problems.append(f"config key 'training.ablations' entry {ablation['id']!r} has variant {dup!r} twice")
     specs = model_specs(cfg)
     ids = [spec.id for spec in specs]
-    for dup in sorted({i for i in ids if ids.count(i) > 1}):
-        problems.append(f"config key 'training' defines the model id {dup!r} more than once (models and "
-                        f"ablation variants {{ablation}}_{{variant}} share one namespace)")
+    every = [spec.id for spec in trained_model_specs(cfg)]
+    for dup in sorted({i for i in every if every.count(i) > 1}):
+        problems.append(f"config key 'training' defines the model id {dup!r} more than once (models, "
+                        f"ablation variants {{ablation}}_{{variant}} and seed replicas {{id}}{SEED_SUFFIX}{{k}} "
+                        "share one namespace)")
     for entry in cfg["evaluation"]["methods"]:
         model = method_model(entry.get("params") or {})
         if model is not None and model not in ids:

@@ -33,7 +33,7 @@ from denoisers.timing import timed_runs, timing_scene, timing_settings
 from denoisers.training.speed import TRAINING_SPEED_FILE, speed_models, speed_settings
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
-from denoisers.training.models import (method_model, model_dir, model_spec, model_specs, same_training_as,
+from denoisers.training.models import (method_model, model_dir, model_spec, same_training_as, trained_model_specs,
                                        training_problems, training_runtime_minutes, training_split)
 from denoisers.store import ModelStore, model_key
 from denoisers.store.tuning import tuning_entry, tuning_key
@@ -163,7 +163,7 @@ def volume_outputs(wildcards=None) -> list[str]:
 
 def default_volume_outputs(wildcards=None) -> list[str]:
     """The volumetric renders of the default target: the vol_train_* clips only when a model trains on them."""
-    training = {scene for spec in model_specs(config) if model_source(spec.id) == "train"
+    training = {scene for spec in trained_model_specs(config) if model_source(spec.id) == "train"
                 for scene in sum(training_split(config, spec), [])}
     scenes = [scene for scene in VOLUME_SCENES if not scene.startswith("vol_train_") or scene in training]
     return [results_path(f"renders/{scene}/{kind}/chunk_000") for scene in scenes for kind in ("noisy", "reference")]
@@ -191,7 +191,7 @@ def check_chunk_target(kind: str):
 
 
 def check_model_target(wildcards) -> list:
-    ids = [spec.id for spec in model_specs(config)]
+    ids = [spec.id for spec in trained_model_specs(config)]
     if wildcards.model not in ids:
         raise impossible_target("train_denoiser", "models/{model}", wildcards,
                                 f"no model {wildcards.model} in training.models or training.ablations; "
@@ -386,7 +386,7 @@ TRAIN_SCENES, VALIDATION_SCENES = training_split(config)
 
 def model_dirs(wildcards=None) -> list[str]:
     """Every trained model directory (stage target `train`)."""
-    return [model_dir(OUT, spec.id).as_posix() for spec in model_specs(config)]
+    return [model_dir(OUT, spec.id).as_posix() for spec in trained_model_specs(config)]
 
 
 def training_chunk_dirs(kind: str, for_training: bool = False):
@@ -432,7 +432,7 @@ def needs_training_renders() -> bool:
     """Whether the DAG's default target needs the training scenes' renders: a model that trains, or a tuning that
     is not stored."""
     return any(not tuning_stored(method) for method in tuning_methods()) or \
-        any(model_source(spec.id) == "train" for spec in model_specs(config))
+        any(model_source(spec.id) == "train" for spec in trained_model_specs(config))
 
 
 def default_scene_dirs() -> list[str]:

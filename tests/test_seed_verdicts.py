@@ -1,0 +1,164 @@
+"""training.seeds (issue 46 §1): seed replicas of every model, seed rows in the evaluation, seed-averaged values
+and seed-robust verdicts, on synthetic results with a known answer.
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from denoisers import evaluate
+from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, REPRODUCED, evaluate_claim
+from denoisers.report.tables import SUMMARY_METRICS, summary_table
+from denoisers.store import model_key
+from denoisers.training.models import (model_spec, model_specs, replica_of, same_training_as, seed_replicas,
+                                       trained_model_specs, training_problems)
+from scenegen.config import validate_config
+from tests.test_claims import AGAINST, CLAIMS, CLEAR, PARTS, SCALE, Table, build, claims_config
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def default_config(seeds: int) -> dict:
+    cfg = yaml.safe_load((REPO_ROOT / "config" / "config.yaml").read_text())
+    cfg["training"]["seeds"] = seeds
+    return validate_config(cfg)
+
+
+# ------------------------------------------------------------------------------------------------ replicas
+def test_one_seed_adds_no_replica_and_three_add_two_per_model() -> None:
+    assert seed_replicas(default_config(1)) == []
+    cfg = default_config(3)
+    bases = model_specs(cfg)
+    replicas = seed_replicas(cfg)
+    assert len(replicas) == 2 * len(bases)
+    assert [spec.id for spec in trained_model_specs(cfg)] == [s.id for s in bases] + [
+        f"{s.id}_seed{k}" for k in (1, 2) for s in bases]
+    for base in bases:
+        seeds = {base.seed} | {model_spec(cfg, f"{base.id}_seed{k}").seed for k in (1, 2)}
+        assert len(seeds) == 3, base.id   # three distinct training seeds
+        for k in (1, 2):
+            replica = model_spec(cfg, f"{base.id}_seed{k}")
+            assert replica_of(cfg, replica.id) == (base.id, k)
+            # Everything but id and seed is the base's (ablation labels included).
+            same = {key: value for key, value in replica.settings().items() if key not in ("id", "seed")}
+            assert same == {key: value for key, value in base.settings().items() if key not in ("id", "seed")}
+    # Variants of one ablation share each replica's seed, as they share the first.
+    assert model_spec(cfg, "rae_inputs_color_seed1").seed == model_spec(cfg, "rae_inputs_normal_seed1").seed \
+        == model_spec(cfg, "rae_seed1").seed
+    assert model_spec(cfg, "ntasd_kpn_seed2").seed == model_spec(cfg, "ntasd_seed2").seed != model_spec(cfg, "ntasd").seed
+
+
+def test_seed_count_does_not_re_key_the_first_seed() -> None:
+    one, three = default_config(1), default_config(3)
+    for spec in model_specs(one):
+        assert model_key(one, spec.id) == model_key(three, spec.id), spec.id
+    assert model_key(three, "rae_seed1") not in {model_key(three, spec.id) for spec in model_specs(three)}
+
+
+def test_a_variant_equal_to_its_base_reuses_the_bases_replica() -> None:
+    cfg = default_config(3)
+    assert same_training_as(cfg, "rae_inputs_all") == "rae"
+    assert same_training_as(cfg, "rae_inputs_all_seed2") == "rae_seed2"
+    assert same_training_as(cfg, "rae_inputs_color_seed1") is None
+    assert same_training_as(cfg, "rae_seed1") is None
+
+
+def test_a_model_id_that_collides_with_a_replica_is_refused() -> None:
+    cfg = default_config(2)
+    extra = copy.deepcopy(cfg["training"]["models"][0])
+    extra["id"] = "rae_seed1"
+    cfg["training"]["models"].append(extra)
+    problems = "\n".join(training_problems(cfg, build_tasks=False))
+    assert "model id 'rae_seed1' more than once" in problems and "seed replicas" in problems
+
+
+def test_seed_rows_evaluate_every_replica_of_a_trained_row() -> None:
+    cfg = default_config(3)
+    rows = {spec.id: spec for spec in evaluate.method_specs(cfg)}
+    for k in (1, 2):
+        row = rows[f"rae_per_frame_seed{k}"]
+        assert row.role == evaluate.SEED_ROLE and row.seed_of == "rae_per_frame" and row.replica == k
+        assert row.params == {**rows["rae_per_frame"].params, "model": f"rae_seed{k}"}
+        assert row.spp == rows["rae_per_frame"].spp and not row.robustness
+        assert rows[f"rae_inputs_color_seed{k}"].params["model"] == f"rae_inputs_color_seed{k}"
+    assert not any(spec.seed_of in ("eaw", "noisy", "oidn") for spec in rows.values())
+    volume = {spec.id: spec for spec in evaluate.volume_method_specs(cfg)}
+    assert volume["vol_rae_seed2"].params["model"] == "rae_volume_seed2"
+    assert evaluate.seed_method_specs(default_config(1), list(rows.values())) == []
+    # Seed rows are not timed and not in the robustness scenario.
+    assert all(spec.role != evaluate.SEED_ROLE for spec in (run.spec for run in evaluate.robustness_runs(cfg)))
+
+
+# ------------------------------------------------------------------------------------------- aggregation
+def test_tables_show_the_seed_mean_and_spread() -> None:
+    cfg = claims_config()
+    table = Table(cfg, 4)
+    psnr = {"rae": [30.0, 31.0, 32.0, 33.0], "rae_seed1": [31.0, 32.0, 33.0, 34.0], "rae_seed2": [29.0, 29.0, 29.0, 29.0]}
+    table.values[("rae", 1)]["psnr"] = psnr["rae"]
+    for row in ("rae_seed1", "rae_seed2"):
+        table.seed_values[(row, 1)] = {"psnr": psnr[row]}
+    res = build(cfg, table)
+    for column in SUMMARY_METRICS:        # columns the synthetic table leaves out (timing, memory): constant
+        if column not in res.per_scene:
+            res.per_scene[column] = 1.0
+    expected = np.mean([psnr[row] for row in psnr], axis=0)
+    np.testing.assert_allclose(res.scene_values("rae", 1, "psnr").to_numpy(), expected)
+    np.testing.assert_allclose(res.scene_values("rae_seed2", 1, "psnr").to_numpy(), psnr["rae_seed2"])
+    summary = summary_table(res).set_index(["method_id", "spp", "metric"])
+    line = summary.loc[("rae", 1, "psnr")]
+    seed_means = [np.mean(psnr[row]) for row in psnr]       # 31.5, 32.5, 29.0
+    assert line["n_seeds"] == 3 and line["mean"] == pytest.approx(np.mean(expected))
+    assert line["seed_sd"] == pytest.approx(np.std(seed_means, ddof=1))
+    assert summary.loc[("eaw", 1, "psnr")]["n_seeds"] == 1 and np.isnan(summary.loc[("eaw", 1, "psnr")]["seed_sd"])
+
+
+# ------------------------------------------------------------------------------------------ verdicts
+def test_seeds_that_agree_decide_and_one_that_does_not_makes_it_inconclusive() -> None:
+    def verdict(d, seed2=None, seeds=3):
+        cfg = claims_config()
+        cfg["training"]["seeds"] = seeds
+        cfg = validate_config(cfg)
+        table = Table(cfg, len(d))
+        for a, a_spp, b, b_spp, metric, claimed in PARTS["C1.1"]:
+            table.shift((a, a_spp), (b, b_spp), metric, claimed, d)
+            if seed2 is not None:
+                sign = 1.0 if claimed == "higher" else -1.0
+                base = table.values[(b, b_spp)][metric]
+                table.seed_values.setdefault(("rae_seed2", 1), {})[metric] = [
+                    v + sign * SCALE[metric] * x for v, x in zip(base, seed2)]
+        return evaluate_claim(build(cfg, table), CLAIMS["C1.1"])
+
+    agreeing = verdict(CLEAR, seed2=[0.5, 0.6, 0.4, 0.5])
+    assert agreeing.verdict == REPRODUCED and all(part.seed_robust for part in agreeing.parts)
+    # Seed 2 alone is worse than EAW by 0.5 units: the seed mean (2 d - 0.5) / 3 still lies wholly on the
+    # claimed side, but seed 2 alone does not.
+    sensitive = verdict(CLEAR, seed2=[-0.5] * 4)
+    assert [part.outcome for part in sensitive.parts] == [REPRODUCED, REPRODUCED]
+    np.testing.assert_allclose(sensitive.parts[0].diffs, -SCALE["rmse"] * (2 * np.array(CLEAR) - 0.5) / 3)
+    assert sensitive.parts[0].seed_means[2] == pytest.approx(0.5 * SCALE["rmse"])
+    assert sensitive.verdict == INCONCLUSIVE and not any(part.seed_robust for part in sensitive.parts)
+    assert "seed-sensitive (seed(s) 2 alone not on the reproduced side" in sensitive.seed_note()
+    # The other side: contradicted by the seed mean, but seed 2 alone as claimed: not contradicted.
+    against = verdict(AGAINST, seed2=[0.5] * 4)
+    assert [part.outcome for part in against.parts] == [CONTRADICTED, CONTRADICTED]
+    assert against.verdict == INCONCLUSIVE and "contradicted side" in against.seed_note()
+    assert verdict(AGAINST).verdict == CONTRADICTED
+    # Fewer than three seeds never decide a learned part.
+    two = verdict(CLEAR, seeds=2)
+    assert two.verdict == INCONCLUSIVE and "2 training seed(s), fewer than the 3" in two.seed_note()
+    assert verdict(CLEAR, seeds=1).verdict == INCONCLUSIVE
+
+
+def test_a_part_without_a_learned_row_needs_no_seeds() -> None:
+    cfg = claims_config()
+    cfg["training"]["seeds"] = 1
+    cfg = validate_config(cfg)
+    table = Table(cfg, 4)
+    for a, a_spp, b, b_spp, metric, claimed in PARTS["C4.1s"]:   # wrls against svgf: no trained model
+        table.shift((a, a_spp), (b, b_spp), metric, claimed, CLEAR)
+    decision = evaluate_claim(build(cfg, table), CLAIMS["C4.1s"])
+    assert decision.verdict == REPRODUCED and all(part.seeds == 0 for part in decision.parts)
