@@ -61,6 +61,9 @@ METHOD_ROLE, ABLATION_ROLE, VOLUME_ROLE = "method", "ablation", "volume"
 #: Role of a row that evaluates a seed replica (training.seeds > 1) of another row's model: id
 #: ``{row}_seed{k}``; tables fold it into its row's seed mean and spread, claims into seed-averaged values.
 SEED_ROLE = "seed"
+#: Role of a row that evaluates a half-budget twin (training.half_budget) of another row's model: id
+#: ``{row}_half``; the claims compare their decisions at half the budget with those at the full budget.
+BUDGET_ROLE = "budget"
 #: Default of ``evaluation.out_of_range_factor`` (the schema's default).
 OUT_OF_RANGE_FACTOR = 10.0
 
@@ -78,9 +81,12 @@ class MethodSpec:
     spp: tuple[int, ...] = ()
     robustness: bool = True
     role: str = METHOD_ROLE
-    #: A seed row's (role ``seed``) first-seed row and replica index k >= 1; None and 0 for every other row.
+    #: A seed row's first-seed row and replica index k >= 1 (also on the half-budget rows of seed rows, pointing to
+    #: the first seed's half-budget row); None and 0 for every other row.
     seed_of: str | None = None
     replica: int = 0
+    #: A half-budget row's (role ``budget``) full-budget row; None for every other row.
+    budget_of: str | None = None
 
     @property
     def label(self) -> str:
@@ -127,15 +133,32 @@ def seed_method_specs(cfg: dict, rows: Sequence[MethodSpec]) -> list[MethodSpec]
             for row in rows if method_model(row.params) for k in range(1, seed_count(cfg))]
 
 
+def half_budget_method_specs(cfg: dict, rows: Sequence[MethodSpec]) -> list[MethodSpec]:
+    """For every row of ``rows`` that uses a trained model (seed rows included), with training.half_budget: row
+    ``{row}_half`` with the model's half-budget twin ``{model}_half``, at the row's spp, not in the robustness
+    scenario, role ``budget``; the half-budget row of seed row k is seed row k of the first seed's."""
+    from denoisers.training.models import HALF_SUFFIX, half_budget_enabled, method_model
+
+    if not half_budget_enabled(cfg):
+        return []
+    return [MethodSpec(f"{row.id}{HALF_SUFFIX}", row.method,
+                       {**row.params, "model": f"{method_model(row.params)}{HALF_SUFFIX}"}, row.spp, robustness=False,
+                       role=BUDGET_ROLE, seed_of=f"{row.seed_of}{HALF_SUFFIX}" if row.seed_of else None,
+                       replica=row.replica, budget_of=row.id)
+            for row in rows if method_model(row.params)]
+
+
 def method_specs(cfg: dict) -> list[MethodSpec]:
     """The evaluation rows in table order: ``evaluation.methods`` (spp default: every evaluated spp;
     robustness default: true), then one row per trained ablation variant (:func:`ablation_method_specs`), then
-    the seed rows of both (:func:`seed_method_specs`)."""
+    the seed rows of both (:func:`seed_method_specs`), then the half-budget rows of all of these
+    (:func:`half_budget_method_specs`)."""
     configured = [MethodSpec(entry["id"], entry["method"], dict(entry.get("params") or {}),
                              _row_spp(cfg, entry.get("spp")), bool(entry.get("robustness", True)), METHOD_ROLE)
                   for entry in cfg["evaluation"]["methods"]]
     rows = configured + ablation_method_specs(cfg)
-    return rows + seed_method_specs(cfg, rows)
+    rows += seed_method_specs(cfg, rows)
+    return rows + half_budget_method_specs(cfg, rows)
 
 
 def volume_method_specs(cfg: dict) -> list[MethodSpec]:
@@ -149,7 +172,8 @@ def volume_method_specs(cfg: dict) -> list[MethodSpec]:
                        tuple(s for s in denoise_spp if entry.get("spp") is None or s in entry["spp"]),
                        robustness=False, role=VOLUME_ROLE)
             for entry in volumes.get("rows", [])]
-    return rows + seed_method_specs(cfg, rows)
+    rows += seed_method_specs(cfg, rows)
+    return rows + half_budget_method_specs(cfg, rows)
 
 
 def method_spec(cfg: dict, method_id: str) -> MethodSpec:
@@ -212,10 +236,11 @@ def evaluation_problems(cfg: dict) -> list[str]:
                         f"'evaluation.spp' = {evaluated!r}; allowed: values of evaluation.spp, or [] to not "
                         "evaluate the ablation variants")
     rows = method_specs(cfg) + volume_method_specs(cfg)
-    seed_rows = {spec.id for spec in rows if spec.role == SEED_ROLE}
-    for method_id in sorted(seed_rows & {spec.id for spec in rows if spec.role != SEED_ROLE}):
-        problems.append(f"evaluation row id {method_id!r} is also the id of a seed row (training.seeds > 1 adds "
-                        "{row}_seed{k} for every row of a trained model); allowed: another row id")
+    added = {spec.id for spec in rows if spec.role in (SEED_ROLE, BUDGET_ROLE)}
+    for method_id in sorted(added & {spec.id for spec in rows if spec.role not in (SEED_ROLE, BUDGET_ROLE)}):
+        problems.append(f"evaluation row id {method_id!r} is also the id of a row the config adds for a trained "
+                        "model (training.seeds > 1: {row}_seed{k}; training.half_budget: {row}_half); allowed: "
+                        "another row id")
     evaluated_variants = [spec.id for spec in ablation_method_specs(cfg)]
     for method_id in sorted(set(ids) & set(evaluated_variants)):
         problems.append(f"config key 'evaluation.methods' has the id {method_id!r}, which is the id of the row "

@@ -48,8 +48,10 @@ PARTS = {
 #: ratio below 1 in round i.
 SPEED_PARTS = {"C4.4": (("wrls", 2), ("rae", 2))}
 #: Training seeds of the synthetic configs: a learned part needs MIN_SEEDS; every seed row repeats its row's
-#: values unless a test sets them (tests/test_seed_verdicts.py varies them).
+#: values unless a test sets them (tests/test_seed_verdicts.py varies them and the half-budget rows').
 SEEDS = MIN_SEEDS
+#: Roles of the rows the config adds for trained models; the synthetic configs also train half-budget twins.
+ADDED_ROLES = (evaluate.SEED_ROLE, evaluate.BUDGET_ROLE)
 DECIDED = ("C1.1", "C1.2", "C1.3", "C1.4", "C1.5", "C4.1s", "C4.2s", "C4.3s", "C4.4")
 
 
@@ -58,6 +60,7 @@ def claims_config(spp: tuple[int, ...] = (1, 2, 4)) -> dict:
     cfg["evaluation"]["spp"] = list(spp)
     cfg["evaluation"]["robustness"]["spp"] = 2 if 2 in spp else spp[0]
     cfg["training"]["seeds"] = SEEDS
+    cfg["training"]["half_budget"] = True
     return validate_config(cfg)
 
 
@@ -66,15 +69,21 @@ class Table:
 
     def __init__(self, cfg: dict, n: int) -> None:
         self.n = n
+        self.specs = {spec.id: spec for spec in evaluate.method_specs(cfg)}
         self.values = {(spec.id, s): {m: [v] * n for m, v in BASE.items()}
-                       for spec in evaluate.method_specs(cfg) for s in spec.spp if spec.role != evaluate.SEED_ROLE}
-        #: Values of seed rows ({row}_seed{k}) a test sets; any other seed row repeats its row's values.
-        self.seed_values: dict[tuple[str, int], dict[str, list[float]]] = {}
+                       for spec in self.specs.values() for s in spec.spp if spec.role not in ADDED_ROLES}
+        #: Values a test sets for rows the config adds (seed rows {row}_seed{k}, half-budget rows {row}_half); any
+        #: other such row repeats the values of the row it is a seed (half-budget run) of.
+        self.added_values: dict[tuple[str, int], dict[str, list[float]]] = {}
 
     def row_values(self, spec: evaluate.MethodSpec, spp: int) -> dict[str, list[float]]:
-        if spec.role == evaluate.SEED_ROLE:
-            return {**self.values[(spec.seed_of, spp)], **self.seed_values.get((spec.id, spp), {})}
-        return self.values[(spec.id, spp)]
+        if spec.role == evaluate.BUDGET_ROLE:
+            base = self.row_values(self.specs[spec.budget_of], spp)
+        elif spec.role == evaluate.SEED_ROLE:
+            base = self.values[(spec.seed_of, spp)]
+        else:
+            return self.values[(spec.id, spp)]
+        return {**base, **self.added_values.get((spec.id, spp), {})}
         self.spiked: dict[str, list[float]] = {}
 
     def shift(self, a: tuple[str, int], b: tuple[str, int], metric: str, claimed: str, d: list[float]) -> None:
@@ -183,7 +192,7 @@ def test_c43_needs_both_halves() -> None:
     """wRLS above its input at every spp, but RAE's gain does not shrink: contradicted."""
     results = results_for("C4.3s", CLEAR)
     noisy = results.per_scene[(results.per_scene.method_id == "noisy") & (results.per_scene.spp == 4)]["psnr"]
-    for row in results.seed_rows("rae", 4):     # every seed alike
+    for row in results.seed_rows("rae", 4) + results.seed_rows("rae_half", 4):     # every seed and budget alike
         mask = (results.per_scene.method_id == row) & (results.per_scene.spp == 4)
         results.per_scene.loc[mask, "psnr"] = noisy.to_numpy() + 5.0 + np.array(CLEAR)
     decision = evaluate_claim(results, CLAIMS["C4.3s"])

@@ -85,9 +85,10 @@ def synthetic(cfg: dict, diffs: list[float], rows: dict[tuple[str, int], list[fl
         for (row, s), v in values.items():
             if s == spp:
                 table[row] = np.asarray(v)
-        for spec in volume_method_specs(cfg):   # seed rows repeat their row unless given
-            if spec.seed_of in table and spec.id not in table:
-                table[spec.id] = table[spec.seed_of]
+        for spec in volume_method_specs(cfg):   # seed and half-budget rows repeat their row unless given
+            source = spec.budget_of or spec.seed_of
+            if source in table and spec.id not in table:
+                table[spec.id] = table[source]
         for row, psnr in table.items():
             trmae = 1.0 - (np.array(diffs) if row == "vol_wrls" else 0.0)
             for scene, p, t in zip(scenes, psnr, np.broadcast_to(trmae, psnr.shape)):
@@ -125,7 +126,7 @@ def test_c41_without_a_volume_svgf_row_or_without_volumes_is_not_run() -> None:
 
 def test_c43_needs_a_volume_rae_and_then_both_halves() -> None:
     cfg = volume_config()
-    cfg["training"]["seeds"] = 3      # a learned part needs three seeds (each seed row repeats vol_rae here)
+    cfg["training"].update(seeds=3, half_budget=True)   # three seeds and the half budget (each repeats vol_rae here)
     noisy = {s: np.linspace(20.0, 26.0, 4) + s for s in (1, 2, 4)}
     # RAE 5 dB above the input at 1 spp, 5 - d at 4 spp: its gain shrinks by d.
     rae = {("vol_rae", 1): noisy[1] + 5.0, ("vol_rae", 2): noisy[2] + 5.0,

@@ -88,6 +88,10 @@ class Part:
     seeds: int | None = None
     #: Per seed k (seed k of every learned side; a side without seeds repeats): mean of a - b over the scenes.
     seed_means: tuple[float, ...] = ()
+    #: The same comparison with every learned row's half-budget twin (training.half_budget); None: not made.
+    half: Part | None = None
+    #: Whether this part is itself the half-budget comparison of another (it is not checked at half again).
+    at_half_budget: bool = False
 
     @classmethod
     def paired(cls, a: pd.Series, b: pd.Series, quantity: str, a_label: str, b_label: str,
@@ -173,10 +177,33 @@ class Part:
         return (f"{self.a} vs {self.b}: seed-sensitive (seed(s) {', '.join(map(str, off))} alone not on the "
                 f"{outcome} side; per-seed mean a−b: {means})")
 
+    def budget_problem(self) -> str:
+        """'' when the part's outcome is the same at half its trained models' budget (:attr:`half`); else why
+        not: not compared at half the budget, or another decision there (budget-sensitive). Parts without a
+        learned row, undecided parts and half-budget parts themselves have none."""
+        outcome = self.outcome
+        if not self.seeds or self.at_half_budget or outcome not in (REPRODUCED, CONTRADICTED):
+            return ""
+        if self.half is None:
+            return (f"{self.a} vs {self.b}: not compared at half the training budget (training.half_budget), so "
+                    "not known to be budget-stable")
+        if self.half.decided != outcome:
+            return (f"{self.a} vs {self.b}: budget-sensitive (at half the budget {self.half.decided}: "
+                    f"{self.half.interval_text()})")
+        return ""
+
     @property
     def decided(self) -> str:
-        """:attr:`outcome`, except inconclusive when :meth:`seed_problem` says the seeds do not carry it."""
-        return INCONCLUSIVE if self.seed_problem() else self.outcome
+        """:attr:`outcome`, except inconclusive when :meth:`seed_problem` says the seeds do not carry it or
+        :meth:`budget_problem` that half the budget decides otherwise."""
+        return INCONCLUSIVE if self.seed_problem() or self.budget_problem() else self.outcome
+
+    @property
+    def budget_stable(self) -> bool | None:
+        """Whether the decision is the same at half the budget (None: no learned row, or no decided outcome)."""
+        if not self.seeds or self.at_half_budget or self.outcome not in (REPRODUCED, CONTRADICTED):
+            return None
+        return not self.budget_problem()
 
     @property
     def seed_robust(self) -> bool | None:
@@ -306,8 +333,10 @@ class Decision:
 
 
     def seed_note(self) -> str:
-        """Why parts whose interval is decided do not decide the claim: too few seeds or seed-sensitive."""
-        problems = [part.seed_problem() for part in self.parts if part.seed_problem()]
+        """Why parts whose interval is decided do not decide the claim: too few seeds, seed-sensitive, not
+        compared at half the budget or budget-sensitive."""
+        problems = [problem for part in self.parts for problem in (part.seed_problem(), part.budget_problem())
+                    if problem]
         return "".join(f"{problem}; " for problem in problems)
 
 
@@ -369,6 +398,29 @@ def seeds_of(res: SeedAveraged, rows: Sequence[tuple[str, int]]) -> int:
     return min(counts) if counts else 0
 
 
+def budget_text(res: Results, parts: Sequence[Part]) -> str:
+    """The training budget of every trained model the parts use, e.g. 'rae 4000 steps' (the claims table's
+    ``budget`` column)."""
+    from denoisers.training.models import model_spec
+
+    specs = {spec.id: spec for spec in res.specs}
+    if res.volumes is not None:
+        specs.update({spec.id: spec for spec in res.volumes.specs})
+    models = []
+    for part in parts:
+        for row, _ in part.rows:
+            model = specs[row].params.get("model") if row in specs else None
+            if model and model not in models:
+                models.append(model)
+    texts = []
+    for model in models:
+        try:
+            texts.append(f"{model} {model_spec(res.cfg, model).budget['max_steps']} steps")
+        except KeyError:
+            texts.append(f"{model} (not configured)")
+    return ", ".join(texts)
+
+
 def seed_differences(a: Sequence[pd.Series], b: Sequence[pd.Series]) -> list[pd.Series]:
     """Per seed k: a[k] - b[k] per scene, a side with one Series paired with every seed of the other."""
     return [a[min(k, len(a) - 1)] - b[min(k, len(b) - 1)] for k in range(max(len(a), len(b)))]
@@ -383,14 +435,20 @@ def spp_available(res: Results, spp: int, rows: Sequence[str | None]) -> str:
 
 
 def compare_rows(res: Results, a: str, b: str, metric: str, spp: int, claimed: str | None = None,
-                 b_spp: int | None = None, threshold: float = 0.0) -> Part:
+                 b_spp: int | None = None, threshold: float = 0.0, at_half_budget: bool = False) -> Part:
     """Part comparing row a at ``spp`` with row b at ``b_spp`` (default the same) on a per-scene metric, claimed
-    beyond ``threshold`` (Part.threshold)."""
+    beyond ``threshold`` (Part.threshold); with its half-budget comparison (Part.half) when every learned row
+    has a half-budget row that ran."""
     b_spp = spp if b_spp is None else b_spp
-    return Part.paired(res.claim_values(a, spp, metric), res.claim_values(b, b_spp, metric), metric,
+    part = Part.paired(res.claim_values(a, spp, metric), res.claim_values(b, b_spp, metric), metric,
                        f"{a} @ {spp} spp", f"{b} @ {b_spp} spp", claimed, rows=((a, spp), (b, b_spp)),
                        threshold=threshold, a_seeds=res.claim_values_per_seed(a, spp, metric),
                        b_seeds=res.claim_values_per_seed(b, b_spp, metric), seeds=seeds_of(res, ((a, spp), (b, b_spp))))
+    part.at_half_budget = at_half_budget
+    half_a, half_b = res.half_row(a, spp), res.half_row(b, b_spp)
+    if not at_half_budget and part.seeds and half_a and half_b:
+        part.half = compare_rows(res, half_a, half_b, metric, spp, part.claimed, b_spp, threshold, at_half_budget=True)
+    return part
 
 
 def compare_speed(res: Results, a: str, b: str, spp: int, claimed: str = "lower") -> SpeedPart | str:
@@ -423,6 +481,7 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
     ns = sorted({part.n for part in parts})
     learned = [part for part in parts if part.seeds]
     robust = [part.seed_robust for part in learned if part.seed_robust is not None]
+    stable = [part.budget_stable for part in learned if part.budget_stable is not None]
     needed = []
     for part in parts:
         if part.outcome == INCONCLUSIVE and not isinstance(part, SpeedPart):
@@ -435,6 +494,8 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
             "n": ", ".join(map(str, ns)) if parts else "",
             "seeds": min(part.seeds for part in learned) if learned else "",
             "seed_robust": ("yes" if all(robust) else "no") if robust else "",
+            "budget_stable": ("yes" if all(stable) else "no") if stable else "",
+            "budget": budget_text(res, parts),
             "scenes_needed": "; ".join(needed) if any(needed) else "",
             "mean_diff_ci_95": "; ".join(p.interval_text() for p in parts),
             "parts": "; ".join(p.claim_text() for p in parts),
@@ -450,7 +511,8 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
 UNDERTRAINED = "under-trained"
 UNDERTRAINED_NOTE = ("involves an under-trained model (see flags): the verdict tests the training budget, not the "
                      "method; ")
-CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "seeds", "seed_robust", "mean_diff_ci_95", "scenes_needed", "parts",
+CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "seeds", "seed_robust", "budget_stable", "budget",
+                 "mean_diff_ci_95", "scenes_needed", "parts",
                  "measured", "facts", "flags", "note", "rule")
 
 

@@ -37,7 +37,7 @@ from denoisers.report.seeds import SeedAveraged, seed_mean
 from denoisers.report.stats import pooled_psnr
 from denoisers.report.volumes import VolumeResults, collect_volumes
 from denoisers.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timed_runs, timing_scene, timing_settings
-from denoisers.training.models import ModelSpec, model_dir, model_specs, seed_replicas
+from denoisers.training.models import ModelSpec, half_budget_specs, model_dir, model_specs, seed_replicas
 from denoisers.training.speed import TRAINING_SPEED_FILE, read_training_speed, speed_models
 from denoisers.tuning import TUNED_KEY, tuning_file
 from scenegen.config import CUSTOM_PREFIX, output_root
@@ -209,7 +209,7 @@ class TrainedModel:
 class TrainedModels:
     specs: list[ModelSpec]
     models: dict[str, TrainedModel] = field(default_factory=dict)   # models whose directory is complete
-    replicas: frozenset[str] = frozenset()   # ids of seed replicas ({id}_seed{k}) among specs
+    replicas: frozenset[str] = frozenset()   # ids of seed replicas ({id}_seed{k}) and half-budget twins ({id}_half)
 
     def variants(self, ablation: str) -> dict[str, TrainedModel]:
         """variant id -> the first seed's model of each trained variant of ``ablation``."""
@@ -226,8 +226,8 @@ def collect_models(cfg: dict, results_dir: Path, ledger: DigestLedger | None = N
     settings digests go to ``ledger``."""
     import pandas as pd
 
-    replicas = seed_replicas(cfg)
-    found = TrainedModels(model_specs(cfg) + replicas, replicas=frozenset(spec.id for spec in replicas))
+    secondary = seed_replicas(cfg) + half_budget_specs(cfg)
+    found = TrainedModels(model_specs(cfg) + secondary, replicas=frozenset(spec.id for spec in secondary))
     lineage = Lineage(cfg)
     for spec in found.specs:
         folder = model_dir(results_dir, spec.id)

@@ -41,6 +41,14 @@ class SeedAveraged:
         seed rows (a hand-set method, or one seed)."""
         return [method_id] + [spec.id for spec in self.specs if spec.seed_of == method_id and self.ran(spec.id, spp)]
 
+    def half_row(self, method_id: str, spp: int) -> str | None:
+        """The row to compare at half the training budget: a learned row's half-budget row (``{row}_half``) when
+        it ran at ``spp``, else None; any other row itself."""
+        if not self.learned(method_id):
+            return method_id
+        half = next((spec.id for spec in self.specs if spec.budget_of == method_id), None)
+        return half if half is not None and self.ran(half, spp) else None
+
     def learned(self, method_id: str) -> bool:
         """Whether the row denoises with a trained model (params.model)."""
         return any(spec.id == method_id and spec.params.get("model") for spec in self.specs)

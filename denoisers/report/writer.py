@@ -29,8 +29,8 @@ if TYPE_CHECKING:
 
 TRAINING_COLUMNS = ("train_minutes", "step_minutes", "seconds_per_step", "final_train_loss", "val_loss", "val_ssim",
                     "val_psnr", "val_rmse", "whole_frame_gap_db")
-CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "seeds", "seed_robust", "mean_diff_ci_95", "scenes_needed", "parts",
-                "measured", "facts", "flags", "note"]
+CLAIMS_SHOWN = ["claim", "verdict", "statement", "n", "seeds", "seed_robust", "budget_stable", "budget", "mean_diff_ci_95",
+                "scenes_needed", "parts", "measured", "facts", "flags", "note"]
 
 
 def _setup_lines(res: Results) -> list[str]:
@@ -116,8 +116,10 @@ def _claims_section(claims: pd.DataFrame, res_warmup: int) -> list[str]:
             f"ratio ln(a/b) over at least {MIN_SPEED_ROUNDS} rounds, shown as a ratio. A part with a trained model "
             "is decided on per-scene values averaged over the model's training seeds (training.seeds; `seeds`: the "
             f"fewest among its learned rows), needs at least {MIN_SEEDS} seeds and must be *seed-robust*: each seed "
-            "alone (its mean difference over the scenes) on the decided side; otherwise it is inconclusive and the "
-            "note says why (`seed_robust`: yes / no over the decided learned parts).",
+            "alone (its mean difference over the scenes) on the decided side; it must also be *budget-stable*: the "
+            "same decision with every learned row's half-budget model (training.half_budget; `budget`: the full "
+            "budgets). Otherwise it is inconclusive and the note says why (`seed_robust`, `budget_stable`: yes / no "
+            "over the decided learned parts).",
             "",
             f"Verdicts: {tally}.", "", frame_to_markdown(claims[CLAIMS_SHOWN]), "",
             "[claims (CSV)](tables/claims.csv)", ""]

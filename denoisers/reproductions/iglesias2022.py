@@ -10,11 +10,13 @@ RAE part of C4.3 is not run.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from denoisers.report.claims import (Claim, Decision, Fact, Part, RowNeed, compare_rows, compare_speed, not_run,
                                      seed_differences, seeds_of, spp_available)
+from denoisers.report.seeds import seed_mean
 from denoisers.report.stats import LABELS, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction
 
@@ -22,6 +24,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
     from denoisers.report.collect import Results
+    from denoisers.report.seeds import SeedAveraged
 
 PAPER = "Iglesias-Guitian 2022"
 PAPER_SPP = 2
@@ -83,13 +86,7 @@ def decide_c43(res: Results) -> Decision:
     if len(spps) < 2:
         return not_run("needs two or more evaluated spp (RAE's gain at the lowest versus the highest)")
     parts = [compare_rows(res, wrls, noisy, "psnr", s, "higher") for s in spps]
-    gain = {s: res.claim_values(rae, s, "psnr") - res.claim_values(noisy, s, "psnr") for s in (spps[0], spps[-1])}
-    seed_gain = {s: seed_differences(res.claim_values_per_seed(rae, s, "psnr"), res.claim_values_per_seed(noisy, s, "psnr"))
-                 for s in (spps[0], spps[-1])}
-    rows = ((rae, spps[0]), (rae, spps[-1]), (noisy, spps[0]), (noisy, spps[-1]))
-    parts.append(Part.paired(gain[spps[-1]], gain[spps[0]], "psnr", f"RAE gain over input @ {spps[-1]} spp",
-                             f"RAE gain @ {spps[0]} spp", "lower", rows=rows, a_seeds=seed_gain[spps[-1]],
-                             b_seeds=seed_gain[spps[0]], seeds=seeds_of(res, rows)))
+    parts.append(gain_part(res, res.claim_values_per_seed, rae, noisy, spps[0], spps[-1]))
     return Decision(parts, note=f"wRLS above its input at every evaluated spp {spps}, and RAE's PSNR gain smaller "
                                 f"at {spps[-1]} than at {spps[0]} spp; {SURFACES}")
 
@@ -127,12 +124,36 @@ def _volume_rows(res: Results, *needs: tuple[str, dict]) -> tuple[list[str | Non
     return rows, ""
 
 
-def _volume_part(res: Results, a: str, b: str, metric: str, spp: int, claimed: str) -> Part:
+def _volume_part(res: Results, a: str, b: str, metric: str, spp: int, claimed: str,
+                 at_half_budget: bool = False) -> Part:
+    """Part a - b on the volumetric clips, seed-averaged, with its half-budget comparison when the rows have one."""
     vol = res.volumes
-    return Part.paired(vol.scene_values(a, spp, metric), vol.scene_values(b, spp, metric), metric,
-                       f"{a} @ {spp} spp", f"{b} @ {spp} spp", claimed,
+    part = Part.paired(vol.scene_values(a, spp, metric), vol.scene_values(b, spp, metric), metric,
+                       f"{a} @ {spp} spp", f"{b} @ {spp} spp", claimed, rows=((a, spp), (b, spp)),
                        a_seeds=vol.scene_values_per_seed(a, spp, metric), b_seeds=vol.scene_values_per_seed(b, spp, metric),
                        seeds=seeds_of(vol, ((a, spp), (b, spp))))
+    part.at_half_budget = at_half_budget
+    half_a, half_b = vol.half_row(a, spp), vol.half_row(b, spp)
+    if not at_half_budget and part.seeds and half_a and half_b:
+        part.half = _volume_part(res, half_a, half_b, metric, spp, claimed, at_half_budget=True)
+    return part
+
+
+def gain_part(results: SeedAveraged, per_seed: Callable[[str, int, str], list[pd.Series]], rae: str, noisy: str,
+              low: int, high: int, at_half_budget: bool = False) -> Part:
+    """Part 'RAE's PSNR gain over its input is smaller at ``high`` than at ``low`` spp' from per-seed per-scene
+    values (``per_seed(row, spp, column)``), seed-averaged, with its half-budget comparison when RAE has one."""
+    seed_gain = {s: seed_differences(per_seed(rae, s, "psnr"), per_seed(noisy, s, "psnr")) for s in (low, high)}
+    gain = {s: seed_mean(seed_gain[s]) for s in (low, high)}
+    rows = ((rae, low), (rae, high), (noisy, low), (noisy, high))
+    part = Part.paired(gain[high], gain[low], "psnr", f"RAE gain over input @ {high} spp",
+                       f"RAE gain @ {low} spp", "lower", rows=rows, a_seeds=seed_gain[high], b_seeds=seed_gain[low],
+                       seeds=seeds_of(results, rows))
+    part.at_half_budget = at_half_budget
+    halves = [results.half_row(rae, s) for s in (low, high)]
+    if not at_half_budget and part.seeds and all(halves) and halves[0] == halves[1]:
+        part.half = gain_part(results, per_seed, halves[0], noisy, low, high, at_half_budget=True)
+    return part
 
 
 def decide_c41_volumes(res: Results) -> Decision:
@@ -191,12 +212,7 @@ def decide_c43_volumes(res: Results) -> Decision:
     if missing:
         return not_run("; ".join(missing))
     parts = [_volume_part(res, wrls, noisy, "psnr", s, "higher") for s in spps]
-    gain = {s: vol.scene_values(rae, s, "psnr") - vol.scene_values(noisy, s, "psnr") for s in (spps[0], spps[-1])}
-    seed_gain = {s: seed_differences(vol.scene_values_per_seed(rae, s, "psnr"), vol.scene_values_per_seed(noisy, s, "psnr"))
-                 for s in (spps[0], spps[-1])}
-    parts.append(Part.paired(gain[spps[-1]], gain[spps[0]], "psnr", f"RAE gain over input @ {spps[-1]} spp",
-                             f"RAE gain @ {spps[0]} spp", "lower", a_seeds=seed_gain[spps[-1]],
-                             b_seeds=seed_gain[spps[0]], seeds=seeds_of(vol, ((rae, spps[0]), (rae, spps[-1])))))
+    parts.append(gain_part(vol, vol.scene_values_per_seed, rae, noisy, spps[0], spps[-1]))
     return Decision(parts, note=f"{VOLUMES}: wRLS above its input at every spp {spps}, and RAE's PSNR gain smaller "
                                 f"at {spps[-1]} than at {spps[0]} spp")
 

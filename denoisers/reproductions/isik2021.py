@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from denoisers.report.claims import Claim, Decision, Part, RowNeed, compare_rows, not_run, seed_differences, seeds_of
+from denoisers.report.seeds import seed_mean
 from denoisers.report.stats import LABELS, MUCH_WORSE_MARGIN_DB, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions import _isik2021_paper as paper
 from denoisers.reproductions.base import Reproduction
@@ -180,16 +181,27 @@ def decide_c35(res: Results) -> Decision:
     parts = [compare_rows(res, large, small, "psnr", low, "higher")]
     note = f"kernel sizes {min(sized)} and {max(sized)} of a model trained at {trained}"
     if high != low:
-        gain_low = res.scene_values(large, low, "psnr") - res.scene_values(small, low, "psnr")
-        gain_high = res.scene_values(large, high, "psnr") - res.scene_values(small, high, "psnr")
-        rows = ((large, low), (small, low), (large, high), (small, high))
-        seed_gain = {s: seed_differences(res.scene_values_per_seed(large, s, "psnr"),
-                                         res.scene_values_per_seed(small, s, "psnr")) for s in (low, high)}
-        parts.append(Part.paired(gain_low, gain_high, "psnr", f"gain @ {low} spp", f"gain @ {high} spp", "higher",
-                                 rows=rows, a_seeds=seed_gain[low], b_seeds=seed_gain[high], seeds=seeds_of(res, rows)))
+        parts.append(kernel_gain_part(res, large, small, low, high))
     else:
         note += "; only one claim spp ran, so part (b) (larger gain at low spp) is not decided"
     return Decision(parts, note=note)
+
+
+def kernel_gain_part(res: Results, large: str, small: str, low: int, high: int, at_half_budget: bool = False) -> Part:
+    """Part 'the larger kernel's PSNR gain over the smaller is larger at ``low`` than at ``high`` spp', seed-averaged,
+    with its half-budget comparison when both rows have one."""
+    seed_gain = {s: seed_differences(res.scene_values_per_seed(large, s, "psnr"),
+                                     res.scene_values_per_seed(small, s, "psnr")) for s in (low, high)}
+    rows = ((large, low), (small, low), (large, high), (small, high))
+    part = Part.paired(seed_mean(seed_gain[low]), seed_mean(seed_gain[high]), "psnr", f"gain @ {low} spp",
+                       f"gain @ {high} spp", "higher", rows=rows, a_seeds=seed_gain[low], b_seeds=seed_gain[high],
+                       seeds=seeds_of(res, rows))
+    part.at_half_budget = at_half_budget
+    halves = {row: {res.half_row(row, s) for s in (low, high)} for row in (large, small)}
+    if not at_half_budget and part.seeds and all(len(h) == 1 and None not in h for h in halves.values()):
+        part.half = kernel_gain_part(res, *(next(iter(halves[row])) for row in (large, small)), low, high,
+                                     at_half_budget=True)
+    return part
 
 
 CLAIMS = (

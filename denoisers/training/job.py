@@ -21,6 +21,11 @@ report counts a gap below ``CROP_GAP_DB`` as a training defect), or why the chec
 
 An ablation variant whose settings equal its base model's (``same_training_as``) is not trained again: its
 directory holds the base's files with its own summary (``same_training_as`` names the base) and settings.
+
+A half-budget twin ``{id}_half`` (training.half_budget) is the full model's run stopped at half its steps: its
+job trains in the full model's work directory (same id, seed and fingerprint) up to that step and publishes the
+state there, and the full model's job, which the workflow runs after it, continues the same run to the end. When
+that directory already holds a later step, the twin trains afresh in a directory of its own.
 """
 from __future__ import annotations
 
@@ -35,7 +40,8 @@ from scenegen.atomic import atomic_directory, write_text_atomic
 
 from denoisers.provenance import provenance
 from denoisers.training.digests import data_settings, model_digest as _model_digest  # noqa: F401 (re-exported)
-from denoisers.training.models import ModelSpec, model_spec, same_training_as, settings_digest, training_split
+from denoisers.training.models import (HALF_SUFFIX, ModelSpec, half_of, model_spec, same_training_as, settings_digest,
+                                       training_split)
 from denoisers.training.tasks import (clip_buffers, reference_buffers, sequence_config,  # noqa: F401 (re-exported)
                                       task_sequence_config)
 
@@ -141,8 +147,13 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
             return store.install(entry, Path(out_dir))
     # The key of the code that is about to run (a module edited while training must not re-key these weights).
     key = model_key(cfg, model_id)
-    builder = task_builder(spec.method)
-    task = builder.build(spec)
+    # A half-budget twin is its full model's run (that spec's id, seed and fingerprint) stopped at its own max_steps.
+    full_id = half_of(cfg, model_id)
+    run_spec = model_spec(cfg, full_id) if full_id else spec
+    if full_id:
+        stop_at_step = spec.budget["max_steps"]
+    builder = task_builder(run_spec.method)
+    task = builder.build(run_spec)
     train_scenes, validation_scenes = training_split(cfg, spec)
     if not train_scenes or not validation_scenes:
         raise ValueError(f"model {model_id!r}: need training and validation scenes, got {train_scenes} / "
@@ -160,26 +171,32 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
     if builder.optional_reference_buffers:
         log.info("model %s: reference buffers %s (optional: %s)", model_id, ", ".join(sequences.reference_buffers),
                  ", ".join(builder.optional_reference_buffers))
-    dataset = SequenceDataset(train_clips, sequences, seed=spec.seed)
+    dataset = SequenceDataset(train_clips, sequences, seed=run_spec.seed)
     # The same validation sequences for every model of the config (seeded by the global seed), so
     # models are compared pairwise on identical data.
     validation = fixed_batches(validation_clips, sequences, cfg["training"]["validation_sequences"], batch_size=1,
                                seed=int(cfg["seed"]))
-    config = trainer_config(cfg, spec, threads, progress)
+    config = trainer_config(cfg, run_spec, threads, progress)
     if stop_at_step is not None:
         config = dataclasses.replace(config, max_steps=min(int(stop_at_step), config.max_steps), max_seconds=None)
-    work_dir = work_dir_for(Path(out_dir).parent, cfg, spec)
+    work_dir = work_dir_for(Path(out_dir).parent, cfg, run_spec)
     if store is not None:
         from denoisers.training.precision import resolve_compute
 
-        store.fetch_checkpoint(cfg, model_id, work_dir, resolve_compute(spec.compute).fingerprint())
+        store.fetch_checkpoint(cfg, run_spec.id, work_dir, resolve_compute(run_spec.compute).fingerprint())
     checkpoint = work_dir / "checkpoint.pt"
-    if checkpoint.exists() and int(load_checkpoint(checkpoint)["step"]) > spec.budget["max_steps"]:
+    if full_id and checkpoint.exists() and int(load_checkpoint(checkpoint)["step"]) > spec.budget["max_steps"]:
+        log.info("%s is past step %d: the half-budget model %s trains afresh in its own directory", checkpoint,
+                 spec.budget["max_steps"], model_id)
+        work_dir = work_dir.with_name(work_dir.name + HALF_SUFFIX)
+        checkpoint = work_dir / "checkpoint.pt"
+    if checkpoint.exists() and int(load_checkpoint(checkpoint)["step"]) > run_spec.budget["max_steps"]:
         log.info("%s holds more steps than budget.max_steps = %d: training from scratch", checkpoint,
-                 spec.budget["max_steps"])
+                 run_spec.budget["max_steps"])
         shutil.rmtree(work_dir)
     trainer = Trainer(task, dataset, validation, config, work_dir,
-                      fingerprint_extra={"model": spec.settings() | {"budget": None}, "data": data_settings(cfg, spec)})
+                      fingerprint_extra={"model": run_spec.settings() | {"budget": None},
+                                         "data": data_settings(cfg, run_spec)})
     result = trainer.run()
 
     # Per-sequence validation metrics of the selected model (paired comparisons between models).
@@ -193,12 +210,14 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
 
     stopped_by = ("max_steps" if result.steps >= spec.budget["max_steps"] else
                   "stop_at_step" if stop_at_step is not None and result.steps >= stop_at_step else "max_seconds")
+    if full_id:
+        log.info("model %s: the run of %s stopped at step %d (half its budget)", model_id, full_id, result.steps)
     summary = json.loads((work_dir / "summary.json").read_text())
     summary.update({"model_id": model_id, "method": spec.method, "ablation": spec.ablation, "variant": spec.variant,
                     "train_scenes": train_scenes, "validation_scenes": validation_scenes, "stopped_by": stopped_by,
                     "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
                     "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1),
-                    "settings_digest": _model_digest(cfg, spec), "store_key": key,
+                    "settings_digest": _model_digest(cfg, spec), "store_key": key, "half_budget_of": full_id,
                     "provenance": provenance({"training": int(threads)})})
     if hasattr(task, "config") and hasattr(task.config, "width"):
         from denoisers.nets import build_net, count_parameters

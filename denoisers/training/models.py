@@ -159,9 +159,48 @@ def seed_replicas(cfg: dict) -> list[ModelSpec]:
             for k in range(1, seed_count(cfg)) for spec in model_specs(cfg)]
 
 
+#: Id suffix of a half-budget model: ``{id}_half`` is model ``{id}`` (a seed replica included) stopped at half its
+#: ``budget.max_steps`` (training.half_budget).
+HALF_SUFFIX = "_half"
+
+
+def half_budget_enabled(cfg: dict) -> bool:
+    """``training.half_budget``: every model also trains (is evaluated) at half its budget."""
+    return bool((cfg.get("training") or {}).get("half_budget"))
+
+
+def half_steps(max_steps: int) -> int:
+    """The step a half-budget model stops at: max_steps // 2 (at least 1)."""
+    return max(1, int(max_steps) // 2)
+
+
+def half_budget_spec(spec: ModelSpec) -> ModelSpec:
+    """The half-budget twin of ``spec``: id ``{id}_half``, ``budget.max_steps`` halved, every other setting the
+    full model's, the learning-rate schedule included (already resolved against the full budget): its weights are
+    the full run's at its middle step (the training job stops the full run there; denoisers.training.job)."""
+    return ModelSpec(**{**spec.__dict__, "id": f"{spec.id}{HALF_SUFFIX}",
+                        "budget": {**spec.budget, "max_steps": half_steps(spec.budget["max_steps"])}})
+
+
+def half_budget_specs(cfg: dict) -> list[ModelSpec]:
+    """The half-budget twin of every model and seed replica (empty unless training.half_budget)."""
+    if not half_budget_enabled(cfg):
+        return []
+    return [half_budget_spec(spec) for spec in model_specs(cfg) + seed_replicas(cfg)]
+
+
+def half_of(cfg: dict, model_id: str) -> str | None:
+    """The full model (a seed replica included) whose half-budget twin ``model_id`` is, else None."""
+    if not half_budget_enabled(cfg) or not model_id.endswith(HALF_SUFFIX):
+        return None
+    full = model_id[:-len(HALF_SUFFIX)]
+    return full if full in {spec.id for spec in model_specs(cfg) + seed_replicas(cfg)} else None
+
+
 def trained_model_specs(cfg: dict) -> list[ModelSpec]:
-    """Every training the config runs: :func:`model_specs`, then the seed replicas (:func:`seed_replicas`)."""
-    return model_specs(cfg) + seed_replicas(cfg)
+    """Every training the config runs: :func:`model_specs`, the seed replicas (:func:`seed_replicas`), then the
+    half-budget twins (:func:`half_budget_specs`)."""
+    return model_specs(cfg) + seed_replicas(cfg) + half_budget_specs(cfg)
 
 
 def replica_ids(cfg: dict, model_id: str) -> list[str]:
@@ -198,6 +237,10 @@ def same_training_as(cfg: dict, model_id: str) -> str | None:
 
     Such a variant is not trained again: its job publishes the base's weights under its own id
     (``denoisers.training.job``), so the comparison still has its row and the DAG pays for one training."""
+    full = half_of(cfg, model_id)
+    if full is not None:      # the half of a model that reuses another's weights is that one's half
+        same = same_training_as(cfg, full)
+        return f"{same}{HALF_SUFFIX}" if same else None
     replica = replica_of(cfg, model_id)
     if replica is not None:   # replica k of a variant equal to its base is the base's replica k
         same = same_training_as(cfg, replica[0])

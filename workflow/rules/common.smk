@@ -33,8 +33,9 @@ from denoisers.timing import timed_runs, timing_scene, timing_settings
 from denoisers.training.speed import TRAINING_SPEED_FILE, speed_models, speed_settings
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
-from denoisers.training.models import (method_model, model_dir, model_spec, same_training_as, trained_model_specs,
-                                       training_problems, training_runtime_minutes, training_split)
+from denoisers.training.models import (HALF_SUFFIX, half_of, method_model, model_dir, model_spec, same_training_as,
+                                       trained_model_specs, training_problems, training_runtime_minutes,
+                                       training_split)
 from denoisers.store import ModelStore, model_key
 from denoisers.store.tuning import tuning_entry, tuning_key
 from denoisers.store.workflow import stored_model, verify_models, verify_problems
@@ -457,7 +458,13 @@ def same_training_dir(wildcards) -> list[str]:
     """Input function of train_denoiser: the base model an ablation variant trains exactly as (its weights are
     reused, denoisers.training.models.same_training_as), or nothing."""
     source = same_training_as(config, wildcards.model)
-    return [model_dir(OUT, source).as_posix()] if source else []
+    if source:
+        return [model_dir(OUT, source).as_posix()]
+    # A model whose half-budget twin trains here runs after it and continues its run (denoisers.training.job).
+    half = f"{wildcards.model}{HALF_SUFFIX}"
+    if half_of(config, half) and model_source(half) == "train" and model_source(wildcards.model) == "train":
+        return [model_dir(OUT, half).as_posix()]
+    return []
 
 
 def method_model_dir(wildcards) -> list[str]:

@@ -1,6 +1,8 @@
 # Stage 3a: training of the learned denoisers on the train_* scenes (held-out validation scenes included).
 #   train_denoiser: <output_dir>/models/{model}/ (best.pt, curves.csv/.png, validation.csv, summary.json, settings.json)
-# {model} is an id of training.models or an ablation variant {ablation}_{variant}. The trainer keeps
+# {model} is an id of training.models, an ablation variant {ablation}_{variant}, a seed replica {id}_seed{k}
+# (training.seeds) or a half-budget twin {id}_half (training.half_budget: the run of {id} stopped at half its
+# steps; {id}'s job then continues that run). The trainer keeps
 # a resumable checkpoint in <output_dir>/models/.work/ (not an output): a killed job continues from it.
 # An ablation variant identical to its base model (same settings and budget) reuses the base's weights.
 # A model in the model store (config store; denoisers.store) under its key is installed instead of trained: its

@@ -1,5 +1,6 @@
-"""training.seeds (issue 46 §1): seed replicas of every model, seed rows in the evaluation, seed-averaged values
-and seed-robust verdicts, on synthetic results with a known answer.
+"""Learned verdicts about methods (issue 46 §1-2): seed replicas of every model (training.seeds), seed rows,
+seed-averaged values and seed-robust verdicts; half-budget twins (training.half_budget), their shared training run
+and budget-stable verdicts; on synthetic results with a known answer and tiny synthetic trainings.
 """
 from __future__ import annotations
 
@@ -8,16 +9,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from denoisers import evaluate
-from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, REPRODUCED, evaluate_claim
+from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, REPRODUCED, claims_table, evaluate_claim
 from denoisers.report.tables import SUMMARY_METRICS, summary_table
 from denoisers.store import model_key
-from denoisers.training.models import (model_spec, model_specs, replica_of, same_training_as, seed_replicas,
-                                       trained_model_specs, training_problems)
+from denoisers.training.job import train_model
+from denoisers.training.loop import load_checkpoint
+from denoisers.training.models import (half_budget_specs, half_of, model_spec, model_specs, replica_of,
+                                       same_training_as, seed_replicas, trained_model_specs, training_problems)
 from scenegen.config import validate_config
 from tests.test_claims import AGAINST, CLAIMS, CLEAR, PARTS, SCALE, Table, build, claims_config
+from tests.test_training_job import synthetic_renders, tiny_training_config  # noqa: F401 (a fixture)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -100,7 +105,7 @@ def test_tables_show_the_seed_mean_and_spread() -> None:
     psnr = {"rae": [30.0, 31.0, 32.0, 33.0], "rae_seed1": [31.0, 32.0, 33.0, 34.0], "rae_seed2": [29.0, 29.0, 29.0, 29.0]}
     table.values[("rae", 1)]["psnr"] = psnr["rae"]
     for row in ("rae_seed1", "rae_seed2"):
-        table.seed_values[(row, 1)] = {"psnr": psnr[row]}
+        table.added_values[(row, 1)] = {"psnr": psnr[row]}
     res = build(cfg, table)
     for column in SUMMARY_METRICS:        # columns the synthetic table leaves out (timing, memory): constant
         if column not in res.per_scene:
@@ -117,20 +122,27 @@ def test_tables_show_the_seed_mean_and_spread() -> None:
 
 
 # ------------------------------------------------------------------------------------------ verdicts
+def c11_verdict(training: dict, d: list[float], rows: tuple[str, ...] = (), rows_d: list[float] | None = None):
+    """C1.1 on a synthetic table where the RAE differs from EAW by ``d`` (claim units per scene) and each of
+    ``rows`` (added rows: a seed replica, half-budget twins) by ``rows_d`` instead; ``training`` overrides the
+    config's training keys."""
+    cfg = claims_config()
+    cfg["training"].update(training)
+    cfg = validate_config(cfg)
+    table = Table(cfg, len(d))
+    for a, a_spp, b, b_spp, metric, claimed in PARTS["C1.1"]:
+        table.shift((a, a_spp), (b, b_spp), metric, claimed, d)
+        if rows_d is not None:
+            sign = 1.0 if claimed == "higher" else -1.0
+            values = [v + sign * SCALE[metric] * x for v, x in zip(table.values[(b, b_spp)][metric], rows_d)]
+            for row in rows:
+                table.added_values.setdefault((row, a_spp), {})[metric] = values
+    return evaluate_claim(build(cfg, table), CLAIMS["C1.1"])
+
+
 def test_seeds_that_agree_decide_and_one_that_does_not_makes_it_inconclusive() -> None:
     def verdict(d, seed2=None, seeds=3):
-        cfg = claims_config()
-        cfg["training"]["seeds"] = seeds
-        cfg = validate_config(cfg)
-        table = Table(cfg, len(d))
-        for a, a_spp, b, b_spp, metric, claimed in PARTS["C1.1"]:
-            table.shift((a, a_spp), (b, b_spp), metric, claimed, d)
-            if seed2 is not None:
-                sign = 1.0 if claimed == "higher" else -1.0
-                base = table.values[(b, b_spp)][metric]
-                table.seed_values.setdefault(("rae_seed2", 1), {})[metric] = [
-                    v + sign * SCALE[metric] * x for v, x in zip(base, seed2)]
-        return evaluate_claim(build(cfg, table), CLAIMS["C1.1"])
+        return c11_verdict({"seeds": seeds}, d, ("rae_seed2",), seed2)
 
     agreeing = verdict(CLEAR, seed2=[0.5, 0.6, 0.4, 0.5])
     assert agreeing.verdict == REPRODUCED and all(part.seed_robust for part in agreeing.parts)
@@ -162,3 +174,79 @@ def test_a_part_without_a_learned_row_needs_no_seeds() -> None:
         table.shift((a, a_spp), (b, b_spp), metric, claimed, CLEAR)
     decision = evaluate_claim(build(cfg, table), CLAIMS["C4.1s"])
     assert decision.verdict == REPRODUCED and all(part.seeds == 0 for part in decision.parts)
+
+
+# ------------------------------------------------------------------------------------------- half budget
+def test_half_budget_twins_stop_the_full_run_at_its_middle() -> None:
+    cfg = default_config(3)
+    assert half_budget_specs(cfg) == []
+    cfg["training"]["half_budget"] = True
+    twins = {spec.id: spec for spec in half_budget_specs(cfg)}
+    assert set(twins) == {f"{spec.id}_half" for spec in model_specs(cfg) + seed_replicas(cfg)}
+    full, half = model_spec(cfg, "rae"), twins["rae_half"]
+    assert half.budget["max_steps"] == full.budget["max_steps"] // 2 == 2000
+    assert half.optimizer == full.optimizer and half.seed == full.seed and half.net == full.net
+    assert half_of(cfg, "rae_seed2_half") == "rae_seed2" and half_of(cfg, "rae") is None
+    assert same_training_as(cfg, "rae_inputs_all_half") == "rae_half"
+    # The twins add keys of their own and change no other model's.
+    plain = default_config(3)
+    for spec in model_specs(plain) + seed_replicas(plain):
+        assert model_key(plain, spec.id) == model_key(cfg, spec.id), spec.id
+    assert model_key(cfg, "rae_half") != model_key(cfg, "rae")
+    rows = {spec.id: spec for spec in evaluate.method_specs(cfg)}
+    assert rows["rae_half"].role == evaluate.BUDGET_ROLE and rows["rae_half"].budget_of == "rae"
+    assert rows["rae_half"].params["model"] == "rae_half" and rows["rae_half"].seed_of is None
+    assert rows["rae_seed1_half"].seed_of == "rae_half" and rows["rae_seed1_half"].params["model"] == "rae_seed1_half"
+    assert rows["rae_seed1_half"].budget_of == "rae_seed1" and not rows["rae_seed1_half"].robustness
+
+
+def test_a_decision_that_changes_at_half_the_budget_is_inconclusive() -> None:
+    def decide(half_d: list[float] | None, half_budget: bool = True):
+        # every seed's half-budget model differs from EAW by half_d instead
+        return c11_verdict({"half_budget": half_budget}, CLEAR, ("rae_half", "rae_seed1_half", "rae_seed2_half"),
+                           half_d)
+
+    stable = decide(None)
+    assert stable.verdict == REPRODUCED and all(part.budget_stable for part in stable.parts)
+    assert all(part.half.outcome == REPRODUCED for part in stable.parts)
+    flipped = decide(AGAINST)      # reproduced at the full budget, contradicted at half of it
+    assert [part.outcome for part in flipped.parts] == [REPRODUCED, REPRODUCED]
+    assert [part.half.outcome for part in flipped.parts] == [CONTRADICTED, CONTRADICTED]
+    assert flipped.verdict == INCONCLUSIVE and not any(part.budget_stable for part in flipped.parts)
+    assert "budget-sensitive (at half the budget contradicted" in flipped.seed_note()
+    unchecked = decide(None, half_budget=False)
+    assert unchecked.verdict == INCONCLUSIVE and "not compared at half the training budget" in unchecked.seed_note()
+    table = claims_table(build(claims_config(), Table(claims_config(), 4)), [CLAIMS["C1.1"]])
+    assert table.loc[0, "budget"] == "rae 4000 steps"
+
+
+def test_the_half_budget_job_and_the_full_job_share_one_run(tmp_path: Path, synthetic_renders) -> None:
+    cfg = tiny_training_config()
+    cfg["training"]["models"][0]["budget"] = {"max_steps": 4}
+    cfg["training"]["half_budget"] = True
+    cfg = validate_config(cfg)
+    models = tmp_path / "a" / "models"
+    half = train_model(cfg, "rae_half", tmp_path / "renders", models / "rae_half", threads=1, progress=False)
+    assert half["steps"] == 2 and half["half_budget_of"] == "rae" and half["model_id"] == "rae_half"
+    full = train_model(cfg, "rae", tmp_path / "renders", models / "rae", threads=1, progress=False)
+    assert full["resumed_from"] == 2 and full["steps"] == 4
+    # Independently: the full model trained without a twin, and the same run stopped at step 2.
+    plain = copy.deepcopy(cfg)
+    plain["training"]["half_budget"] = False
+    train_model(plain, "rae", tmp_path / "renders", tmp_path / "b" / "models" / "rae", threads=1, progress=False)
+    train_model(plain, "rae", tmp_path / "renders", tmp_path / "c" / "models" / "rae", threads=1, progress=False,
+                stop_at_step=2)
+
+    def weights(path: Path) -> dict:
+        return load_checkpoint(path / "best.pt")["model_state"]
+
+    for a, b in ((models / "rae", tmp_path / "b" / "models" / "rae"),
+                 (models / "rae_half", tmp_path / "c" / "models" / "rae")):
+        wa, wb = weights(a), weights(b)
+        assert all(torch.equal(wa[k], wb[k]) for k in wa), (a, b)
+    # A twin asked for after its full model has finished trains afresh (the shared run is past its step).
+    again = train_model(cfg, "rae_half", tmp_path / "renders", tmp_path / "a" / "models" / "rae_half2",
+                        threads=1, progress=False)
+    assert again["steps"] == 2 and again["resumed_from"] is None
+    wa, wb = weights(tmp_path / "a" / "models" / "rae_half2"), weights(models / "rae_half")
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
