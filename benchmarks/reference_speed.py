@@ -1,6 +1,6 @@
 """Reference rendering rate: Mitsuba's ``path`` against the feature integrator, side by side per scene.
 
-``render.reference_integrator`` chooses the integrator of the reference renders (README, "Measured stage
+``render.reference_integrator`` chooses the integrator of the reference renders (docs/default-run.md, "Measured stage
 costs"). For each scene of a scenes folder (``--scenes``: results/<experiment>/scenes) this renders one
 frame's reference (two halves, ``render_reference_frame``, the config's ``reference_batch_spp``) with both
 integrators, alternating which goes first per round, after one small warm-up render each (kernel

@@ -4,7 +4,7 @@ Snakemake merges a nested ``--config`` value into the config file's dict but lea
 nested value as strings (``{spp: 8}`` gives ``{"spp": "8"}``), which the schema then rejects. Where the
 schema expects a non-string type, :func:`coerce_override_strings` parses such a string as YAML and keeps
 the result when its type fits. (Dotted keys such as ``render.spp=8`` are refused by Snakemake itself
-before any project code runs; the README shows the nested form.)
+before any project code runs; docs/model-store.md shows the nested form.)
 """
 from __future__ import annotations
 

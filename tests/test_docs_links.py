@@ -1,0 +1,105 @@
+"""The README and the manual (docs/*.md) link only to files that exist and to headings that exist."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+PAGES = [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").glob("*.md"))]
+LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
+
+
+def without_fences(text: str) -> str:
+    """``text`` without fenced code blocks."""
+    return re.sub(r"^```.*?^```", "", text, flags=re.M | re.S)
+
+
+def prose(text: str) -> str:
+    """``text`` without fenced code blocks and inline code (links there are examples, not links)."""
+    return re.sub(r"`[^`\n]*`", "", without_fences(text))
+
+
+def anchors(path: Path) -> set[str]:
+    """GitHub's heading anchors of a markdown file: lower case, punctuation dropped, spaces as hyphens."""
+    headings = re.findall(r"^#{1,6} (.+)$", without_fences(path.read_text()), flags=re.M)
+    return {re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-") for heading in headings}
+
+
+def test_anchor_rule_matches_github_on_known_headings(tmp_path: Path) -> None:
+    page = tmp_path / "page.md"
+    page.write_text("# Title\n## Measured stage costs and the 6-hour budget\n## Isik et al. 2021: AFN, its ablations\n"
+                    "## Volumetric clips (`vol_*` scenes)\n```\n# not a heading\n```\n")
+    assert anchors(page) == {"title", "measured-stage-costs-and-the-6-hour-budget", "isik-et-al-2021-afn-its-ablations",
+                             "volumetric-clips-vol_-scenes"}
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda path: path.relative_to(REPO_ROOT).as_posix())
+def test_every_relative_link_and_anchor_resolves(page: Path) -> None:
+    broken = []
+    for target in LINK.findall(prose(page.read_text())):
+        if re.match(r"^[a-z]+:", target):
+            continue
+        file_part, _, anchor = target.partition("#")
+        dest = (page.parent / file_part).resolve() if file_part else page
+        if not dest.exists():
+            broken.append(f"{target}: no file {dest.relative_to(REPO_ROOT) if dest.is_relative_to(REPO_ROOT) else dest}")
+        elif anchor and dest.suffix == ".md" and anchor not in anchors(dest):
+            broken.append(f"{target}: no heading #{anchor} in {dest.relative_to(REPO_ROOT)}")
+    assert not broken, f"{page.relative_to(REPO_ROOT)}: broken links:\n" + "\n".join(broken)
+
+
+def test_the_readme_is_a_front_page() -> None:
+    """Issue 49: the README holds the two commands, the generated results, how to add a method and a scene, and
+    links into the manual; the measurement history lives in docs/."""
+    lines = (REPO_ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 200, f"README.md has {len(lines)} lines; measurements and how-tos belong in docs/"
+
+
+def readme_block(language: str) -> str:
+    """The README's first fenced ``language`` block (the worked examples of "Add a method")."""
+    match = re.search(rf"^```{language}\n(.*?)^```", (REPO_ROOT / "README.md").read_text(), flags=re.M | re.S)
+    assert match, f"README.md has no ```{language} block"
+    return match.group(1)
+
+
+def test_the_readmes_method_example_registers_runs_and_plans() -> None:
+    """The "Add a method" example as a user pastes it: it registers, denoises a frame into (3, H, W) equal to the
+    3x3 mean over the in-image neighbours (computed here by shifting), and its config row passes the config check."""
+    import numpy as np
+    import torch
+
+    from denoisers import registry
+    from denoisers.evaluate import EvaluationError, evaluation_problems, plan_runs
+    from denoisers.registry import Frame
+    from scenegen.config import load_config
+
+    namespace: dict = {"__name__": "readme_example"}
+    try:
+        exec(compile(readme_block("python"), "README.md", "exec"), namespace)
+        method = registry.get("box3")
+        samples = torch.rand(4, 3, 9, 11, generator=torch.Generator().manual_seed(0)) * 5.0
+        out = method().denoise(Frame(samples={"radiance": samples}))
+        mean = samples.mean(dim=0).numpy()
+        padded = np.pad(mean, ((0, 0), (1, 1), (1, 1)), constant_values=np.nan)
+        shifted = [padded[:, 1 + dy:10 + dy, 1 + dx:12 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+        np.testing.assert_allclose(out.numpy(), np.nanmean(shifted, axis=0), rtol=1e-5)
+        row = yaml.safe_load(readme_block("yaml"))["evaluation"]["methods"][0]
+        cfg = load_config(REPO_ROOT / "config" / "config.yaml")
+        cfg["evaluation"]["methods"].append(row)
+        assert evaluation_problems(cfg) == []
+        assert {(run.spec.id, run.spp) for run in plan_runs(cfg) if run.spec.id == "box3"} == {
+            ("box3", spp) for spp in cfg["evaluation"]["spp"]}
+        cfg["evaluation"]["methods"][-1] = {**row, "method": "box4"}
+        with pytest.raises(EvaluationError, match="did you mean 'box3'"):
+            plan_runs(cfg)
+    finally:
+        registry._REGISTRY.pop("box3", None)
+
+
+def test_the_readme_states_the_store_budget_that_is_checked() -> None:
+    budget = json.loads((REPO_ROOT / "store" / "budget.json").read_text())["max_megabytes"]
+    assert f"{budget:g} MB in `store/budget.json`" in " ".join((REPO_ROOT / "README.md").read_text().split())
