@@ -236,6 +236,8 @@ def evaluation_problems(cfg: dict) -> list[str]:
                         f"'evaluation.spp' = {evaluated!r}; allowed: values of evaluation.spp, or [] to not "
                         "evaluate the ablation variants")
     rows = method_specs(cfg) + volume_method_specs(cfg)
+    problems += [problem for spec in rows if spec.role not in (SEED_ROLE, BUDGET_ROLE)
+                 for problem in [method_name_problem(cfg, spec)] if problem]
     added = {spec.id for spec in rows if spec.role in (SEED_ROLE, BUDGET_ROLE)}
     for method_id in sorted(added & {spec.id for spec in rows if spec.role not in (SEED_ROLE, BUDGET_ROLE)}):
         problems.append(f"evaluation row id {method_id!r} is also the id of a row the config adds for a trained "
@@ -299,20 +301,26 @@ def _row_key(cfg: dict, spec: MethodSpec) -> str:
     return f"training (the row of trained model {spec.id!r})"
 
 
-def check_method_name(cfg: dict, spec: MethodSpec) -> None:
-    """EvaluationError naming the row, its config key, the closest registered name and every one, when the row's
-    method is not registered."""
+def method_name_problem(cfg: dict, spec: MethodSpec) -> str | None:
+    """Why the row's method is not registered (its config key, the closest registered name and every one), else
+    None."""
     import difflib
 
     from denoisers import registry
 
     names = registry.available()
     if spec.method in names:
-        return
+        return None
     close = difflib.get_close_matches(spec.method, names, n=1)
-    raise EvaluationError(f"config key '{_row_key(cfg, spec)}' (row {spec.id!r}) = {spec.method!r} is not a "
-                          f"registered method{f' (did you mean {close[0]!r}?)' if close else ''}; allowed: "
-                          f"{', '.join(names)}")
+    return (f"config key '{_row_key(cfg, spec)}' (row {spec.id!r}) = {spec.method!r} is not a registered "
+            f"method{f' (did you mean {close[0]!r}?)' if close else ''}; allowed: {', '.join(names)}")
+
+
+def check_method_name(cfg: dict, spec: MethodSpec) -> None:
+    """EvaluationError with :func:`method_name_problem` when the row's method is not registered."""
+    problem = method_name_problem(cfg, spec)
+    if problem:
+        raise EvaluationError(problem)
 
 
 def _plan(cfg: dict, specs: Sequence[MethodSpec], spps_of) -> list[Run]:

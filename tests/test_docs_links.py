@@ -94,6 +94,10 @@ def test_the_readmes_method_example_registers_runs_and_plans() -> None:
         assert {(run.spec.id, run.spp) for run in plan_runs(cfg) if run.spec.id == "box3"} == {
             ("box3", spp) for spp in cfg["evaluation"]["spp"]}
         cfg["evaluation"]["methods"][-1] = {**row, "method": "box4"}
+        index = len(cfg["evaluation"]["methods"]) - 1   # the config check names it, before any planning
+        assert [problem for problem in evaluation_problems(cfg) if "box4" in problem] == [
+            f"config key 'evaluation.methods[{index}].method' (row 'box3') = 'box4' is not a registered method "
+            f"(did you mean 'box3'?); allowed: {', '.join(registry.available())}"]
         with pytest.raises(EvaluationError, match="did you mean 'box3'"):
             plan_runs(cfg)
     finally:
