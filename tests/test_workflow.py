@@ -262,6 +262,8 @@ def test_smoke_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
     # --forceall: list every job even if outputs exist.
     counts = dry_run("--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
     assert counts == expected_jobs(load_config(workflow_copy / "config/smoke.yaml"))
+    # A dry run writes nothing below the experiment folder, not even the resolved config (.config/<digest>.yaml).
+    assert not (workflow_copy / SMOKE_OUT).exists()
     assert set(counts) == {*JOB_RULES, "all"} - {"verify_stored_model"}      # `verify` is not part of `all`
 
 
@@ -418,6 +420,7 @@ def failing_dry_run(workflow_copy: Path, tmp_path: Path, cfg: dict) -> str:
     bad_config.write_text(yaml.safe_dump(cfg))
     result = run_snakemake("-n", "--configfile", str(bad_config), cwd=workflow_copy, check=False)
     assert result.returncode != 0
+    assert not (workflow_copy / cfg["output_dir"]).exists(), "a failed config check wrote into the output folder"
     return result.stdout + result.stderr
 
 

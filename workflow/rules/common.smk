@@ -258,7 +258,7 @@ def check_evaluation_target(job_rule: str, pattern: str, kind: str = "evaluation
 # Passing the config to the CLI and rerunning jobs when it changes.
 #
 # The validated config (defaults filled, --config overrides applied) is dumped once per distinct
-# config to a content-addressed file <output_dir>/.config/<digest>.yaml at parse time; every job
+# config to a content-addressed file <output_dir>/.config/<digest>.yaml before the first job; every job
 # reads it with `--config`. Because the file name changes whenever any key changes, the path is
 # handed over by a param function taking `output`: Snakemake treats such params as derived and
 # leaves them out of the "params" rerun trigger. What does trigger reruns is a second param, the
@@ -283,7 +283,10 @@ def write_resolved_config(path: str) -> None:
     os.replace(partial, target)
 
 
-write_resolved_config(RESOLVED_CONFIG_FILE)
+
+# Written when jobs are about to run, not at parse time: a dry run (-n) and a failed config check write nothing.
+onstart:
+    write_resolved_config(RESOLVED_CONFIG_FILE)
 
 
 def resolved_config_file(wildcards, output) -> str:
