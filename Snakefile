@@ -2,7 +2,8 @@
 # renders and high-spp references (OpenEXR) -> learned denoisers trained on the training scenes ->
 # denoised test clips, per-frame metrics and a generated report. Rules live in workflow/rules/, the
 # config schema in workflow/schemas/config.schema.yaml. Stage targets: `snakemake scenes`, `snakemake renders`,
-# `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake timing`, `snakemake report`,
+# `snakemake train`, `snakemake denoise`, `snakemake evaluate`, `snakemake baselines` (the rows without a trained
+# model), `snakemake timing`, `snakemake report`,
 # `snakemake stability` (the temporal-stability scenario clips, their masks and the failure atlas), `snakemake volumes`
 # (the volumetric clips: scenes, renders, the volume rows denoised and scored), `snakemake verify` (stored models
 # retrained and compared, config store.verify).
@@ -41,6 +42,7 @@ localrules:
     train,
     denoise,
     evaluate,
+    baselines,
     timing,
     report,
     stability,
@@ -74,6 +76,13 @@ rule denoise:
 rule evaluate:
     input:
         evaluate_targets,
+
+
+# The rows that need no training (noisy input, path tracing, EAW, SVGF, RLS, wRLS, OIDN, a user's own filter):
+# denoised and scored on the evaluated scenes, with no training job in the DAG.
+rule baselines:
+    input:
+        baseline_metrics_files,
 
 
 rule timing:

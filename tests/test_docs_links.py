@@ -46,7 +46,8 @@ def test_every_relative_link_and_anchor_resolves(page: Path) -> None:
         file_part, _, anchor = target.partition("#")
         dest = (page.parent / file_part).resolve() if file_part else page
         if not dest.exists():
-            broken.append(f"{target}: no file {dest.relative_to(REPO_ROOT) if dest.is_relative_to(REPO_ROOT) else dest}")
+            shown = dest.relative_to(REPO_ROOT) if dest.is_relative_to(REPO_ROOT) else dest
+            broken.append(f"{target}: no file {shown}")
         elif anchor and dest.suffix == ".md" and anchor not in anchors(dest):
             broken.append(f"{target}: no heading #{anchor} in {dest.relative_to(REPO_ROOT)}")
     assert not broken, f"{page.relative_to(REPO_ROOT)}: broken links:\n" + "\n".join(broken)

@@ -24,7 +24,7 @@ from denoisers.evaluate import ABLATION_ROLE, method_specs, plan_runs, robustnes
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.training.models import (method_model, model_specs, same_training_as, training_split,
                                        trains_on_volumes)
-from scenegen.config import (chunk_count, load_config, scene_ids, stability_scene_ids, volume_scene_ids,
+from scenegen.config import (chunk_count, config_digest, load_config, scene_ids, stability_scene_ids, volume_scene_ids,
                              volume_training_split)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -33,7 +33,8 @@ JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip
              "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods", "time_training",
              "derive_masks", "denoise_scenario", "score_scenario", "build_atlas", "denoise_volume", "evaluate_volume",
              "robustness_volume", "verify_stored_model")
-STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "report", "stability", "volumes", "verify")
+STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "baselines", "report", "stability", "volumes",
+                 "verify")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
 JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
@@ -127,6 +128,10 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
                 "render_reference": sum(chunk_count(cfg, s) for s in set(reference))}
 
     training_inputs = train_scenes if all_models or tuned else []
+    baseline_runs = [run for run in plan_runs(cfg) if run.runnable and method_model(run.spec.params) is None]
+    baseline_jobs = len(test_scenes) * len(baseline_runs)
+    baseline_tuned = len({run.spec.method for run in baseline_runs if run.spec.params.get("tuned")})
+    baseline_inputs = train_scenes if baseline_tuned else []
     used_inputs = train_scenes if used_models or tuned else []
     # The timing job (rule time_methods): one, if any configured row is runnable; its inputs (the timing
     # scene's noisy renders, the rows' models and tuning results) are needed by the evaluation anyway.
@@ -184,6 +189,10 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
                     "train_denoiser": used_models, "tune_method": tuned},
         "evaluate": {**renders(test_scenes + used_inputs, test_scenes + used_inputs), **evaluation,
                      "train_denoiser": used_models, "tune_method": tuned},
+        # `baselines`: the rows without a trained model, denoised and scored; no training job. The copy has no
+        # store, so the tuned rows' tuning jobs (and the training renders they read) are planned.
+        "baselines": {**renders(test_scenes + baseline_inputs, test_scenes + baseline_inputs),
+                      "denoise_clip": baseline_jobs, "evaluate_clip": baseline_jobs, "tune_method": baseline_tuned},
         "report": {**renders(test_scenes + training_inputs, test_scenes + training_inputs), **evaluation, **speed,
                    "build_report": 1, "train_denoiser": all_models, "tune_method": tuned},
         "all": {**renders(scenes, scenes), **evaluation, **speed, "build_report": 1, "train_denoiser": all_models,
@@ -455,9 +464,9 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     assert len(scenario) == jobs["denoise_scenario"]
     config_files = {re.search(r"--config (\S+)", command).group(1) for command in scenegen + denoisers}
     assert len(config_files) == 1
-    resolved = load_config(workflow_copy / config_files.pop())
-    assert resolved["render"]["width"] == 48 and resolved["scenes"]["n_train"] == 2
-    assert resolved["evaluation"] == cfg["evaluation"]
+    # A dry run does not write the resolved config; its name is the digest of the validated config.
+    resolved_path = workflow_copy / config_files.pop()
+    assert not resolved_path.exists() and resolved_path.name == f"{config_digest(cfg)[:16]}.yaml"
     assert any("render-noisy" in command and "--chunk 1 " in command for command in scenegen)
 
     volume = [line for line in denoisers if "python -m denoisers denoise " in line and "/volumes/denoised/" in line]

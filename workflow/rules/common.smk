@@ -370,6 +370,14 @@ def metrics_files(wildcards=None) -> list[str]:
             for run in planned_runs() for scene in EVALUATED_SCENES]
 
 
+def baseline_metrics_files(wildcards=None) -> list[str]:
+    """Stage target `baselines`: the per-frame metrics of every row that uses no trained model (tuned rows read
+    their tuning result, from the store when it is there), so no training job and, with stored tuning, no
+    training render is planned."""
+    return [results_path(f"metrics/{run.spec.id}/{scene}/spp{run.spp}.csv")
+            for run in planned_runs() if method_model(run.spec.params) is None for scene in EVALUATED_SCENES]
+
+
 def robustness_dirs(wildcards=None) -> list[str]:
     """Every output directory of the spike/NaN scenario."""
     return [robustness_dir(OUT, run.spec.id, scene, run.spp).as_posix()
