@@ -40,6 +40,11 @@ def _parser() -> argparse.ArgumentParser:
                        help="config whose output folder holds the renders, e.g. config/config.yaml")
     share.add_argument("--config", type=Path, required=True, help="config to share them with, e.g. config/isik2021.yaml")
     share.add_argument("--dry-run", action="store_true", help="only list what would be shared")
+    compare = sub.add_parser("compare-renders", help="compare two render folders (or EXR files) by their pixels, "
+                                                     "ignoring the render-time metadata; exit 1 when they differ")
+    compare.add_argument("first", type=Path)
+    compare.add_argument("second", type=Path)
+    compare.add_argument("--atol", type=float, default=0.0, help="largest accepted |difference| (default 0: exact)")
     return parser
 
 
@@ -53,6 +58,15 @@ def main(argv: list[str] | None = None) -> int:
         for scenario in SCENARIOS.values():
             print(f"{scenario.name:18s} focus: {', '.join(scenario.focus) or '(events)':28s} {scenario.description}")
         return 0
+    if args.command == "compare-renders":
+        from scenegen.compare import compare_renders
+
+        differences = compare_renders(args.first, args.second, args.atol)
+        for difference in differences:
+            print(f"differs {difference.path}: {difference.reason}")
+        print(f"{len(differences)} EXR file(s) differ by their pixels" if differences
+              else "the renders agree pixel by pixel")
+        return 1 if differences else 0
     from scenegen.config import load_config
 
     cfg = load_config(args.config)
