@@ -18,6 +18,7 @@ from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_
 from denoisers.report.collect import CROP_GAP_DB, MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.color_balance import color_balance_section
 from denoisers.report.outputs import report_outputs
+from denoisers.report.own_rows import own_rows_section
 from denoisers.report.stats import (LABELS, NON_INFERIORITY_MARGIN, formatted, frame_to_markdown, markdown_table,
                                    with_ci_columns)
 from denoisers.reproductions import all_claims, all_reproductions
@@ -323,7 +324,7 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
     inline = _core_tables(res, tables)
     claims = claims_table(res, all_claims())
     tab.write_table(claims, tables, "claims")
-    lines = ["# Evaluation report", "", *_setup_lines(res), "## Quality", "", inline["summary"],
+    lines = ["# Evaluation report", "", *_setup_lines(res), *own_rows_section(res), "## Quality", "", inline["summary"],
              "Full tables: [summary (CSV)](tables/summary.csv), [summary (Markdown)](tables/summary.md), "
              "[per scene](tables/per_scene.csv), [timing, memory and output checks](tables/timing.md).", "",
              "![Quality versus speed](figures/quality_vs_speed.png)", "",

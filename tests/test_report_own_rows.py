@@ -1,0 +1,72 @@
+"""REPORT.md's first section compares a user's own method with the shipped baselines (issue 49 §3): a method
+registered outside the harness gets its metrics, paired PSNR differences to every baseline row, its equal-time
+line and its atlas lines, with no change outside its module and its config row."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from denoisers import registry
+from denoisers.registry import Denoiser, Frame, register
+from denoisers.report import build_report
+from denoisers.report.collect import collect
+from denoisers.report.own_rows import HARNESS_METHODS, own_rows, paired_difference
+from tests.test_report import METHODS, MS, PSNR, SCENES, SPIKED_PSNR, TRMAE, report_config, write_results
+
+OWN = "own_box_filter"
+
+
+def test_the_harness_methods_are_exactly_the_registered_ones() -> None:
+    """A method the harness ships is never mistaken for a user's; adding one means listing it."""
+    assert sorted(HARNESS_METHODS) == registry.available()
+
+
+@pytest.fixture
+def own_method():
+    @register(OWN, inputs=("radiance",), description="a user's 3x3 box filter")
+    class OwnBox(Denoiser):
+        def denoise(self, frame: Frame) -> torch.Tensor:
+            return frame.mean("radiance")
+
+    yield OwnBox
+    registry._REGISTRY.pop(OWN, None)
+
+
+def test_a_users_row_is_compared_with_the_baselines_at_the_top(tmp_path: Path, own_method) -> None:
+    cfg = report_config()
+    cfg["evaluation"]["methods"] = [*METHODS, {"id": "mine", "method": OWN}]
+    # 27.5 dB at 1 spp on every scene (+3 per doubling): 0.5 above SVGF, 0.5 below wRLS, on every scene.
+    values = {"psnr": {**PSNR, "mine": 27.5}, "trmae": {**TRMAE, "mine": 0.25},
+              "spiked": {**SPIKED_PSNR, "mine": 20.0}}
+    MS["mine"] = 2.0
+    try:
+        write_results(tmp_path, cfg, **values)
+        build_report(cfg, tmp_path)
+        res = collect(cfg, tmp_path)
+    finally:
+        del MS["mine"]
+    assert own_rows(res) == ["mine"]
+    for spp in (1, 2):
+        assert paired_difference(res, "mine", "svgf", spp)[:3] == pytest.approx((0.5, 0.5, 0.5))
+        assert paired_difference(res, "mine", "wrls", spp)[0] == pytest.approx(-0.5)
+        assert paired_difference(res, "mine", "noisy", spp)[3] == len(SCENES)
+    text = (tmp_path / "REPORT.md").read_text()
+    section = text[text.index("## Your methods against the baselines"):text.index("## Quality")]
+    assert "Rows whose method the harness does not ship: mine." in section
+    differences = [line for line in section.splitlines() if line.startswith("| mine |") and "n=3" in line]
+    assert len(differences) == 2                              # one line per spp in the differences table
+    header = next(line for line in section.splitlines() if line.startswith("| row | spp | − "))
+    columns = [cell.strip() for cell in header.strip("|").split("|")]
+    cells = [cell.strip() for cell in differences[0].strip("|").split("|")]
+    assert "(better)" in cells[columns.index("− svgf")] and "(worse)" in cells[columns.index("− wrls")]
+    assert "n=3" in cells[columns.index("− noisy")]
+    assert "Equal time" in section and "Failure atlas:" in section
+
+
+def test_no_section_when_every_row_is_the_harness_own(tmp_path: Path) -> None:
+    cfg = report_config()
+    write_results(tmp_path, cfg)
+    build_report(cfg, tmp_path)
+    assert "## Your methods against the baselines" not in (tmp_path / "REPORT.md").read_text()
