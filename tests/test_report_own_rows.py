@@ -70,3 +70,32 @@ def test_no_section_when_every_row_is_the_harness_own(tmp_path: Path) -> None:
     write_results(tmp_path, cfg)
     build_report(cfg, tmp_path)
     assert "## Your methods against the baselines" not in (tmp_path / "REPORT.md").read_text()
+
+
+def test_timing_ranges_too_wide_to_rank_are_flagged(tmp_path: Path) -> None:
+    """(max - min) / median over the timing rounds above RANK_SPREAD_LIMIT: flagged in the timing table, the
+    summary's ms/frame, and the equal-time view; a narrow range (0.3 here) is not."""
+    import json
+
+    import pandas as pd
+
+    from denoisers.report.tables import RANK_SPREAD_LIMIT, TOO_WIDE
+
+    cfg = report_config()
+    write_results(tmp_path, cfg)
+    record_path = tmp_path / "timing" / "timing.json"
+    record = json.loads(record_path.read_text())
+    for row in record["rows"]:
+        if row["method_id"] == "svgf":   # median 5 ms, rounds from 2 to 9 ms: spread 1.4
+            row.update(pass_ms_per_frame=[5.0, 2.0, 9.0], ms_per_frame_min=2.0, ms_per_frame_max=9.0, spread=1.4)
+    record_path.write_text(json.dumps(record))
+    build_report(cfg, tmp_path)
+    timing = pd.read_csv(tmp_path / "tables" / "timing.csv")
+    flagged = set(timing.loc[timing["too_wide_to_rank"], "method_id"])
+    assert flagged == {"svgf"} and (9.0 - 2.0) / 5.0 > RANK_SPREAD_LIMIT > 0.3
+    equal_time = pd.read_csv(tmp_path / "tables" / "equal_time.csv").set_index(["method_id", "spp"])
+    assert TOO_WIDE in equal_time.loc[("svgf", 1), "better"] and TOO_WIDE not in equal_time.loc[("wrls", 1), "better"]
+    summary = (tmp_path / "tables" / "summary.md").read_text()
+    svgf_lines = [line for line in summary.splitlines() if line.startswith("| svgf")]
+    assert svgf_lines and all(TOO_WIDE in line for line in svgf_lines)
+    assert not any(TOO_WIDE in line for line in summary.splitlines() if line.startswith("| wrls"))

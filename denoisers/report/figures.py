@@ -20,7 +20,7 @@ from denoisers.evaluate import (
     robustness_dir,
 )
 from denoisers.report.collect import Results, TrainedModels
-from denoisers.report.tables import summary_lookup
+from denoisers.report.tables import RANK_SPREAD_LIMIT, summary_lookup, too_wide_to_rank
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -131,6 +131,11 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
         y = [lookup[(spec.id, s, "psnr")] for s in spps]
         ax.errorbar(x, [v[0] for v in y], xerr=xerr, yerr=_ci_yerr(y), marker=styles[spec.id]["marker"],
                     color=colours[spec.id], label=spec.id, capsize=3)
+        # Timing ranges too wide to rank (tables.RANK_SPREAD_LIMIT): hollow markers over the filled ones.
+        wide = [i for i, row in enumerate(speeds) if too_wide_to_rank(row)]
+        if wide:
+            ax.plot([x[i] for i in wide], [y[i][0] for i in wide], linestyle="none", marker=styles[spec.id]["marker"],
+                    markersize=11, markerfacecolor="white", markeredgecolor=colours[spec.id], zorder=3)
         # Only the spp next to each point (the colour says the method): long labels overlapped.
         for xi, yi, s in zip(x, y, spps):
             ax.annotate(str(s), (xi, yi[0]), textcoords="offset points", xytext=(4, -9), fontsize=7,
@@ -161,8 +166,8 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     ax.set_xlabel(f"throughput (Mpix/s, denoising only, timing job{threads}, log scale)")
     ax.set_ylabel("PSNR (dB, tonemapped)")
     ax.set_title(f"Quality vs speed (PSNR: mean ± 95 % CI over {len(res.scenes)} scene(s);\nthroughput: median, "
-                 "bars = range over timing rounds; numbers = spp;\ndashed: noisy input / path tracing at that spp)",
-                 fontsize=9)
+                 "bars = range over timing rounds; numbers = spp; hollow: range too wide to rank\n"
+                 f"(> {RANK_SPREAD_LIMIT:g} x median); dashed: noisy input / path tracing at that spp)", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     _plot_quality_vs_training_time(res, lookup, colours, train_ax)
     if xs:   # outside the axes, so it covers no data

@@ -21,13 +21,29 @@ SUMMARY_METRICS: tuple[str, ...] = (*ALL_METRICS, *DERIVED_METRICS, *TIMING_COLU
 SUMMARY_SHOWN: tuple[str, ...] = (*ALL_METRICS, *TIMING_COLUMNS)
 
 
+#: A timing range wider than this fraction of its median (spread = (max - min) / median over the timing rounds)
+#: cannot rank two rows whose medians differ by less than that: the machine was busy. Such timings are flagged in
+#: the tables, the quality-vs-speed chart (hollow markers) and the equal-time view.
+RANK_SPREAD_LIMIT = 0.5
+TOO_WIDE = "⚠ range too wide to rank"
+
+
+def too_wide_to_rank(speed: dict[str, Any] | None) -> bool:
+    """Whether a timing-job record's range over rounds exceeds :data:`RANK_SPREAD_LIMIT` of its median."""
+    if not speed:
+        return False
+    median, low, high = speed["ms_per_frame"], speed["ms_per_frame_min"], speed["ms_per_frame_max"]
+    return not median > 0 or (high - low) / median > RANK_SPREAD_LIMIT
+
+
 def speed_text(res: Results, method_id: str, spp: int) -> str:
-    """'median [min, max]' ms/frame of the timing job, or '–' when it did not time the row."""
+    """'median [min, max]' ms/frame of the timing job (flagged when too wide to rank), or '–' when it did not
+    time the row."""
     row = res.speed(method_id, spp)
     if row is None:
         return "–"
     return (f"{fmt(row['ms_per_frame'], 'ms_per_frame')} [{fmt(row['ms_per_frame_min'], 'ms_per_frame')}, "
-            f"{fmt(row['ms_per_frame_max'], 'ms_per_frame')}]")
+            f"{fmt(row['ms_per_frame_max'], 'ms_per_frame')}]" + (f" {TOO_WIDE}" if too_wide_to_rank(row) else ""))
 
 
 def summary_table(res: Results) -> pd.DataFrame:
@@ -104,6 +120,7 @@ def timing_table(res: Results) -> pd.DataFrame:
                         ("ms_per_frame", "ms_per_frame_min", "ms_per_frame_max", "spread", "mpix_per_s",
                          "gflop_per_frame", "gflops_per_s", "fraction_of_sgemm")},
                      "timing_rounds": speed.get("repeats", 0), "timing_threads": speed.get("threads", math.nan),
+                     "too_wide_to_rank": too_wide_to_rank(speed),
                      **{f"{c}_{part}": value for c in TIMING_COLUMNS
                         for part, value in zip(("mean", "ci_low", "ci_high"), mean_ci(values[c].to_numpy(float))[:3])},
                      "nonfinite_inputs": int(values["nonfinite_inputs"].sum()),
@@ -142,7 +159,8 @@ def equal_time_table(res: Results) -> pd.DataFrame:
                "equal_time_spp": equal_spp,
                "path_tracing_row": None, "path_tracing_spp": math.nan, "psnr_denoiser": math.nan,
                "psnr_path_tracing": math.nan, "psnr_diff_mean": math.nan, "psnr_diff_ci_low": math.nan,
-               "psnr_diff_ci_high": math.nan, "better": "no path-tracing row"}
+               "psnr_diff_ci_high": math.nan, "better": "no path-tracing row",
+               "too_wide_to_rank": too_wide_to_rank(speed)}
         if baselines and not math.isnan(equal_spp):
             best = min(baselines, key=lambda b: (abs(math.log(b[2] / equal_spp)), -b[2]))
             ours = res.scene_values(run["id"], run["spp"], "psnr")
@@ -156,6 +174,8 @@ def equal_time_table(res: Results) -> pd.DataFrame:
                         "better": better})
             if best[2] < equal_spp / 1.5:
                 row["better"] += f" (nearest rendered PT has {best[2]} spp < {equal_spp:.1f})"
+        if row["too_wide_to_rank"]:
+            row["better"] += f" ({TOO_WIDE}: the equal-time spp rests on it)"
         rows.append(row)
     return pd.DataFrame(rows)
 
