@@ -99,3 +99,24 @@ def test_timing_ranges_too_wide_to_rank_are_flagged(tmp_path: Path) -> None:
     svgf_lines = [line for line in summary.splitlines() if line.startswith("| svgf")]
     assert svgf_lines and all(TOO_WIDE in line for line in svgf_lines)
     assert not any(TOO_WIDE in line for line in summary.splitlines() if line.startswith("| wrls"))
+
+
+def test_a_grid_of_many_rows_wraps_at_about_1600_pixels(tmp_path: Path) -> None:
+    """20 rows (the robustness grid of a full config) wrap into bands of GRID_PANELS_PER_BAND panels, each closed by
+    the reference: the PNG stays about GRID_MAX_WIDTH_PX wide (colour bar and margins beside it) and grows in height;
+    a grid of two rows keeps one band."""
+    import numpy as np
+    from PIL import Image
+
+    from denoisers.report.figures import GRID_MAX_WIDTH_PX, GRID_PANELS_PER_BAND, image_grid
+
+    reference = np.ones((3, 16, 16), np.float32)
+    columns = [(f"row{i}", reference * (1 + 0.01 * i)) for i in range(20)]
+    image_grid(columns, reference, tmp_path / "wide.png", "wide")
+    image_grid(columns[:2], reference, tmp_path / "small.png", "small")
+    image_grid(columns[:2], reference, tmp_path / "maps.png", "maps", sample_maps=[None, np.full((16, 16), 3.0)])
+    wide, small, maps = (Image.open(tmp_path / name).size for name in ("wide.png", "small.png", "maps.png"))
+    assert GRID_PANELS_PER_BAND == 7
+    assert wide[0] <= GRID_MAX_WIDTH_PX + 150, wide
+    bands = -(-len(columns) // (GRID_PANELS_PER_BAND - 1))
+    assert wide[1] > 0.8 * bands * small[1] and maps[1] > 1.2 * small[1]

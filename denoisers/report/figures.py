@@ -298,6 +298,14 @@ def sample_maps_of(results_dir: Path, row: str, scene: str, spp: int) -> dict[in
         return {int(f): np.asarray(m, dtype=np.float64) for f, m in zip(data["frames"].tolist(), data["sample_maps"])}
 
 
+#: Image grids wrap into bands: at most this many panels (columns + the reference) side by side, i.e. about
+#: GRID_MAX_WIDTH_PX wide at GRID_DPI.
+GRID_MAX_WIDTH_PX = 1600
+GRID_DPI = 120
+GRID_PANEL_INCHES = 1.9
+GRID_PANELS_PER_BAND = max(2, int(GRID_MAX_WIDTH_PX // (GRID_PANEL_INCHES * GRID_DPI)))
+
+
 def image_grid(columns: Sequence[tuple[str, np.ndarray]], reference: np.ndarray, path: Path, title: str,
                sample_maps: Sequence[np.ndarray | None] = ()) -> None:
     """Columns of (label, (3, H, W) radiance) plus the reference: full frame with the crop marked, the crop
@@ -317,49 +325,66 @@ def image_grid(columns: Sequence[tuple[str, np.ndarray]], reference: np.ndarray,
     y, x = _crop_window(errors[0] if errors else np.zeros(reference.shape[1:]), size)
     vmax = float(np.percentile(errors[0], 99)) if errors else 1.0
     vmax = vmax if vmax > 0 else 1.0
-    panels = [*columns, ("reference", reference)]
-    maps = [*sample_maps, *[None] * (len(panels) - len(sample_maps))]
+    maps = [*sample_maps, *[None] * (len(columns) - len(sample_maps))]
     rows = 4 if any(m is not None for m in maps) else 3
-    fig, axes = plt.subplots(rows, len(panels), figsize=(1.9 * len(panels), 2.0 * rows), squeeze=False)
-    for col, (label, img) in enumerate(panels):
-        rgb = preview_rgb8(img)
-        is_ref = col == len(panels) - 1
-        psnr = "" if is_ref else f"\n{float(metrics.psnr(np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), reference)):.2f} dB"
-        axes[0][col].imshow(rgb, interpolation="nearest")
-        axes[0][col].add_patch(Rectangle((x - 0.5, y - 0.5), size, size, fill=False, edgecolor="cyan", linewidth=1))
-        axes[0][col].set_title(f"{label}{psnr}", fontsize=8)
-        axes[1][col].imshow(rgb[y:y + size, x:x + size], interpolation="nearest")
-        if is_ref:
-            axes[2][col].imshow(np.zeros_like(ref_tm[0]), cmap="inferno", vmin=0, vmax=vmax)
-        else:
-            axes[2][col].imshow(errors[col], cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
-        for row in range(rows):
-            axes[row][col].set_xticks([])
-            axes[row][col].set_yticks([])
-    axes[1][0].set_ylabel("crop", fontsize=8)
-    axes[2][0].set_ylabel("|error|, tonemapped", fontsize=8)
-    if rows == 4:
-        spp_max = max(1.0, max(float(m.max()) for m in maps if m is not None))
-        for col, found in enumerate(maps):
-            ax = axes[3][col]
-            if found is None:
-                ax.set_axis_off()
+    # Bands of at most GRID_PANELS_PER_BAND panels (the reference closes every band), so a grid of many rows wraps
+    # instead of growing wider than about GRID_MAX_WIDTH_PX.
+    per_band = GRID_PANELS_PER_BAND - 1
+    bands = [list(range(start, min(start + per_band, len(columns)))) for start in range(0, max(len(columns), 1),
+                                                                                        per_band)]
+    width = min(GRID_PANELS_PER_BAND, len(columns) + 1)
+    fig, axes = plt.subplots(rows * len(bands), width, figsize=(GRID_PANEL_INCHES * width, 2.0 * rows * len(bands)),
+                             squeeze=False)
+    error_axes, map_axes = [], []
+    for band, members in enumerate(bands):
+        grid = axes[band * rows:(band + 1) * rows]
+        panels = [(columns[i][0], columns[i][1], maps[i], errors[i]) for i in members]
+        panels.append(("reference", reference, None, None))
+        for col in range(width):
+            if col >= len(panels):
+                for row in range(rows):
+                    grid[row][col].set_axis_off()
                 continue
+            label, img, found, error = panels[col]
+            rgb = preview_rgb8(img)
+            psnr = "" if error is None else (
+                f"\n{float(metrics.psnr(np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), reference)):.2f} dB")
+            grid[0][col].imshow(rgb, interpolation="nearest")
+            grid[0][col].add_patch(Rectangle((x - 0.5, y - 0.5), size, size, fill=False, edgecolor="cyan",
+                                             linewidth=1))
+            grid[0][col].set_title(f"{label}{psnr}", fontsize=8)
+            grid[1][col].imshow(rgb[y:y + size, x:x + size], interpolation="nearest")
+            grid[2][col].imshow(np.zeros_like(ref_tm[0]) if error is None else error, cmap="inferno", vmin=0,
+                                vmax=vmax, interpolation="nearest")
+            error_axes.append(grid[2][col])
+            for row in range(rows):
+                grid[row][col].set_xticks([])
+                grid[row][col].set_yticks([])
+            if rows == 4:
+                if found is None:
+                    grid[3][col].set_axis_off()
+                else:
+                    map_axes.append((grid[3][col], found))
+        grid[1][0].set_ylabel("crop", fontsize=8)
+        grid[2][0].set_ylabel("|error|, tonemapped", fontsize=8)
+        if rows == 4:
+            grid[3][0].set_ylabel("sample map", fontsize=8)
+    if map_axes:
+        spp_max = max(1.0, max(float(found.max()) for _, found in map_axes))
+        for ax, found in map_axes:
             ax.imshow(found, cmap="viridis", vmin=0.0, vmax=spp_max, interpolation="nearest")
             ax.set_title(f"mean {found.mean():.2f} spp", fontsize=7)
-        axes[3][0].set_ylabel("sample map", fontsize=8)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     mappable = plt.cm.ScalarMappable(cmap="inferno", norm=plt.Normalize(0.0, vmax))
-    bar = fig.colorbar(mappable, ax=list(axes[2]), fraction=0.02, pad=0.01, format="%.2g")
+    bar = fig.colorbar(mappable, ax=error_axes, fraction=0.02, pad=0.01, format="%.2g")
     bar.ax.tick_params(labelsize=7)
-    if rows == 4:
-        shown = [ax for ax, found in zip(axes[3], maps) if found is not None]
-        spp_bar = fig.colorbar(plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0.0, spp_max)), ax=shown,
-                               fraction=0.02, pad=0.01)
+    if map_axes:
+        spp_bar = fig.colorbar(plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0.0, spp_max)),
+                               ax=[ax for ax, _ in map_axes], fraction=0.02, pad=0.01)
         spp_bar.set_label("spp", fontsize=7)
         spp_bar.ax.tick_params(labelsize=7)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
+    fig.savefig(path, dpi=GRID_DPI, bbox_inches="tight")
     plt.close(fig)
 
 
