@@ -433,6 +433,18 @@ def failing_dry_run(workflow_copy: Path, tmp_path: Path, cfg: dict) -> str:
     return result.stdout + result.stderr
 
 
+def test_problems_of_several_config_sections_come_in_one_message(workflow_copy: Path, tmp_path: Path) -> None:
+    """A misspelt row method (evaluation) and a tuning entry for an unknown method (tuning): one failed dry run names
+    both (the tuning check used to run only on a config without evaluation problems)."""
+    cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
+    index = next(i for i, entry in enumerate(cfg["evaluation"]["methods"]) if entry["method"] == "svgf")
+    cfg["evaluation"]["methods"][index]["method"] = "svfg"
+    cfg.setdefault("tuning", {})["methods"] = [{"method": "eawx", "grid": {"sigma_color": [1.0]}}]
+    output = failing_dry_run(workflow_copy, tmp_path, cfg)
+    assert "did you mean 'svgf'?" in output
+    assert "config key 'tuning.methods': unknown method 'eawx'" in output
+
+
 def test_ablation_spp_outside_the_evaluated_spp_fails_the_dry_run(workflow_copy: Path, tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
     cfg["evaluation"]["ablation_spp"] = [8]  # smoke evaluates [1, 2, 4]

@@ -54,11 +54,18 @@ try:
 except Exception as err:  # WorkflowError, or AttributeError when a section is not a mapping
     schema_error = err
 config_errors = config_problems(config) or ([str(schema_error)] if schema_error else [])
-if not config_errors:
-    config_errors = (evaluation_problems(config) + training_problems(config) + tuning_problems(config)
-                     + volume_problems(config) + verify_problems(config))
-if not config_errors:   # every custom scene parsed (not rendered): bad XML, unknown plugins, missing files
-    config_errors = custom_scene_problems(config)
+if schema_error is None:
+    # The later checks read a schema-valid config. Every group runs, so all problems come in one message; a group
+    # that cannot run beside the problems already found is named instead. custom_scene_problems parses every
+    # custom scene (not rendered): bad XML, unknown plugins, missing files.
+    for check in (evaluation_problems, training_problems, tuning_problems, volume_problems, verify_problems,
+                  custom_scene_problems):
+        try:
+            config_errors += check(config)
+        except Exception as err:
+            if not config_errors:
+                raise
+            config_errors.append(f"({check.__name__} could not run beside the problems above: {err})")
 if config_errors:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
 
