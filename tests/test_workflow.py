@@ -434,13 +434,16 @@ def failing_dry_run(workflow_copy: Path, tmp_path: Path, cfg: dict) -> str:
 
 
 def test_problems_of_several_config_sections_come_in_one_message(workflow_copy: Path, tmp_path: Path) -> None:
-    """A misspelt row method (evaluation) and a tuning entry for an unknown method (tuning): one failed dry run names
-    both (the tuning check used to run only on a config without evaluation problems)."""
+    """A cross-key problem (scenes.objects min above max), a misspelt row method (evaluation) and a tuning entry for an
+    unknown method (tuning): one failed dry run names all three (the section checks used to wait until the cross-key
+    checks passed)."""
     cfg = yaml.safe_load((REPO_ROOT / "config/smoke.yaml").read_text())
     index = next(i for i, entry in enumerate(cfg["evaluation"]["methods"]) if entry["method"] == "svgf")
     cfg["evaluation"]["methods"][index]["method"] = "svfg"
     cfg.setdefault("tuning", {})["methods"] = [{"method": "eawx", "grid": {"sigma_color": [1.0]}}]
+    cfg["scenes"]["objects"] = [5, 2]
     output = failing_dry_run(workflow_copy, tmp_path, cfg)
+    assert "scenes.objects" in output
     assert "did you mean 'svgf'?" in output
     assert "config key 'tuning.methods': unknown method 'eawx'" in output
 
