@@ -146,7 +146,7 @@ def load_evaluation_config(path: Path, build_models: bool = True) -> dict:
     from scenegen.config import ConfigError, load_config
 
     cfg = load_config(path)
-    problems = (evaluation_problems(cfg) + training_problems(cfg, build_models)
+    problems = (evaluation_problems(cfg, check_methods=build_models) + training_problems(cfg, build_models)
                 + (tuning_problems(cfg) if build_models else []))      # the registry's checks import torch
     if problems:
         raise ConfigError(f"{path}: invalid configuration:\n  - " + "\n  - ".join(problems))

@@ -201,8 +201,9 @@ def rendered_layers(cfg: dict) -> dict[str, int]:
             for buffer in SAMPLE_BUFFERS}
 
 
-def evaluation_problems(cfg: dict) -> list[str]:
-    """Constraints of the ``evaluation`` section the JSON schema cannot express (schema-valid cfg)."""
+def evaluation_problems(cfg: dict, check_methods: bool = True) -> list[str]:
+    """Constraints of the ``evaluation`` section the JSON schema cannot express (schema-valid cfg);
+    ``check_methods`` False leaves out the registry lookup of every row's method (it imports torch)."""
     evaluation, render = cfg["evaluation"], cfg["render"]
     problems = []
     layers = render["spp"] + render["extra_radiance_spp"]
@@ -236,8 +237,9 @@ def evaluation_problems(cfg: dict) -> list[str]:
                         f"'evaluation.spp' = {evaluated!r}; allowed: values of evaluation.spp, or [] to not "
                         "evaluate the ablation variants")
     rows = method_specs(cfg) + volume_method_specs(cfg)
-    problems += [problem for spec in rows if spec.role not in (SEED_ROLE, BUDGET_ROLE)
-                 for problem in [method_name_problem(cfg, spec)] if problem]
+    if check_methods:
+        problems += [problem for spec in rows if spec.role not in (SEED_ROLE, BUDGET_ROLE)
+                     for problem in [method_name_problem(cfg, spec)] if problem]
     added = {spec.id for spec in rows if spec.role in (SEED_ROLE, BUDGET_ROLE)}
     for method_id in sorted(added & {spec.id for spec in rows if spec.role not in (SEED_ROLE, BUDGET_ROLE)}):
         problems.append(f"evaluation row id {method_id!r} is also the id of a row the config adds for a trained "
