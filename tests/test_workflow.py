@@ -3,7 +3,7 @@
 None of these runs the real renderer or a denoiser: dry runs only, plus one real run of the `renders`
 target in a temporary copy of the workflow where `python -m scenegen` is a stub that just creates the
 output directories. Every snakemake call runs in a temporary copy of Snakefile, workflow/ and config/:
-parsing writes <output_dir>/.config/, and the repository's own results/ and .snakemake/ stay untouched.
+a run writes <output_dir>/.config/, and the repository's own results/ and .snakemake/ stay untouched.
 """
 
 from __future__ import annotations
