@@ -7,8 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
+from denoisers.report.claims import Part
 from denoisers.report.collect import Results
 from denoisers.report.stats import fmt, fmt_ci, markdown_table, mean_ci
 from denoisers.report.tables import equal_time_table, speed_text
@@ -35,10 +35,11 @@ def baseline_rows(res: Results) -> list[str]:
 
 def paired_difference(res: Results, row: str, baseline: str, spp: int, metric: str = "psnr"
                       ) -> tuple[float, float, float, int]:
-    """(mean, low, high, n) of row - baseline per evaluated scene (both ran there), Student-t 95 % interval."""
-    a, b = res.scene_values(row, spp, metric), res.scene_values(baseline, spp, metric)
-    joined = pd.concat([a.rename("a"), b.rename("b")], axis=1).dropna()
-    return mean_ci((joined["a"] - joined["b"]).to_numpy(np.float64))
+    """(mean, low, high, n) of row - baseline per evaluated scene (both ran there), Student-t 95 % interval: the
+    claims' paired comparison (:meth:`Part.paired`)."""
+    part = Part.paired(res.scene_values(row, spp, metric), res.scene_values(baseline, spp, metric), metric, row,
+                       baseline)
+    return (*part.interval, part.n)
 
 
 def _metrics_table(res: Results, rows: list[str], spps: list[int]) -> str:
