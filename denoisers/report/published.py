@@ -2,9 +2,10 @@
 numbers generated from them.
 
 ``publish_run`` copies a finished run's ``REPORT.md``, ``tables/*.csv`` / ``*.md`` (claims and targets included)
-and the figures REPORT.md links (up to :data:`FIGURE_BUDGET_BYTES`; the rest are listed as left out) into the run
-folder, with ``run.json``: the config file, the report's settings digest, every model's store key, the commit the
-run's code came from and the date. ``run_status`` compares those digests with HEAD's, so a reader sees whether
+and the figures REPORT.md links (up to :data:`FIGURE_BUDGET_BYTES`; the rest are listed as left out; the copied
+REPORT.md names every file it does not hold as plain text instead of linking it, :func:`unlink_left_out`) into the run folder,
+with ``run.json``: the config file, the report's settings digest, every model's store key, the commit the run's
+code came from and the date. ``run_status`` compares those digests with HEAD's, so a reader sees whether
 the published numbers still describe the code at hand.
 
 README blocks between ``<!-- published-run: <run folder> <config> -->`` and ``<!-- /published-run -->`` are
@@ -28,6 +29,19 @@ BLOCK = re.compile(r"(<!-- published-run: (?P<run>\S+) (?P<config>\S+) -->\n)(?P
                    re.DOTALL)
 _LINK = re.compile(r"\]\((figures/[^)\s]+)\)")
 _CODE_LINE = re.compile(r"Code: `([0-9a-f]{7,40})`")
+
+
+def unlink_left_out(text: str, published: set[str]) -> str:
+    """REPORT.md text with every relative link (image or not) whose target is not in ``published`` (paths relative
+    to the run folder) replaced by plain text naming the file in the run's results folder: a published copy has no
+    broken link."""
+    def replace(match: re.Match) -> str:
+        target = match.group(3)
+        if "://" in target or target.startswith("#") or target.split("#")[0] in published:
+            return match.group(0)
+        return f"{match.group(2) or target} (not published: `{target}` of the run's results)"
+
+    return re.sub(r"(!?)\[([^\]]*)\]\(([^)\s]+)\)", replace, text)
 
 
 class PublishError(RuntimeError):
@@ -73,7 +87,8 @@ def publish_run(cfg: dict, config_file: str, results: Path, out: Path) -> dict[s
     for table in sorted((results / "tables").iterdir()):
         if table.suffix in (".csv", ".md"):
             shutil.copy2(table, staging / "tables" / table.name)
-    shutil.copy2(report, staging / "REPORT.md")
+    tables = [f"tables/{t.name}" for t in (staging / "tables").iterdir()]
+    (staging / "REPORT.md").write_text(unlink_left_out(text, {*figures, *tables}))
     for name in figures:
         (staging / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(results / name, staging / name)
