@@ -93,10 +93,10 @@ def training_speed_digest(cfg: dict) -> str:
 
 def report_digest(cfg: dict) -> str:
     """Rule build_report: the report states the whole configuration (but the ``stability`` section, whose
-    scenario clips the report does not read, and ``store``, which says where models come from, not what they are:
-    a model's own digests cover that). ``training.seeds`` and ``training.half_budget`` enter only when they add
+    scenario clips the report does not read, ``store``, which says where models come from, not what they are:
+    a model's own digests cover that, and ``description``, a label that no rule reads). ``training.seeds`` and ``training.half_budget`` enter only when they add
     trainings (seeds above 1, half_budget true), so configs written before the keys existed keep their reports."""
-    reported = {key: value for key, value in cfg.items() if key not in ("stability", "store")}
+    reported = {key: value for key, value in cfg.items() if key not in ("stability", "store", "description")}
     training = reported.get("training")
     if isinstance(training, dict):
         neutral = {key for key, value in (("seeds", 1), ("half_budget", False)) if training.get(key, value) == value}

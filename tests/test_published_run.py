@@ -37,6 +37,15 @@ def test_every_link_of_a_committed_report_resolves() -> None:
         assert broken == [], f"{report.relative_to(REPO_ROOT)}: broken links {broken[:5]}"
 
 
+def test_no_config_description_states_counts() -> None:
+    """Counts typed into a description drift from the keys (issue 49 §4); the report's header states them."""
+    import re
+
+    for path in sorted((REPO_ROOT / "config").glob("*.yaml")):
+        description = load_config(path).get("description", "")
+        assert not re.search(r"\d+\s*(x\s*\d+|scenes?|frames?|spp|clips?|px)\b", description), (path.name, description)
+
+
 def fake_results(root: Path, big_figure: int = 10) -> Path:
     (root / "tables").mkdir(parents=True)
     (root / "figures").mkdir()
@@ -75,8 +84,10 @@ def test_publish_run_copies_the_report_tables_and_linked_figures_within_budget(
     assert stored["run_commit"] == "abcdef1234567" and set(stored["model_keys"]) == {s.id for s in model_specs(cfg)}
     assert stored["model_keys"]
     assert run_status(cfg, out) == []
+    relabelled = copy.deepcopy(cfg) | {"description": "another label"}     # a label, not a setting
+    assert run_status(relabelled, out) == []
     changed = copy.deepcopy(cfg)
-    changed["description"] = "another description"
+    changed["evaluation"]["grid_frame"] = 0
     assert run_status(changed, out) == ["the config's settings digest"]
     first = next(iter(stored["model_keys"]))
     stored["model_keys"][first] = "0" * 64
