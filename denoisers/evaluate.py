@@ -122,15 +122,17 @@ def ablation_method_specs(cfg: dict) -> list[MethodSpec]:
 
 
 def seed_method_specs(cfg: dict, rows: Sequence[MethodSpec]) -> list[MethodSpec]:
-    """For every row of ``rows`` that uses a trained model (``params.model``) and k = 1 .. training.seeds - 1:
+    """For every row of ``rows`` that uses a trained model (``params.model``) and k = 1 .. the model's seeds - 1
+    (training.seeds, or its ablation's ``seeds``):
     row ``{row}_seed{k}`` with the model's seed replica k (denoisers.training.models.replica_id), at the row's
     spp, not in the robustness scenario, role ``seed``. Empty with one seed."""
-    from denoisers.training.models import SEED_SUFFIX, method_model, replica_id, seed_count
+    from denoisers.training.models import SEED_SUFFIX, method_model, model_seed_count, replica_id
 
     return [MethodSpec(f"{row.id}{SEED_SUFFIX}{k}", row.method,
                        {**row.params, "model": replica_id(method_model(row.params), k)}, row.spp, robustness=False,
                        role=SEED_ROLE, seed_of=row.id, replica=k)
-            for row in rows if method_model(row.params) for k in range(1, seed_count(cfg))]
+            for row in rows if method_model(row.params)
+            for k in range(1, model_seed_count(cfg, method_model(row.params)))]
 
 
 def half_budget_method_specs(cfg: dict, rows: Sequence[MethodSpec]) -> list[MethodSpec]:

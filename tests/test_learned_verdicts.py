@@ -37,11 +37,14 @@ def default_config(seeds: int) -> dict:
 def test_one_seed_adds_no_replica_and_three_add_two_per_model() -> None:
     assert seed_replicas(default_config(1)) == []
     cfg = default_config(3)
-    bases = model_specs(cfg)
+    # The capacity sweeps set their own seeds: 1 (a measurement, not a claim).
+    once = {spec.id for spec in model_specs(cfg) if spec.ablation in ("rae_capacity", "ntasd_capacity")}
+    assert once == {"rae_capacity_width025", "ntasd_capacity_width025"}
+    bases = [spec for spec in model_specs(cfg) if spec.id not in once]
     replicas = seed_replicas(cfg)
     assert len(replicas) == 2 * len(bases)
-    assert [spec.id for spec in trained_model_specs(cfg)] == [s.id for s in bases] + [
-        f"{s.id}_seed{k}" for k in (1, 2) for s in bases]
+    assert [spec.id for spec in trained_model_specs(cfg)] == [s.id for s in model_specs(cfg)] + [
+        f"{s.id}_seed{k}" for s in bases for k in (1, 2)]
     for base in bases:
         seeds = {base.seed} | {model_spec(cfg, f"{base.id}_seed{k}").seed for k in (1, 2)}
         assert len(seeds) == 3, base.id   # three distinct training seeds
@@ -94,6 +97,7 @@ def test_seed_rows_evaluate_every_replica_of_a_trained_row() -> None:
     volume = {spec.id: spec for spec in evaluate.volume_method_specs(cfg)}
     assert volume["vol_rae_seed2"].params["model"] == "rae_volume_seed2"
     assert evaluate.seed_method_specs(default_config(1), list(rows.values())) == []
+    assert "rae_capacity_width025" in rows and "rae_capacity_width025_seed1" not in rows
     # Seed rows are not timed and not in the robustness scenario.
     assert all(spec.role != evaluate.SEED_ROLE for spec in (run.spec for run in evaluate.robustness_runs(cfg)))
 

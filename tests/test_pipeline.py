@@ -52,6 +52,26 @@ SMOKE_CONFIG = "config/smoke.yaml"
 PIPELINE_CONFIG = "smoke-external.yaml"
 EXTERNAL_SCENE = {"name": "spheres_room", "xml": "examples/scenes/spheres_room/scene.xml", "frames": 4,
                   "camera": {"path": "dolly"}}
+# A user's own method (issue 49): one module in the work directory's copy of denoisers/methods/ and its config
+# rows (evaluation.methods; the smoke config narrows the atlas with stability.rows, so the row is listed there).
+USER_MODULE = "user_box3"
+USER_ROW = {"id": "my_box", "method": "user_box3"}
+USER_METHOD_SOURCE = '''"""A user's method written outside the harness: a 3x3 box filter of the sample mean."""
+import torch
+
+from denoisers.filters import sanitize
+from denoisers.registry import Denoiser, Frame, register
+
+
+@register("user_box3", inputs=("radiance",), description="a user's 3x3 box filter of the sample mean")
+class UserBox3(Denoiser):
+    """Mean (3, H, W) of the (sanitised) samples, averaged over each pixel's 3x3 neighbourhood (edges replicated)."""
+
+    def denoise(self, frame: Frame) -> torch.Tensor:
+        mean = sanitize(frame.samples["radiance"]).mean(dim=0)
+        padded = torch.nn.functional.pad(mean[None], (1, 1, 1, 1), mode="replicate")
+        return torch.nn.functional.avg_pool2d(padded, 3, stride=1)[0]
+'''
 # The second experiment: the smoke config with another seed and its own folder.
 SEED7_CONFIG, SEED7_OUT = "seed7.yaml", "results/seed7"
 JOB_RULES = ("generate_scene", "render_noisy", "render_reference")
@@ -110,14 +130,37 @@ class PipelineRun:
         return [run for run in runs if run.runnable]
 
 
+def _register_user_method(path: Path) -> None:
+    """Import the user's module in this process too (the tests plan runs and load the config with it)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"tests_pipeline_{USER_MODULE}", path)
+    spec.loader.exec_module(importlib.util.module_from_spec(spec))
+
+
 @pytest.fixture(scope="module")
 def pipeline(tmp_path_factory) -> PipelineRun:
+    from denoisers import registry
+
     workdir = tmp_path_factory.mktemp("pipeline")
     shutil.copy2(REPO_ROOT / "Snakefile", workdir / "Snakefile")
     for folder in ("workflow", "config", "examples"):
         shutil.copytree(REPO_ROOT / folder, workdir / folder)
+    # The jobs run `python -m denoisers` in the work directory, so they import this copy with the user's module.
+    shutil.copytree(REPO_ROOT / "denoisers", workdir / "denoisers", ignore=shutil.ignore_patterns("__pycache__"))
+    user_module = workdir / "denoisers" / "methods" / f"{USER_MODULE}.py"
+    user_module.write_text(USER_METHOD_SOURCE)
+    _register_user_method(user_module)
+    try:
+        yield _run_pipeline(workdir)
+    finally:
+        registry._REGISTRY.pop(USER_ROW["method"], None)
 
+
+def _run_pipeline(workdir: Path) -> PipelineRun:
     smoke = yaml.safe_load((workdir / SMOKE_CONFIG).read_text())
+    smoke["evaluation"]["methods"].append(USER_ROW)
+    smoke["stability"]["rows"].append(USER_ROW["id"])
     (workdir / PIPELINE_CONFIG).write_text(yaml.safe_dump(smoke | {"extra_scenes": [EXTERNAL_SCENE]}))
     cfg = load_config(workdir / PIPELINE_CONFIG)
     results = workdir / cfg["output_dir"]
@@ -577,3 +620,33 @@ def test_the_stability_suite_scores_every_row_and_builds_the_atlas(pipeline: Pip
     assert "stability/ATLAS.md" in report
     for run in runs:
         assert f"**{run.spec.id}**" in atlas, run.spec.id
+
+
+def test_a_users_method_reaches_every_table_chart_atlas_line_and_the_top_comparison(pipeline: PipelineRun) -> None:
+    """Issue 49: a new method, one module plus its config rows and nothing else, appears wherever a baseline does:
+    every cross-paper table, every cross-paper chart (figures/rows.json: what each one draws), its atlas lines and
+    REPORT.md's first section, which compares it with the baselines."""
+    from denoisers.report.outputs import CORE_TABLES, EXTERNAL_TABLES, FIGURE_ROWS
+
+    mine, baseline, results = USER_ROW["id"], "svgf", pipeline.results
+    checked = []
+    for name in CORE_TABLES + EXTERNAL_TABLES:
+        table = pd.read_csv(results / "tables" / f"{name}.csv")
+        column = next((c for c in ("method_id", "id") if c in table), None)
+        if column and baseline in set(table[column]):
+            assert mine in set(table[column]), name
+            checked.append(name)
+    assert {"summary", "per_scene", "timing", "equal_time", "robustness", "runs", "external", "color_balance"} \
+        <= set(checked), checked
+    drawn = json.loads((results / "figures" / FIGURE_ROWS).read_text())
+    charts = report_outputs(pipeline.cfg, root=str(results))
+    cross_paper = [Path(p).name for group in ("quality", "curves", "grids") for p in charts[group]]
+    assert sorted(drawn) == sorted(cross_paper)
+    for chart, rows in drawn.items():
+        assert baseline in rows and mine in rows, (chart, rows)
+    atlas = (results / "stability" / "ATLAS.md").read_text()
+    assert f"**{mine}**" in atlas
+    report = (results / "REPORT.md").read_text()
+    top = report[report.index("## Your methods against the baselines"):report.index("## Quality")]
+    assert f"Rows whose method the harness does not ship: {mine}." in top
+    assert any(line.startswith(f"| {mine} |") for line in top.splitlines())

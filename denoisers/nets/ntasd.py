@@ -248,7 +248,7 @@ class NTASDNet(nn.Module):
         result = kernels.compose_multiscale(filtered, alphas)
         if self.config.temporal:
             if history is None:
-                raise ValueError("ntasd: the temporal variant needs the warped history (zeros at a shot's start)")
+                raise ValueError("ntasd: the temporal variant needs the warped history (at a shot's start the noisy uniform image)")
             finest = outputs[0]
             history_kernel = torch.softmax(finest[:, taps:2 * taps], dim=1)
             blend = torch.sigmoid(finest[:, 2 * taps:2 * taps + 1])

@@ -8,7 +8,9 @@ assemble the networks' inputs the same way. Per frame, tensors (N, C, H, W) unle
   ``depth`` (N, 1, H, W) metres, fed as log(1 + depth); ``motion`` (N, 2, H, W) backward motion in pixels;
   ``valid`` (N, 1, H, W) in {0, 1}.
 * The previous output (encoded, :func:`denoisers.nets.ntasd.encode`) is warped with the motion vectors
-  (Eq. 1; denoisers.kernels.warp_previous); at a shot's first frame there is no history: zeros, and the
+  (Eq. 1; denoisers.kernels.warp_previous). At a shot's first frame there is no history: it is initialised to
+  the noisy uniformly sampled image at the budget (Sec. 2.2, "Training"; its samples are the frame's first
+  stored layers, and the frame's reported sample counts include them: the per-pixel maximum of the two), and the
   validity channel the networks see is 0 (the renderer's ``valid`` says where reprojection succeeded; the
   paper's networks see only the warp, so this channel is our addition).
 * Sampling: 'uniform' -- every pixel the budget (Eq. 2 with equal weights for a fractional budget);
@@ -84,48 +86,60 @@ def uniform_counts(budget: float, layers: torch.Tensor) -> torch.Tensor:
     return torch.stack([normalize_sample_map(ones, budget, available) for _ in range(n)])
 
 
+def uniform_image(layers: torch.Tensor, budget: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The noisy uniformly sampled image at ``budget`` from (N, S, 3, H, W) layers: encoded (N, 3, H, W) and its
+    (N, H, W) int64 sample counts (:func:`uniform_counts`)."""
+    layers = torch.nan_to_num(layers[:, :max(1, min(layers.shape[1], math.ceil(budget)))], nan=0.0, posinf=0.0,
+                              neginf=0.0).clamp_min(0.0)
+    counts = uniform_counts(budget, layers)
+    return encode(torch.stack([gather_mean(layer, count) for layer, count in zip(layers, counts)])), counts
+
+
 def frame_step(model: NTASDNet, frame: FrameInputs, history: torch.Tensor | None, budget: float) -> StepResult:
     """One frame of NTASD: sample map, gathered noisy mean, denoised output (module docstring)."""
     config = model.config
     guide = guides(frame)
     warped = None
     motion_features = None
+    initial_counts = None
     if config.temporal:
         if history is None:
-            warped = torch.zeros_like(guide[:, :3])
+            warped, initial_counts = uniform_image(frame.layers, budget)
             validity = torch.zeros_like(frame.valid)
         else:
             warped = kernels.warp_previous(history, torch.nan_to_num(frame.motion))
             validity = frame.valid
         motion_features = torch.cat([torch.nan_to_num(frame.motion) / MOTION_SCALE, validity], dim=1)
     logits = None
-    layers = frame.layers
-    if config.sampling == "uniform":             # reads the first ceil(budget) layers only: sanitise just those
-        layers = layers[:, :max(1, min(layers.shape[1], math.ceil(budget)))]
-    layers = torch.nan_to_num(layers, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
-    # The adaptive renderers return the encoded means: their gradient is the renderer's finite difference in
-    # the encoded space the networks see (denoisers.adaptive.renderer_derivative).
-    if config.sampling == "uniform":
-        counts = uniform_counts(budget, layers)
-        noisy = encode(torch.stack([gather_mean(layer, count) for layer, count in zip(layers, counts)]))
-    elif config.sampling == "adaptive":
-        x = torch.cat([grey(warped), guide[:, :4], grey(guide[:, 4:7]), motion_features], dim=1)
-        logits = model.sample_logits(x)
-        noisy, counts = render_adaptive(capped_density(logits, budget, layers.shape[1]), layers, budget,
-                                        transform=encode)
-    else:                                                        # dasr: a 1-spp initial pass, then Eq. 2
-        if budget < 1:
-            raise ValueError(f"dasr: the budget {budget} spp is below its initial pass of 1 sample per pixel")
-        x = torch.cat([encode(layers[:, 0]), guide], dim=1)
-        logits = model.sample_logits(x)
-        noisy, counts = render_adaptive(capped_density(logits, budget, layers.shape[1], minimum=1), layers, budget,
-                                        minimum=1, transform=encode)
+    if config.sampling == "uniform":             # reads the first ceil(budget) layers only
+        if initial_counts is not None:           # a shot's first frame: the history is this very image
+            noisy, counts = warped, initial_counts
+        else:
+            noisy, counts = uniform_image(frame.layers, budget)
+    else:
+        layers = torch.nan_to_num(frame.layers, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+        # The adaptive renderers return the encoded means: their gradient is the renderer's finite difference in
+        # the encoded space the networks see (denoisers.adaptive.renderer_derivative).
+        if config.sampling == "adaptive":
+            x = torch.cat([grey(warped), guide[:, :4], grey(guide[:, 4:7]), motion_features], dim=1)
+            logits = model.sample_logits(x)
+            noisy, counts = render_adaptive(capped_density(logits, budget, layers.shape[1]), layers, budget,
+                                            transform=encode)
+        else:                                                    # dasr: a 1-spp initial pass, then Eq. 2
+            if budget < 1:
+                raise ValueError(f"dasr: the budget {budget} spp is below its initial pass of 1 sample per pixel")
+            x = torch.cat([encode(layers[:, 0]), guide], dim=1)
+            logits = model.sample_logits(x)
+            noisy, counts = render_adaptive(capped_density(logits, budget, layers.shape[1], minimum=1), layers,
+                                            budget, minimum=1, transform=encode)
     parts = [noisy, guide]
     if config.temporal:
         parts += [motion_features, warped]
     if config.adaptive:
         parts.append(counts.to(noisy.dtype)[:, None] / float(budget))
     output = model.denoise(torch.cat(parts, dim=1), noisy, warped)
+    if initial_counts is not None:        # the history's samples are spent on this frame too
+        counts = torch.maximum(counts, initial_counts)
     return StepResult(output, counts, logits)
 
 

@@ -106,18 +106,19 @@ def save_step_plot(figure: Any, axes: Any, path: Path, ylabel: str, title: str, 
     pyplot().close(figure)
 
 
-def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[Path]) -> None:
+def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[Path]) -> list[str]:
     """PSNR against denoiser throughput (Mpix/s from the timing job, log x), a point per method and spp with
     95 % CI bars over scenes (PSNR) and the range over timing rounds (throughput); the non-denoising rows
     (noisy input, plain path tracing) are horizontal reference lines. Rows the timing job did not time are
     left out. A second panel puts the learned rows' PSNR against the wall time their model trained
-    (summary.json ``elapsed_seconds``), so a method's training cost is charted beside its inference speed."""
+    (summary.json ``elapsed_seconds``), so a method's training cost is charted beside its inference speed.
+    Returns the rows drawn in the first panel (points and reference lines), in table order."""
     plt = pyplot()
     lookup = summary_lookup(summary)
     styles = _styles(res.main_specs)
     colours = {row: style["color"] for row, style in styles.items()}
     fig, (ax, train_ax) = plt.subplots(1, 2, figsize=(13.0, 5.0), gridspec_kw={"width_ratios": [3, 2]})
-    xs = []
+    xs, drawn = [], []
     for spec in res.main_specs:
         spps = [s for s in res.cfg["evaluation"]["spp"] if res.ran(spec.id, s) and res.speed(spec.id, s)]
         if not spps or spec.method in REFERENCE_METHODS:
@@ -131,6 +132,7 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
         y = [lookup[(spec.id, s, "psnr")] for s in spps]
         ax.errorbar(x, [v[0] for v in y], xerr=xerr, yerr=_ci_yerr(y), marker=styles[spec.id]["marker"],
                     color=colours[spec.id], label=spec.id, capsize=3)
+        drawn.append(spec.id)
         # Timing ranges too wide to rank (tables.RANK_SPREAD_LIMIT): hollow markers over the filled ones.
         wide = [i for i, row in enumerate(speeds) if too_wide_to_rank(row)]
         if wide:
@@ -146,6 +148,7 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
             continue
         for s in res.cfg["evaluation"]["spp"]:
             if res.ran(spec.id, s):
+                drawn += [] if spec.id in drawn else [spec.id]
                 level = lookup[(spec.id, s, "psnr")][0]
                 ax.axhline(level, color=colours[spec.id], linestyle="--", linewidth=0.8, alpha=0.7)
                 # Noisy rows labelled on the right, path-tracing rows on the left: equal totals coincide.
@@ -176,6 +179,8 @@ def plot_quality_vs_speed(res: Results, summary: pd.DataFrame, paths: Sequence[P
     for path in paths:
         fig.savefig(path, dpi=150)
     plt.close(fig)
+    order = [spec.id for spec in res.main_specs]
+    return sorted(drawn, key=order.index)
 
 
 def _ci_yerr(y: Sequence[tuple[float, float, float, int]]) -> list[list[float]]:
@@ -225,8 +230,9 @@ def _plot_quality_vs_training_time(res: Results, lookup: dict, colours: dict[str
     ax.grid(True, which="both", alpha=0.3)
 
 
-def plot_frame_curves(res: Results, scene: str, path: Path) -> None:
-    """Per-frame relMSE (log), 1 - SSIM and tPSNR of every method, one row per spp, camera cuts dotted."""
+def plot_frame_curves(res: Results, scene: str, path: Path) -> list[str]:
+    """Per-frame relMSE (log), 1 - SSIM and tPSNR of every method, one row per spp, camera cuts dotted.
+    Returns the rows drawn (the legend's entries)."""
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
@@ -258,6 +264,7 @@ def plot_frame_curves(res: Results, scene: str, path: Path) -> None:
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.grid(True, alpha=0.3)
     handles, labels = legend_entries(axes.ravel())
+    drawn = list(labels)
     if handles:
         from matplotlib.lines import Line2D
 
@@ -268,6 +275,7 @@ def plot_frame_curves(res: Results, scene: str, path: Path) -> None:
     fig.tight_layout(rect=(0, 0.06, 1, 0.97))
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    return drawn
 
 
 def _grid_frame(cfg: dict, frames: Sequence[int]) -> int:
@@ -408,9 +416,10 @@ def reference_radiance(render_dir: Path, frame: int) -> np.ndarray:
     return load_reference_frame(found[frame], ["radiance"])[0]["radiance"]
 
 
-def plot_grids(res: Results, figures: Path) -> list[Path]:
-    """One image grid per evaluated scene and evaluated spp, plus the robustness grid."""
-    written = []
+def plot_grids(res: Results, figures: Path) -> dict[str, list[str]]:
+    """One image grid per evaluated scene and evaluated spp, plus the robustness grid. Returns figure file name ->
+    the rows shown as its columns."""
+    written: dict[str, list[str]] = {}
     for scene, spp in ((scene, spp) for scene in res.scenes for spp in res.cfg["evaluation"]["spp"]):
         columns, frame, maps = [], None, []
         for spec in res.main_specs:
@@ -424,12 +433,12 @@ def plot_grids(res: Results, figures: Path) -> list[Path]:
         path = figures / f"grid_{scene}_spp{spp}.png"
         reference = reference_radiance(res.results_dir / "renders" / scene, frame)
         image_grid(columns, reference, path, f"{scene}, frame {frame}, {spp} spp", sample_maps=maps)
-        written.append(path)
+        written[path.name] = [label for label, _ in columns]
     robustness = res.cfg["evaluation"]["robustness"]
     path = figures / "robustness_grid.png"
     if not (robustness["enabled"] and res.scenes):
         placeholder(path, "robustness scenario disabled" if res.scenes else "no evaluated scenes")
-        written.append(path)
+        written[path.name] = []
     else:
         scene, columns = res.scenes[0], []
         for spec in res.main_specs:
@@ -441,7 +450,7 @@ def plot_grids(res: Results, figures: Path) -> list[Path]:
         last = max(find_frames(res.results_dir / "renders" / scene / "reference"), default=0)
         image_grid(columns, reference_radiance(res.results_dir / "renders" / scene, last), path,
                    f"{scene}, frame {last}, {robustness['spp']} spp, spikes + NaN/Inf injected")
-        written.append(path)
+        written[path.name] = [label for label, _ in columns]
     return written
 
 

@@ -14,12 +14,14 @@ CORE_TABLES: tuple[str, ...] = ("summary", "per_scene", "timing", "equal_time", 
 TRAINING_TABLES: tuple[str, ...] = ("training", "training_speed")
 #: Written when external (custom_*) scenes are evaluated.
 EXTERNAL_TABLES: tuple[str, ...] = ("external", "external_substitutions")
+#: figures/{FIGURE_ROWS}: cross-paper chart file name -> the rows it draws (legend entries, grid columns).
+FIGURE_ROWS = "rows.json"
 
 
 def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
     """Files the report writes, grouped: 'tables' (CSV), 'tables_md', 'quality' (chart PNG + SVG), 'curves'
     (per-frame error per scene), 'grids', 'markdown', 'training_tables' / 'training_figures' (empty without
-    training), 'paper_tables' (CSV + Markdown) / 'paper_figures' of the reproduction modules and
+    training), 'figure_rows' (which rows each cross-paper chart draws), 'paper_tables' (CSV + Markdown) / 'paper_figures' of the reproduction modules and
     'capacity_tables' / 'capacity_figures' (one per capacity ablation, denoisers.report.capacity)."""
     scenes = evaluated_scene_ids(cfg)
     core = (CORE_TABLES + (EXTERNAL_TABLES if any(s.startswith(CUSTOM_PREFIX) for s in scenes) else ())
@@ -34,6 +36,7 @@ def report_outputs(cfg: dict, root: str = "results") -> dict[str, list[str]]:
             "grids": [f"{root}/figures/grid_{scene}_spp{spp}.png" for scene in scenes for spp in cfg["evaluation"]["spp"]]
             + [f"{root}/figures/robustness_grid.png"],
             "markdown": [f"{root}/REPORT.md"],
+            "figure_rows": [f"{root}/figures/{FIGURE_ROWS}"],
             "training_tables": [f"{root}/tables/{t}.{ext}" for t in TRAINING_TABLES for ext in ("csv", "md")]
             if trained else [],
             "training_figures": [f"{root}/figures/training_curves.png"] if trained else [],

@@ -2,6 +2,7 @@
 Markdown, with one section per reproduced paper (denoisers.reproductions)."""
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -17,7 +18,7 @@ from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_
                                      claims_table)
 from denoisers.report.collect import CROP_GAP_DB, MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.color_balance import color_balance_section
-from denoisers.report.outputs import report_outputs
+from denoisers.report.outputs import FIGURE_ROWS, report_outputs
 from denoisers.report.own_rows import own_rows_section
 from denoisers.report.stats import (LABELS, NON_INFERIORITY_MARGIN, formatted, frame_to_markdown, markdown_table,
                                    with_ci_columns)
@@ -305,9 +306,10 @@ def _core_tables(res: Results, tables: Path) -> dict[str, str]:
     tab.write_table(noise, tables, "noise_floor", noise_md)
     tab.write_table(pd.DataFrame(res.runs), tables, "runs")
     tab.write_table(tab.split_table(res.cfg), tables, "split")
-    fig.plot_quality_vs_speed(res, summary, [tables.parent / "figures" / "quality_vs_speed.png",
-                                             tables.parent / "figures" / "quality_vs_speed.svg"])
-    return {"summary": summary_md, "equal_time": equal_time_md, "noise": noise_md}
+    drawn = fig.plot_quality_vs_speed(res, summary, [tables.parent / "figures" / "quality_vs_speed.png",
+                                                     tables.parent / "figures" / "quality_vs_speed.svg"])
+    return {"summary": summary_md, "equal_time": equal_time_md, "noise": noise_md,
+            "drawn": {"quality_vs_speed.png": drawn, "quality_vs_speed.svg": drawn}}
 
 
 def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | None = None) -> list[Path]:
@@ -350,12 +352,16 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
     lines += capacity_section(res, tables, figures)
     lines += atlas_section(cfg, res.results_dir)
     lines += ["## Reference noise floor", "", inline["noise"], "", "## Per-scene figures", ""]
+    drawn = dict(inline["drawn"])
     for scene in res.scenes:
-        fig.plot_frame_curves(res, scene, figures / f"frame_curves_{scene}.png")
+        drawn[f"frame_curves_{scene}.png"] = fig.plot_frame_curves(res, scene, figures / f"frame_curves_{scene}.png")
         lines += [f"- {scene}: [per-frame error curves](figures/frame_curves_{scene}.png), "
                   "image grids with crops and error maps at "
                   + ", ".join(f"[{spp} spp](figures/grid_{scene}_spp{spp}.png)" for spp in res.cfg["evaluation"]["spp"])]
-    fig.plot_grids(res, figures)
+    drawn |= fig.plot_grids(res, figures)
+    # Which rows each cross-paper chart draws: PNG legends cannot be read back, and a row silently missing
+    # from a chart is what a new method's author must be able to check (tests/test_pipeline.py does).
+    write_text_atomic(figures / FIGURE_ROWS, json.dumps(drawn, indent=1) + "\n")
     not_run = [r for r in res.runs if r["status"] != "ran"]
     if not_run:
         lines += ["", "## Not run", "", markdown_table(["method", "spp", "reason"],

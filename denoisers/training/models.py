@@ -137,6 +137,18 @@ def seed_count(cfg: dict) -> int:
     return int((cfg.get("training") or {}).get("seeds") or 1)
 
 
+def model_seed_count(cfg: dict, model_id: str) -> int:
+    """How many times model ``model_id`` trains: its ablation's ``seeds`` where that is set (e.g. 1 for a capacity
+    sweep, which feeds measurements, not claims), else :func:`seed_count`."""
+    own = {entry["id"]: int(entry["seeds"]) for entry in (cfg.get("training") or {}).get("ablations", [])
+           if entry.get("seeds")}
+    if own:
+        for spec in model_specs(cfg):
+            if spec.id == model_id and spec.ablation in own:
+                return own[spec.ablation]
+    return seed_count(cfg)
+
+
 def replica_id(model_id: str, k: int) -> str:
     """The id of seed replica ``k`` of ``model_id`` (k = 0: the model itself)."""
     return model_id if k == 0 else f"{model_id}{SEED_SUFFIX}{k}"
@@ -152,11 +164,12 @@ def replica_seed(seed: int, k: int) -> int:
 
 
 def seed_replicas(cfg: dict) -> list[ModelSpec]:
-    """The extra trainings of ``training.seeds``: for every model of :func:`model_specs` and k = 1 .. seeds - 1,
+    """The extra trainings of ``training.seeds``: for every model of :func:`model_specs` and k = 1 .. its seeds - 1
+    (:func:`model_seed_count`),
     its spec with id ``{id}_seed{k}`` and seed :func:`replica_seed` (every other setting, ablation labels
     included, unchanged). Empty with one seed."""
     return [ModelSpec(**{**spec.__dict__, "id": replica_id(spec.id, k), "seed": replica_seed(spec.seed, k)})
-            for k in range(1, seed_count(cfg)) for spec in model_specs(cfg)]
+            for spec in model_specs(cfg) for k in range(1, model_seed_count(cfg, spec.id))]
 
 
 #: Id suffix of a half-budget model: ``{id}_half`` is model ``{id}`` (a seed replica included) stopped at half its
@@ -205,13 +218,13 @@ def trained_model_specs(cfg: dict) -> list[ModelSpec]:
 
 def replica_ids(cfg: dict, model_id: str) -> list[str]:
     """``model_id`` and the ids of its seed replicas, seed order."""
-    return [replica_id(model_id, k) for k in range(seed_count(cfg))]
+    return [replica_id(model_id, k) for k in range(model_seed_count(cfg, model_id))]
 
 
 def replica_of(cfg: dict, model_id: str) -> tuple[str, int] | None:
     """(model id, k) when ``model_id`` is seed replica k >= 1 of a configured model, else None."""
     for spec in model_specs(cfg):
-        for k in range(1, seed_count(cfg)):
+        for k in range(1, model_seed_count(cfg, spec.id)):
             if replica_id(spec.id, k) == model_id:
                 return spec.id, k
     return None

@@ -110,6 +110,7 @@ rule build_report:
         curves=report(REPORT_OUTPUTS["curves"], caption="../report/frame_curves.rst", category="Figures"),
         grids=report(REPORT_OUTPUTS["grids"], caption="../report/grids.rst", category="Figures"),
         summary=report(REPORT_OUTPUTS["markdown"], caption="../report/summary.rst", category="Summary"),
+        figure_rows=REPORT_OUTPUTS["figure_rows"],
         training=report(REPORT_OUTPUTS["training_tables"] + REPORT_OUTPUTS["training_figures"],
                         caption="../report/training.rst", category="Training"),
         papers=report(REPORT_OUTPUTS["paper_tables"] + REPORT_OUTPUTS["paper_figures"],
