@@ -1,8 +1,10 @@
 """The manual's generated pages (docs/, built by MkDocs through ``mkdocs_hooks.py``): the configuration
-reference from the config's JSON schema, so the reference cannot drift from what the workflow validates."""
+reference from the config's JSON schema, so the reference cannot drift from what the workflow validates, and one
+page per reproduced paper from the published run."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -65,3 +67,59 @@ def config_reference(schema: dict[str, Any] | None = None) -> str:
               " ".join(str(schema.get("description", "")).split()), "",
               "| key | type | default | meaning |", "|---|---|---|---|"]
     return "\n".join(header + _rows(schema, "", schema, False)) + "\n"
+
+
+# ------------------------------------------------------------------------------------------ paper pages
+#: The published run the paper pages are generated from, and the folder of the site that holds them.
+PAPERS_RUN = "runs/default"
+PAPERS_DIR = "papers"
+_SECTION = re.compile(r"^## ", re.MULTILINE)
+_RUN_LINK = re.compile(r"\]\(((?:figures|tables)/[^)\s]+)\)")
+
+
+def paper_slug(source: str) -> str:
+    """The page name of a paper: its source file's stem (e.g. 'hasselgren2020-neural-temporal-...')."""
+    return Path(source).stem
+
+
+def paper_pages(run_dir: Path | None = None) -> dict[str, str | bytes]:
+    """Site path -> content of one page per reproduced paper, generated from the published run ``run_dir``
+    (default :data:`PAPERS_RUN`): the claims rows of that paper from ``tables/claims.md``, then the paper's
+    section of ``REPORT.md`` (its tables and figures), with the run's status against the code at hand. Every
+    figure or table the section links and the run holds is added beside the page (``papers/figures/...``), so
+    the links resolve in the site."""
+    from denoisers.report.published import RUN_FILE, run_status
+    from denoisers.reproductions import all_reproductions
+    from scenegen.config import load_config
+
+    run_dir = Path(run_dir) if run_dir is not None else REPO_ROOT / PAPERS_RUN
+    report = (run_dir / "REPORT.md").read_text()
+    record = json.loads((run_dir / RUN_FILE).read_text())
+    changes = run_status(load_config(REPO_ROOT / record["config"]), run_dir)
+    status = ("Its settings and model keys equal the code's." if not changes else
+              f"**It differs from the code at hand in {'; '.join(changes)}**: numbers below are the run's, not "
+              "the code's.")
+    claims_md = (run_dir / "tables" / "claims.md").read_text().splitlines()
+    pages: dict[str, str | bytes] = {}
+    for reproduction in all_reproductions():
+        heading = f"## {reproduction.paper}: {reproduction.title}"
+        start = report.find(heading + "\n")
+        if start < 0:
+            section = f"The run's REPORT.md has no section for {reproduction.paper}."
+        else:
+            body = report[start + len(heading):]
+            end = _SECTION.search(body)
+            section = body[:end.start() if end else len(body)].strip()
+        ids = {claim.id for claim in reproduction.claims}
+        rows = [line for line in claims_md[2:] if line.split("|")[1].strip() in ids]
+        claims = "\n".join(claims_md[:2] + rows) if rows else "No claims of this paper in the run."
+        for link in dict.fromkeys(_RUN_LINK.findall(section)):
+            if (run_dir / link).is_file():
+                pages[f"{PAPERS_DIR}/{link}"] = (run_dir / link).read_bytes()
+        pages[f"{PAPERS_DIR}/{paper_slug(reproduction.source)}.md"] = "\n".join([
+            f"# {reproduction.paper}", "", f"*{reproduction.title}*", "",
+            f"Generated from the published run `{run_dir.name}` (`{record['config']}`, code `{record.get('run_commit')}`, "
+            f"published {str(record.get('published', ''))[:10]}) when the manual is built; nothing here is typed. "
+            f"{status} The rules behind each verdict: [Claims and verdicts](../claims.md#claims-and-verdicts).", "",
+            "## Claims", "", claims, "", "## Tables and figures", "", section, ""])
+    return pages

@@ -6,6 +6,7 @@ import os
 import re
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import yaml
 
@@ -159,3 +160,17 @@ def test_the_manual_builds_strictly_offline(tmp_path: Path) -> None:
     schema = yaml.safe_load((REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml").read_text())
     missing = [key for key in schema["properties"] if f"<code>{key}</code>" not in reference]
     assert not missing, f"configuration reference lacks {missing}"
+    # One page per reproduced paper, generated from the published run: its claims rows and its figures.
+    from denoisers.manual import PAPERS_DIR, paper_slug
+    from denoisers.reproductions import all_reproductions
+
+    claims = pd.read_csv(REPO_ROOT / "runs" / "default" / "tables" / "claims.csv")
+    images = 0
+    for reproduction in all_reproductions():
+        page = (tmp_path / "site" / PAPERS_DIR / f"{paper_slug(reproduction.source)}.html").read_text()
+        ran = [c.id for c in reproduction.claims if c.id in set(claims["claim"])]
+        assert all(f"<td>{claim}</td>" in page for claim in ran), (reproduction.paper, ran)
+        for image in re.findall(r'<img [^>]*src="([^"]+)"', page):
+            assert (tmp_path / "site" / PAPERS_DIR / image).is_file(), (reproduction.paper, image)
+            images += 1
+    assert images >= 4            # the published Fig. 3 / loss curves, Fig. 7 and the sample maps at least
