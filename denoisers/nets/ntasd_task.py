@@ -8,10 +8,11 @@ assemble the networks' inputs the same way. Per frame, tensors (N, C, H, W) unle
   ``depth`` (N, 1, H, W) metres, fed as log(1 + depth); ``motion`` (N, 2, H, W) backward motion in pixels;
   ``valid`` (N, 1, H, W) in {0, 1}.
 * The previous output (encoded, :func:`denoisers.nets.ntasd.encode`) is warped with the motion vectors
-  (Eq. 1; denoisers.kernels.warp_previous). At a shot's first frame there is no history: it is initialised to
-  the noisy uniformly sampled image at the budget (Sec. 2.2, "Training"; its samples are the frame's first
-  stored layers, and the frame's reported sample counts include them: the per-pixel maximum of the two), and the
-  validity channel the networks see is 0 (the renderer's ``valid`` says where reprojection succeeded; the
+  (Eq. 1; denoisers.kernels.warp_previous). At a shot's first frame there is no history: the frame is sampled
+  uniformly at the budget (an adaptive sampler has nothing to read yet), and that noisy uniform image is both
+  the frame's input and its history (Sec. 2.2, "Training": "we initialize the recurrent term to the noisy
+  uniformly sampled image at our target sample count"), so the frame keeps the budget; the validity channel the
+  networks see is 0 (the renderer's ``valid`` says where reprojection succeeded; the
   paper's networks see only the warp, so this channel is our addition).
 * Sampling: 'uniform' -- every pixel the budget (Eq. 2 with equal weights for a fractional budget);
   'adaptive' -- Eq. 2 on the sample-map network's output from the grey warped history, guides, grey albedo
@@ -111,11 +112,10 @@ def frame_step(model: NTASDNet, frame: FrameInputs, history: torch.Tensor | None
             validity = frame.valid
         motion_features = torch.cat([torch.nan_to_num(frame.motion) / MOTION_SCALE, validity], dim=1)
     logits = None
-    if config.sampling == "uniform":             # reads the first ceil(budget) layers only
-        if initial_counts is not None:           # a shot's first frame: the history is this very image
-            noisy, counts = warped, initial_counts
-        else:
-            noisy, counts = uniform_image(frame.layers, budget)
+    if initial_counts is not None:               # a shot's first frame: sampled uniformly, its own history
+        noisy, counts = warped, initial_counts
+    elif config.sampling == "uniform":           # reads the first ceil(budget) layers only
+        noisy, counts = uniform_image(frame.layers, budget)
     else:
         layers = torch.nan_to_num(frame.layers, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
         # The adaptive renderers return the encoded means: their gradient is the renderer's finite difference in
@@ -138,8 +138,6 @@ def frame_step(model: NTASDNet, frame: FrameInputs, history: torch.Tensor | None
     if config.adaptive:
         parts.append(counts.to(noisy.dtype)[:, None] / float(budget))
     output = model.denoise(torch.cat(parts, dim=1), noisy, warped)
-    if initial_counts is not None:        # the history's samples are spent on this frame too
-        counts = torch.maximum(counts, initial_counts)
     return StepResult(output, counts, logits)
 
 
