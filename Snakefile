@@ -114,7 +114,7 @@ rule volumes:
 # Retrain the models of store.verify.models and compare them with the stored runs (<out>/verify/{model}.json).
 rule verify:
     input:
-        verify_outputs(),
+        verify_outputs,     # an input function: finding the stored models keys every model, only when asked
 
 
 # Everything implemented so far; the default target. The training scenes (and volumetric training clips) are

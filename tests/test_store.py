@@ -134,6 +134,34 @@ def test_comments_and_docs_leave_the_code_digest_and_code_changes_change_it(tmp_
         code_files("rae")
 
 
+def test_code_digests_are_cached_across_processes_under_the_sources_fingerprint(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The on-disk cache (a Snakefile parse keys every model) answers only for byte-identical sources."""
+    import hashlib
+
+    from denoisers.store import code
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    root = _copy_code(tmp_path)
+    _cached_clear()
+    first = code_digest("rae", root)
+    fingerprint = code.source_fingerprint(root)
+    assert json.loads(code.digest_cache_file().read_text()) == {fingerprint: {"rae": first}}
+    # What a later process reads: a planted entry for these very sources is returned as is.
+    code.digest_cache_file().write_text(json.dumps({fingerprint: {"rae": "f" * 64}}))
+    _cached_clear()
+    assert code_digest("rae", root) == "f" * 64
+    # Any byte of a source changes the fingerprint: the digest is computed again from the sources.
+    _edit(root / "denoisers" / "nets" / "rae.py", "import torch\n", "import torch  # edited\n")
+    _cached_clear()
+    assert code.source_fingerprint(root) != fingerprint
+    expected = hashlib.sha256()
+    for name, text in code_files("rae", root).items():
+        expected.update(name.encode() + b"\0" + hashlib.sha256(text.encode()).hexdigest().encode() + b"\n")
+    assert code_digest("rae", root) == expected.hexdigest() == first
+    _cached_clear()
+
+
 def _cached_clear() -> None:
     from denoisers.store import code
 

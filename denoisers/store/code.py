@@ -26,6 +26,8 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
+import json
+import os
 import re
 from pathlib import Path
 
@@ -180,17 +182,69 @@ def code_files(method: str, root: Path = REPO_ROOT) -> dict[str, str]:
     return dict(sorted(files.items()))
 
 
+#: How many source fingerprints the on-disk digest cache keeps (one per code version seen lately).
+CACHE_VERSIONS = 8
+
+
+def source_fingerprint(root: Path = REPO_ROOT) -> str:
+    """SHA-256 of the raw bytes of every file a code digest can read: the project packages' ``.py`` files and the
+    native ``.cpp`` sources below ``root``. Equal fingerprints give equal code digests."""
+    digest = hashlib.sha256()
+    for package in PROJECT_PACKAGES:
+        for path in sorted((root / package).rglob("*")):
+            if path.suffix in (".py", ".cpp") and "__pycache__" not in path.parts and "_build" not in path.parts:
+                digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+def digest_cache_file() -> Path:
+    """The on-disk cache of code digests across processes (a Snakefile parse keys every model: seconds of AST
+    work per process otherwise): ``$XDG_CACHE_HOME/mcdenoise-harness/code_digests.json``."""
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "mcdenoise-harness" / "code_digests.json"
+
+
+def _read_cache() -> dict[str, dict[str, str]]:
+    try:
+        cache = json.loads(digest_cache_file().read_text())
+        return cache if isinstance(cache, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _write_cache(fingerprint: str, method: str, value: str) -> None:
+    cache = _read_cache()
+    entry = cache.pop(fingerprint, {})
+    cache[fingerprint] = {**entry, method: value}            # most recently written last
+    while len(cache) > CACHE_VERSIONS:
+        cache.pop(next(iter(cache)))
+    path = digest_cache_file()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        temporary.write_text(json.dumps(cache))
+        os.replace(temporary, path)
+    except OSError:
+        pass                                                  # a read-only home: compute again next time
+
+
 @functools.lru_cache(maxsize=64)
 def _cached_digest(method: str, root: str) -> str:
+    fingerprint = source_fingerprint(Path(root))          # covers this module, so the digest rules too
+    cached = _read_cache().get(fingerprint, {}).get(method)
+    if cached:
+        return cached
     files = code_files(method, Path(root))
     digest = hashlib.sha256()
     for name, text in files.items():
         digest.update(name.encode() + b"\0" + hashlib.sha256(text.encode()).hexdigest().encode() + b"\n")
+    _write_cache(fingerprint, method, digest.hexdigest())
     return digest.hexdigest()
 
 
 def code_digest(method: str, root: Path = REPO_ROOT) -> str:
-    """SHA-256 over :func:`code_files` of trainable method ``method`` (cached per process)."""
+    """SHA-256 over :func:`code_files` of trainable method ``method`` (cached per process, and across processes
+    under :func:`source_fingerprint` in :func:`digest_cache_file`)."""
     return _cached_digest(method, str(root))
 
 

@@ -22,6 +22,7 @@ import copy
 import hashlib
 import json
 import math
+import pickle
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -97,7 +98,7 @@ def model_specs(cfg: dict) -> list[ModelSpec]:
     _SPECS_CACHE[key] = specs                   # most recently used last
     while len(_SPECS_CACHE) > _SPECS_CACHE_SIZE:
         _SPECS_CACHE.pop(next(iter(_SPECS_CACHE)))
-    return copy.deepcopy(specs)
+    return pickle.loads(pickle.dumps(specs))    # a deep copy, several times faster than copy.deepcopy
 
 
 _SPECS_CACHE: dict[str, list[ModelSpec]] = {}
