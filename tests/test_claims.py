@@ -149,12 +149,22 @@ def results_for(claim: str, d: list[float], cfg: dict | None = None, **kwargs) -
     elif claim == "C4.3s":   # wrls above noisy by d at every spp; RAE gain at 4 spp smaller than at 1 spp by d
         for s in cfg["evaluation"]["spp"]:
             table.shift(("wrls", s), ("noisy", s), "psnr", "higher", d)
+        high = rae_trained_at(cfg, 4)
         table.values[("rae", 1)]["psnr"] = [v + 5.0 for v in table.values[("noisy", 1)]["psnr"]]
-        table.values[("rae", 4)]["psnr"] = [v + 5.0 - di for v, di in zip(table.values[("noisy", 4)]["psnr"], d)]
+        table.values[(high, 4)]["psnr"] = [v + 5.0 - di for v, di in zip(table.values[("noisy", 4)]["psnr"], d)]
     return build(cfg, table, spiked=spiked, timing=timing, **kwargs)
 
 
 CLAIMS = {claim.id: claim for claim in all_claims()}
+
+
+def rae_trained_at(cfg: dict, spp: int) -> str:
+    """The recurrent RAE row whose model the config trains at ``spp`` (data.spp, read here from the config's
+    training entries), else ``rae``."""
+    trained = {m["id"]: m.get("data", {}).get("spp") for m in cfg["training"]["models"]}
+    return next((r["id"] for r in cfg["evaluation"]["methods"] if r["method"] == "rae" and spp in r.get("spp", [spp])
+                 and not r.get("params", {}).get("reset_state_every_frame")
+                 and trained.get(r.get("params", {}).get("model")) == spp), "rae")
 
 
 @pytest.mark.parametrize("claim", DECIDED)
@@ -191,13 +201,38 @@ def test_a_claim_needs_every_part(claim: str) -> None:
 def test_c43_needs_both_halves() -> None:
     """wRLS above its input at every spp, but RAE's gain does not shrink: contradicted."""
     results = results_for("C4.3s", CLEAR)
+    high = rae_trained_at(results.cfg, 4)
     noisy = results.per_scene[(results.per_scene.method_id == "noisy") & (results.per_scene.spp == 4)]["psnr"]
-    for row in results.seed_rows("rae", 4) + results.seed_rows("rae_half", 4):     # every seed and budget alike
+    for row in results.seed_rows(high, 4) + results.seed_rows(f"{high}_half", 4):     # every seed and budget alike
         mask = (results.per_scene.method_id == row) & (results.per_scene.spp == 4)
         results.per_scene.loc[mask, "psnr"] = noisy.to_numpy() + 5.0 + np.array(CLEAR)
     decision = evaluate_claim(results, CLAIMS["C4.3s"])
     assert [p.outcome for p in decision.parts] == [REPRODUCED] * 3 + [CONTRADICTED]
     assert decision.verdict == CONTRADICTED
+
+
+def test_c43_takes_the_rae_trained_at_each_spp_and_says_so() -> None:
+    """The default config trains rae at 1 spp and rae_4spp at 4 (issue 46 §4): RAE's gain at 4 spp is
+    rae_4spp's, at 1 spp rae's. Without the 4-spp row the 1-spp model stands in at 4 spp, and the note says
+    which model trained at which spp."""
+    cfg = claims_config()
+    assert rae_trained_at(cfg, 4) == "rae_4spp" and rae_trained_at(cfg, 1) == "rae"
+    decision = evaluate_claim(results_for("C4.3s", CLEAR, cfg), CLAIMS["C4.3s"])
+    gain = decision.parts[-1]
+    assert decision.verdict == REPRODUCED
+    assert "(rae_4spp)" in gain.a and "(rae)" in gain.b, (gain.a, gain.b)
+    assert "rae trained at 1 spp, rae_4spp trained at 4 spp" in decision.note
+    c25 = evaluate_claim(results_for("C4.3s", CLEAR, cfg), CLAIMS["C2.5"])    # Hasselgren's RAE at 4 spp too
+    assert {p.b for p in c25.parts if "rae" in p.b} == {"rae_4spp @ 4 spp"}, [p.b for p in c25.parts]
+    # The 1-spp row's gain at 4 spp shrinks by d; the 4-spp row is dropped.
+    table = Table(cfg, 4)
+    for s in cfg["evaluation"]["spp"]:
+        table.shift(("wrls", s), ("noisy", s), "psnr", "higher", CLEAR)
+    table.values[("rae", 1)]["psnr"] = [v + 5.0 for v in table.values[("noisy", 1)]["psnr"]]
+    table.values[("rae", 4)]["psnr"] = [v + 5.0 - di for v, di in zip(table.values[("noisy", 4)]["psnr"], CLEAR)]
+    decision = evaluate_claim(build(cfg, table, drop=(("rae_4spp", 4),)), CLAIMS["C4.3s"])
+    assert decision.verdict == REPRODUCED and "(rae)" in decision.parts[-1].a
+    assert "rae trained at 1 spp" in decision.note and "rae_4spp" not in decision.note
 
 
 @pytest.mark.parametrize("claim, spp, stated", [("C1.1", (2, 4), 1), ("C1.4", (1, 2), 4), ("C4.1s", (1, 4), 2),
@@ -213,7 +248,7 @@ def test_a_claim_at_an_spp_not_evaluated_is_not_run(claim: str, spp: tuple[int, 
 
 @pytest.mark.parametrize("claim, row, named", [("C1.1", ("eaw", 1), "eaw"), ("C1.5", ("rae_per_frame", 1), "reset"),
                                                ("C1.2", ("rae_inputs_all", 1), "rae_inputs_all"),
-                                               ("C4.1s", ("svgf", 2), "svgf"), ("C4.3s", ("rae", 2), "rae")])
+                                               ("C4.1s", ("svgf", 2), "svgf"), ("C4.3s", ("rae", 1), "rae")])
 def test_a_missing_row_makes_the_claim_not_run(claim: str, row: tuple[str, int], named: str) -> None:
     cfg = claims_config()
     table = Table(cfg, 4)

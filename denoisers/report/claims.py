@@ -365,6 +365,32 @@ class Claim:
     decide: Callable[[Results], Decision] | None = None
 
 
+def training_spp(cfg: dict, model_id: str | None) -> int | None:
+    """The spp model ``model_id`` trains at (its ``data.spp``); None for no model or one the config lacks."""
+    from denoisers.training.models import model_spec
+
+    if not model_id:
+        return None
+    try:
+        return model_spec(cfg, model_id).data.get("spp")
+    except KeyError:
+        return None
+
+
+def row_at(res: Results, need: RowNeed, spp: int) -> str | None:
+    """The row of ``need`` to compare at ``spp``: among the matching rows that ran there, one whose model was
+    trained at ``spp`` (its ``data.spp``) first, else the first that ran; else the first matching row (so that
+    the not-run reason names it); None when no configured row matches. E.g. ``rae`` (trained at 1 spp) at 1, 2, 4
+    spp and ``rae_4spp`` (trained at 4) at 4 spp give ``rae_4spp`` at 4 spp and ``rae`` at 1."""
+    rows = res.rows_of(need.method, **dict(need.params))
+    ran = [row for row in rows if res.ran(row, spp)]
+
+    def trained_at_spp(row: str) -> bool:
+        return training_spp(res.cfg, res.spec(row).params.get("model")) == spp
+
+    return next((row for row in ran if trained_at_spp(row)), ran[0] if ran else rows[0] if rows else None)
+
+
 def missing_rows(res: Results, needs: Sequence[RowNeed]) -> list[RowNeed]:
     return [need for need in needs if res.row_of(need.method, **dict(need.params)) is None]
 

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from denoisers.report.claims import CONTRADICTED, REPRODUCED, Part, RowNeed, compare_rows
+from denoisers.report.claims import CONTRADICTED, REPRODUCED, Part, RowNeed, compare_rows, row_at
 from denoisers.report.stats import HIGHER_IS_BETTER, NON_INFERIORITY_MARGIN
 
 if TYPE_CHECKING:
@@ -39,10 +39,8 @@ RowFinder = Callable[["Results", int], "str | None"]
 
 
 def by_method(need: RowNeed) -> RowFinder:
-    """The first row of ``need`` that ran at the spp, else the first configured one (so 'not run' names it)."""
+    """:func:`denoisers.report.claims.row_at`: a row of ``need`` that ran at the spp (trained there first)."""
     def find(res: Results, spp: int) -> str | None:
-        from denoisers.reproductions.hasselgren2020 import row_at
-
         return row_at(res, need, spp)
     return find
 

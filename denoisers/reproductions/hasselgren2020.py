@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from denoisers.evaluate import TIMING_FILE, denoised_dir, method_specs
 from denoisers.report.claims import Claim, Decision, RowNeed, compare_rows, missing_rows, not_run, spp_available
+from denoisers.report.claims import row_at as claims_row_at
 from denoisers.report.stats import fmt, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction
 
@@ -59,11 +60,8 @@ TABLE1_NAME, FIG7_NAME, SAMPLE_MAPS_NAME = "hasselgren2020_table1", "hasselgren2
 
 
 def row_at(res: Results, need: RowNeed, spp: int = SPP) -> str | None:
-    """The first row matching ``need`` that ran at ``spp``; else the first matching row (so that the not-run
-    reason names it); None when no configured row matches. E.g. a config with ``rae`` at 1, 2 spp and
-    ``rae_4spp`` at 4 spp gives ``rae_4spp``."""
-    rows = res.rows_of(need.method, **dict(need.params))
-    return next((row for row in rows if res.ran(row, spp)), rows[0] if rows else None)
+    """:func:`denoisers.report.claims.row_at` at the paper's 4 spp by default."""
+    return claims_row_at(res, need, spp)
 
 
 def realised_spp(res: Results, row: str | None, spp: int = SPP) -> float:

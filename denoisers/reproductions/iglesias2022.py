@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from denoisers.report.claims import (Claim, Decision, Fact, Part, RowNeed, compare_rows, compare_speed, not_run,
-                                     seed_differences, seeds_of, spp_available)
+                                     row_at, seed_differences, seeds_of, spp_available, training_spp)
 from denoisers.report.seeds import seed_mean
 from denoisers.report.stats import LABELS, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction
@@ -82,17 +82,28 @@ def decide_c42(res: Results) -> Decision:
 
 
 def decide_c43(res: Results) -> Decision:
-    wrls, noisy, rae = _row(res, WRLS), _row(res, NOISY), _row(res, RAE)
+    wrls, noisy = _row(res, WRLS), _row(res, NOISY)
     spps = list(res.cfg["evaluation"]["spp"])
-    missing = "; ".join(filter(None, (spp_available(res, s, [wrls, noisy, rae]) for s in spps)))
-    if missing:
-        return not_run(missing)
     if len(spps) < 2:
         return not_run("needs two or more evaluated spp (RAE's gain at the lowest versus the highest)")
+    # The RAE at each end is the one trained at that spp where a config has it (issue 46 §4): an RAE trained at
+    # 1 spp and run at 4 is out of its training distribution, which alone shrinks its gain.
+    rae_low, rae_high = row_at(res, RAE, spps[0]), row_at(res, RAE, spps[-1])
+    missing = "; ".join(filter(None, [spp_available(res, s, [wrls, noisy]) for s in spps]
+                               + [spp_available(res, spps[0], [rae_low]), spp_available(res, spps[-1], [rae_high])]))
+    if missing:
+        return not_run(missing)
     parts = [compare_rows(res, wrls, noisy, "psnr", s, "higher") for s in spps]
-    parts.append(gain_part(res, res.claim_values_per_seed, rae, noisy, spps[0], spps[-1]))
+    parts.append(gain_part(res, res.claim_values_per_seed, rae_low, rae_high, noisy, spps[0], spps[-1]))
     return Decision(parts, note=f"wRLS above its input at every evaluated spp {spps}, and RAE's PSNR gain smaller "
-                                f"at {spps[-1]} than at {spps[0]} spp; {SURFACES}")
+                                f"at {spps[-1]} than at {spps[0]} spp ({_trained_at(res, rae_low, rae_high)}); "
+                                f"{SURFACES}")
+
+
+def _trained_at(res: Results, *rows: str) -> str:
+    """'rae trained at 1 spp, rae_4spp trained at 4 spp' for the distinct rows."""
+    return ", ".join(f"{row} trained at {training_spp(res.cfg, res.spec(row).params.get('model'))} spp"
+                     for row in dict.fromkeys(rows))
 
 
 def decide_c44(res: Results) -> Decision:
@@ -143,20 +154,22 @@ def _volume_part(res: Results, a: str, b: str, metric: str, spp: int, claimed: s
     return part
 
 
-def gain_part(results: SeedAveraged, per_seed: Callable[[str, int, str], list[pd.Series]], rae: str, noisy: str,
-              low: int, high: int, at_half_budget: bool = False) -> Part:
+def gain_part(results: SeedAveraged, per_seed: Callable[[str, int, str], list[pd.Series]], rae_low: str,
+              rae_high: str, noisy: str, low: int, high: int, at_half_budget: bool = False) -> Part:
     """Part 'RAE's PSNR gain over its input is smaller at ``high`` than at ``low`` spp' from per-seed per-scene
-    values (``per_seed(row, spp, column)``), seed-averaged, with its half-budget comparison when RAE has one."""
-    seed_gain = {s: seed_differences(per_seed(rae, s, "psnr"), per_seed(noisy, s, "psnr")) for s in (low, high)}
+    values (``per_seed(row, spp, column)``), seed-averaged, with its half-budget comparison when the RAE rows have
+    one. ``rae_low`` / ``rae_high`` are the RAE rows at each spp (the same row, or one trained at each spp)."""
+    seed_gain = {s: seed_differences(per_seed(rae, s, "psnr"), per_seed(noisy, s, "psnr"))
+                 for rae, s in ((rae_low, low), (rae_high, high))}
     gain = {s: seed_mean(seed_gain[s]) for s in (low, high)}
-    rows = ((rae, low), (rae, high), (noisy, low), (noisy, high))
-    part = Part.paired(gain[high], gain[low], "psnr", f"RAE gain over input @ {high} spp",
-                       f"RAE gain @ {low} spp", "lower", rows=rows, a_seeds=seed_gain[high], b_seeds=seed_gain[low],
-                       seeds=seeds_of(results, rows))
+    rows = ((rae_low, low), (rae_high, high), (noisy, low), (noisy, high))
+    part = Part.paired(gain[high], gain[low], "psnr", f"RAE gain over input @ {high} spp ({rae_high})",
+                       f"RAE gain @ {low} spp ({rae_low})", "lower", rows=rows, a_seeds=seed_gain[high],
+                       b_seeds=seed_gain[low], seeds=seeds_of(results, rows))
     part.at_half_budget = at_half_budget
-    halves = [results.half_row(rae, s) for s in (low, high)]
-    if not at_half_budget and part.seeds and all(halves) and halves[0] == halves[1]:
-        part.half = gain_part(results, per_seed, halves[0], noisy, low, high, at_half_budget=True)
+    half_low, half_high = results.half_row(rae_low, low), results.half_row(rae_high, high)
+    if not at_half_budget and part.seeds and half_low and half_high:
+        part.half = gain_part(results, per_seed, half_low, half_high, noisy, low, high, at_half_budget=True)
     return part
 
 
@@ -216,7 +229,7 @@ def decide_c43_volumes(res: Results) -> Decision:
     if missing:
         return not_run("; ".join(missing))
     parts = [_volume_part(res, wrls, noisy, "psnr", s, "higher") for s in spps]
-    parts.append(gain_part(vol, vol.scene_values_per_seed, rae, noisy, spps[0], spps[-1]))
+    parts.append(gain_part(vol, vol.scene_values_per_seed, rae, rae, noisy, spps[0], spps[-1]))
     return Decision(parts, note=f"{VOLUMES}: wRLS above its input at every spp {spps}, and RAE's PSNR gain smaller "
                                 f"at {spps[-1]} than at {spps[0]} spp")
 
