@@ -42,6 +42,9 @@ VOLUME_SPLITS = ("test", "train")
 VOLUME_CUSTOM_PREFIX = f"{VOLUME_PREFIX}custom_"
 #: Scenes whose references render.train_reference_spp applies to (the training and validation scenes).
 TRAIN_PREFIX = "train_"
+TEST_PREFIX = "test_"
+#: Scenes every method is scored on (render.test_reference_spp applies to them): seeded and external.
+EVALUATED_PREFIXES = (TEST_PREFIX, CUSTOM_PREFIX)
 
 #: What a workflow run writes below the config's ``output_dir`` (the experiment folder); `python -m
 #: denoisers clean` removes exactly these entries, so another experiment nested inside the folder survives.
@@ -210,6 +213,10 @@ def _cross_key_problems(cfg: dict[str, Any]) -> Iterator[str]:
             f"config key 'scenes.luminance_range' = {scenes['luminance_range']!r} is invalid; "
             "allowed: [low, high] with 0 < low < high"
         )
+    warmup = int((cfg.get("evaluation") or {}).get("warmup_frames", 0))
+    if scenes["frames"] <= warmup:
+        yield (f"config key 'scenes.frames' = {scenes['frames']} leaves no frame after the "
+               f"evaluation.warmup_frames = {warmup} warm-up frames; allowed: more than {warmup}")
     stability = cfg.get("stability") or {}
     if stability.get("spp") is not None and stability["spp"] + render["extra_radiance_spp"] > MAX_SAMPLE_LAYERS:
         yield (f"config keys 'stability.spp' + 'render.extra_radiance_spp' = "
@@ -410,13 +417,14 @@ def scene_render_config(cfg: dict[str, Any], scene_id: str) -> dict[str, Any]:
         spp = volumes["spp"] if volumes.get("spp") is not None else cfg["render"]["spp"]
         return {**cfg["render"], "width": volumes["width"], "height": volumes["height"], "spp": spp,
                 "extra_radiance_spp": 0, "reference_spp": volumes["reference_spp"], "train_reference_spp": None,
+                "test_reference_spp": None,
                 "reference_integrator": "path", "max_depth": volumes["max_depth"]}
     if not scene_id.startswith(STABILITY_PREFIX):
         return cfg["render"]
     stability = cfg["stability"]
     spp = stability["spp"] if stability.get("spp") is not None else cfg["render"]["spp"]
     return {**cfg["render"], "width": stability["width"], "height": stability["height"], "spp": spp,
-            "reference_spp": stability["reference_spp"], "train_reference_spp": None,
+            "reference_spp": stability["reference_spp"], "train_reference_spp": None, "test_reference_spp": None,
             "reference_integrator": "features"}
 
 
@@ -429,16 +437,25 @@ def training_scene_split(cfg: dict[str, Any]) -> tuple[list[str], list[str]]:
 
 
 def scene_reference_spp(cfg: dict[str, Any], scene_id: str) -> int:
-    """Reference spp of a scene: ``render.train_reference_spp`` for the train_* scenes that train, when it is
-    set (not null), else ``render.reference_spp``: always for the evaluated test_* and custom_* scenes, and
-    for the held-out validation scenes, whose references score every model and decide convergence."""
+    """Reference spp of a scene: ``render.train_reference_spp`` for the train_* scenes that train and
+    ``render.test_reference_spp`` for the evaluated test_* and custom_* scenes, each when set (not null), else
+    ``render.reference_spp`` (always for the held-out validation scenes, whose references select every model)."""
     if scene_id.startswith((STABILITY_PREFIX, VOLUME_PREFIX)):
         return int(scene_render_config(cfg, scene_id)["reference_spp"])
     render = cfg["render"]
     train_spp = render.get("train_reference_spp")
     if train_spp is not None and scene_id in training_scene_split(cfg)[0]:
         return int(train_spp)
+    if scene_id.startswith(EVALUATED_PREFIXES):
+        return evaluated_reference_spp(cfg)
     return int(render["reference_spp"])
+
+
+def evaluated_reference_spp(cfg: dict[str, Any]) -> int:
+    """Reference spp of the evaluated test_* and custom_* scenes: ``render.test_reference_spp``, else
+    ``render.reference_spp``."""
+    test_spp = cfg["render"].get("test_reference_spp")
+    return int(test_spp if test_spp is not None else cfg["render"]["reference_spp"])
 
 
 def scene_frame_count(cfg: dict[str, Any], scene_id: str) -> int:

@@ -1,4 +1,5 @@
-"""render.train_reference_spp: lower-spp references for the train_* scenes only (issue 11 §2).
+"""render.train_reference_spp / test_reference_spp: lower-spp references for the train_* scenes only (issue 11
+§2), higher-spp ones for the evaluated test_* and custom_* scenes only (issue 46 §3).
 
 Config validation, the settings digests (absent or null changes no digest of any scene; a value changes
 only the train_* scenes' reference digests and what depends on them) and one tiny real render (16x16
@@ -28,18 +29,21 @@ KINDS = ("noisy", "reference")
 
 
 def _config(name: str, **render: Any) -> dict:
-    """A shipped config with render.train_reference_spp null unless given, other ``render`` keys set and
-    scenes.train_frames null (validated, defaults filled): the key under test starts from its schema default."""
+    """A shipped config with render.train_reference_spp and test_reference_spp null unless given, other
+    ``render`` keys set and scenes.train_frames null (validated, defaults filled): the keys under test start
+    from their schema defaults."""
     cfg = load_config(CONFIGS[name])
-    cfg["render"].update({"train_reference_spp": None, **render})
+    cfg["render"].update({"train_reference_spp": None, "test_reference_spp": None, **render})
     cfg["scenes"]["train_frames"] = None   # every clip scenes.frames long, as before either key existed
     return validate_config(cfg)
 
 
 def _without_key(cfg: dict) -> dict:
-    """``cfg`` as a config validated before the key existed: render.train_reference_spp absent."""
+    """``cfg`` as a config validated before the keys existed: render.train_reference_spp and
+    test_reference_spp absent."""
     old = copy.deepcopy(cfg)
     del old["render"]["train_reference_spp"]
+    del old["render"]["test_reference_spp"]
     return old
 
 
@@ -94,17 +98,22 @@ def test_command_line_overrides_parse_the_value() -> None:
         assert validate_config(cfg)["render"]["train_reference_spp"] == value
 
 
-def test_report_states_both_reference_spps() -> None:
+def test_report_states_every_reference_spp() -> None:
     from denoisers.report.writer import _reference_spp_text
 
-    assert _reference_spp_text({"reference_spp": 1024, "train_reference_spp": None}) == "1024 spp"
-    assert _reference_spp_text({"reference_spp": 1024, "train_reference_spp": 1024}) == "1024 spp"
-    assert _reference_spp_text({"reference_spp": 1024}) == "1024 spp"
-    text = _reference_spp_text({"reference_spp": 1024, "train_reference_spp": 256})
-    assert "1024 spp" in text and "256 spp" in text and "render.train_reference_spp" in text
+    def text(**render: Any) -> str:
+        return _reference_spp_text({"render": render})
+
+    assert text(reference_spp=1024, train_reference_spp=None) == "1024 spp"
+    assert text(reference_spp=1024, train_reference_spp=1024, test_reference_spp=1024) == "1024 spp"
+    assert text(reference_spp=1024) == "1024 spp"
     # The validation scenes keep reference_spp: the text must not put them with the training scenes.
-    assert "evaluated and validation scenes; the training scenes 256 spp" in text
-    assert "Mitsuba's path" in _reference_spp_text({"reference_spp": 64, "reference_integrator": "path"})
+    assert text(reference_spp=1024, train_reference_spp=256) == (
+        "1024 spp for the evaluated scenes; the validation scenes 1024 spp (render.reference_spp), the training "
+        "scenes 256 spp (render.train_reference_spp)")
+    assert text(reference_spp=1024, train_reference_spp=256, test_reference_spp=3072).startswith(
+        "3072 spp for the evaluated scenes; the validation scenes 1024 spp")
+    assert "Mitsuba's path" in text(reference_spp=64, reference_integrator="path")
 
 
 # --------------------------------------------------------------------------------------------- digests
@@ -156,6 +165,37 @@ def test_a_value_changes_only_the_train_scenes_reference_digests(name: str) -> N
     assert render_digest(other, "train_000", "reference") != render_digest(lower, "train_000", "reference")
 
 
+@pytest.mark.parametrize("name", CONFIGS)
+def test_a_test_value_changes_only_the_evaluated_scenes_reference_digests(name: str) -> None:
+    """render.test_reference_spp: the test_* and custom_* scenes' references, nothing else (not the
+    validation scenes, whose references select every model: no model is re-keyed)."""
+    base = _config(name)
+    higher = _config(name, test_reference_spp=4 * base["render"]["reference_spp"])
+    evaluated = [scene for scene in scene_ids(base) if scene.startswith(("test_", "custom_"))]
+    assert evaluated and any(scene.startswith("custom_") for scene in evaluated) == (name == "default")
+    changed = {(scene, kind) for scene in scene_ids(base) for kind in KINDS
+               if render_digest(base, scene, kind) != render_digest(higher, scene, kind)}
+    assert changed == {(scene, "reference") for scene in evaluated}
+    assert {scene_reference_spp(higher, scene) for scene in evaluated} == {4 * base["render"]["reference_spp"]}
+    assert all(scene_reference_spp(higher, scene) == scene_reference_spp(base, scene)
+               for scene in scene_ids(base) if scene not in evaluated)
+    assert Lineage(higher).model("rae") == Lineage(base).model("rae")
+    assert Lineage(higher).tuning("eaw") == Lineage(base).tuning("eaw")
+    row = evaluate.method_spec(base, "noisy")
+    assert Lineage(higher).metrics(row, "test_000", 1) != Lineage(base).metrics(row, "test_000", 1)
+    # The value equal to reference_spp is the same renders as null.
+    same = _config(name, test_reference_spp=base["render"]["reference_spp"])
+    assert all(render_digest(same, scene, "reference") == render_digest(base, scene, "reference")
+               for scene in evaluated)
+
+
+def test_a_clip_with_no_frame_after_the_warmup_is_refused() -> None:
+    cfg = load_config(CONFIGS["smoke"])
+    cfg["scenes"]["frames"] = cfg["evaluation"]["warmup_frames"]
+    assert (f"config key 'scenes.frames' = {cfg['scenes']['frames']} leaves no frame after the "
+            f"evaluation.warmup_frames") in _error(cfg)
+
+
 def test_models_follow_the_train_references_and_evaluated_metrics_do_not() -> None:
     base, lower = _config("smoke"), _config("smoke", train_reference_spp=16)
     row = evaluate.method_spec(base, "noisy")
@@ -168,16 +208,17 @@ def test_models_follow_the_train_references_and_evaluated_metrics_do_not() -> No
 # ------------------------------------------------------------------------------------------ real render
 def test_train_references_render_at_the_train_spp(tmp_path: Path) -> None:
     """One tiny generated scene, its references rendered under a train and a test scene id (the spp is
-    chosen by scene id): the sidecars and EXR metadata record the spp used, 4 and 8."""
+    chosen by scene id): the sidecars and EXR metadata record the spp used, 4 and 12 (test_reference_spp)."""
     from scenegen import jobs
 
     cfg = load_config(CONFIGS["smoke"])
-    cfg["render"].update(width=16, height=16, spp=1, reference_spp=8, train_reference_spp=4, reference_batch_spp=2)
+    cfg["render"].update(width=16, height=16, spp=1, reference_spp=8, train_reference_spp=4, test_reference_spp=12,
+                         reference_batch_spp=2)
     cfg["scenes"].update(frames=2, frames_per_chunk=2)
     cfg = validate_config(cfg)
     scene_dir = tmp_path / "scenes" / "train_000"
     jobs.run_generate(cfg, "train_000", scene_dir)
-    for scene, spp in (("train_000", 4), ("test_000", 8)):
+    for scene, spp in (("train_000", 4), ("test_000", 12)):
         out = tmp_path / "renders" / scene / "reference" / "chunk_000"
         jobs.run_render_reference(cfg, scene, 0, scene_dir, out)
         for frame in (0, 1):

@@ -198,7 +198,29 @@ def noise_floor_table(res: Results) -> pd.DataFrame:
                      "reference_noise_floor_psnr": floor, "best_method": best.method_id if best is not None else None,
                      "best_psnr": float(best.psnr) if best is not None else math.nan, "spp": top_spp,
                      "headroom_db": floor - float(best.psnr) if best is not None else math.nan})
-    return pd.DataFrame(rows)
+    table = pd.DataFrame(rows)
+    if len(table):
+        table["headroom_ok"] = table.headroom_db >= min_floor_headroom(res.cfg)
+    return table
+
+
+def min_floor_headroom(cfg: dict) -> float:
+    """evaluation.min_floor_headroom_db (dB; schema default 10)."""
+    return float(cfg["evaluation"].get("min_floor_headroom_db", 10.0))
+
+
+def floor_headroom_text(cfg: dict, table: pd.DataFrame) -> str:
+    """One line under the noise-floor table: whether every scene's floor is far enough above the best method."""
+    need = min_floor_headroom(cfg)
+    if not len(table) or table.headroom_db.isna().all():
+        return "No scene has both a reference noise floor and a scored method."
+    low = table[~table.headroom_ok.astype(bool)]
+    if not len(low):
+        return (f"Every scene's reference noise floor is at least {need:g} dB above its best method "
+                f"(evaluation.min_floor_headroom_db; least {table.headroom_db.min():.2f} dB).")
+    named = ", ".join(f"{r.scene} ({r.headroom_db:.2f} dB)" for r in low.itertuples())
+    return (f"**Below the {need:g} dB headroom** (evaluation.min_floor_headroom_db): {named}. There the reference's "
+            "own noise limits the metrics of the best methods; raise render.test_reference_spp.")
 
 
 def robustness_table(res: Results) -> pd.DataFrame:
@@ -265,9 +287,11 @@ def _resolved_use(cfg: dict, row: dict[str, str]) -> str:
     render = cfg["render"]
     if row["what"] == "resolution":
         return f"{render['width']}x{render['height']} (render.width x render.height)"
-    if row["what"] == "sampler":     # external scenes always use reference_spp (train_reference_spp: train_* only)
+    if row["what"] == "sampler":     # external scenes are evaluated scenes (render.test_reference_spp)
+        from scenegen.config import evaluated_reference_spp
+
         return (f"independent: {render['spp']} 1-spp layers (+{render['extra_radiance_spp']} radiance-only); "
-                f"references of {render['reference_spp']} spp in two halves")
+                f"references of {evaluated_reference_spp(cfg)} spp in two halves")
     return row["used"]
 
 

@@ -44,7 +44,7 @@ def _setup_lines(res: Results) -> list[str]:
         f"external XML scenes, each an independent unit); training scenes are never evaluated. Split and "
         f"per-scene seeds (global seed {cfg['seed']}): [tables/split.csv](tables/split.csv).",
         f"- Renders: {render['width']}x{render['height']} px, {render['spp']} sample layers "
-        f"(+{render['extra_radiance_spp']} radiance-only), references {_reference_spp_text(render)}; "
+        f"(+{render['extra_radiance_spp']} radiance-only), references {_reference_spp_text(cfg)}; "
         f"evaluated at {', '.join(map(str, cfg['evaluation']['spp']))} spp; "
         f"temporal metrics skip {cfg['evaluation']['warmup_frames']} warm-up frame(s) per shot.",
         "- Aggregation: a metric is averaged over a clip's frames (PSNR: the mean of per-frame PSNR, except the "
@@ -59,16 +59,21 @@ def _setup_lines(res: Results) -> list[str]:
                                   "training": cfg.get("training", {}).get("threads", 0)})), ""]
 
 
-def _reference_spp_text(render: dict) -> str:
-    """The references' spp and integrator; both spp values when the training scenes' (render.train_reference_spp)
-    differ (the validation scenes keep reference_spp)."""
+def _reference_spp_text(cfg: dict) -> str:
+    """The references' spp and integrator, per kind of scene where they differ: evaluated (test_*, custom_*;
+    render.test_reference_spp), validation (render.reference_spp) and training (render.train_reference_spp)."""
+    from scenegen.config import evaluated_reference_spp
+
+    render = cfg["render"]
     integrator = {"path": " (Mitsuba's path integrator)", "features": " (the feature integrator)"}.get(
         render.get("reference_integrator"), "")
+    evaluated, validation = evaluated_reference_spp(cfg), int(render["reference_spp"])
     train = render.get("train_reference_spp")
-    if train is None or train == render["reference_spp"]:
-        return f"{render['reference_spp']} spp{integrator}"
-    return (f"{render['reference_spp']} spp{integrator} (evaluated and validation scenes; the training scenes "
-            f"{train} spp, render.train_reference_spp)")
+    train = validation if train is None else int(train)
+    if evaluated == validation == train:
+        return f"{evaluated} spp{integrator}"
+    return (f"{evaluated} spp{integrator} for the evaluated scenes; the validation scenes {validation} spp "
+            f"(render.reference_spp), the training scenes {train} spp (render.train_reference_spp)")
 
 
 def _timing_line(res: Results) -> str:
@@ -303,6 +308,7 @@ def _core_tables(res: Results, tables: Path) -> dict[str, str]:
     noise = tab.noise_floor_table(res)
     noise_md = frame_to_markdown(formatted(noise, {c: "psnr" for c in ("psnr_halves", "reference_noise_floor_psnr",
                                                                         "best_psnr", "headroom_db")}))
+    noise_md += "\n" + tab.floor_headroom_text(res.cfg, noise) + "\n"
     tab.write_table(noise, tables, "noise_floor", noise_md)
     tab.write_table(pd.DataFrame(res.runs), tables, "runs")
     tab.write_table(tab.split_table(res.cfg), tables, "split")
