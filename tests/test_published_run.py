@@ -119,3 +119,35 @@ def test_the_generated_block_quotes_the_published_tables(tmp_path: Path) -> None
     assert update_blocks(readme, repo, check=True) == [] and "99.99" not in readme.read_text()
     assert readme.read_text().startswith("intro\n") and readme.read_text().endswith("rest\n")
     assert "No run of" in readme_block(repo, "runs/missing", "config/smoke.yaml")
+
+
+def test_republishing_writes_what_moved_and_keeps_the_previous_tally(tmp_path: Path) -> None:
+    """A second publish over the first: CHANGES.md lists exactly the claims whose verdict differs (one added, one
+    dropped counted as moved from / to 'absent'), both tallies by hand, and the README block quotes the old tally."""
+    cfg = load_config(REPO_ROOT / "config" / "smoke.yaml")
+    repo = tmp_path / "repo"
+    (repo / "config").mkdir(parents=True)
+    (repo / "config" / "smoke.yaml").write_text((REPO_ROOT / "config" / "smoke.yaml").read_text())
+    out = repo / "runs" / "smoke"
+    first = publish_run(cfg, "config/smoke.yaml", fake_results(tmp_path / "first"), out)
+    assert "previous" not in first and not (out / "CHANGES.md").exists()
+    assert "what moved" not in readme_block(repo, "runs/smoke", "config/smoke.yaml")
+    second = fake_results(tmp_path / "second")
+    pd.DataFrame({"claim": ["C1", "C2", "C4"], "statement": ["a", "b", "d"],
+                  "verdict": ["reproduced", "contradicted", "not run"], "n": [12, 12, None],
+                  "mean_diff_ci_95": ["1.0 [0.5, 1.5]", "-1.0 [-1.5, -0.5]", None],
+                  "note": ["same", "now decided", "no rows"]}).to_csv(second / "tables" / "claims.csv", index=False)
+    record = publish_run(cfg, "config/smoke.yaml", second, out)
+    assert record["previous"]["tally"] == {"reproduced": 1, "contradicted": 0, "inconclusive": 2, "not run": 0}
+    assert record["previous"]["run_commit"] == "abcdef1234567"
+    changes = (out / "CHANGES.md").read_text()
+    assert "| previous (code abcdef1, published " in changes and " | 1 | 0 | 2 | 0 | 3 |" in changes
+    assert "| this (code abcdef1, published " in changes and " | 1 | 1 | 0 | 1 | 3 |" in changes
+    assert "3 claim(s) moved" in changes
+    assert "| C2 | b | inconclusive | contradicted |  | 12 |  | -1.0 [-1.5, -0.5] | now decided |" in changes
+    assert "| C3 |  | inconclusive | absent |" in changes and "| C4 | d | absent | not run |" in changes
+    assert "| C1 |" not in changes                                 # reproduced both times
+    body = readme_block(repo, "runs/smoke", "config/smoke.yaml")
+    assert ("The run it replaced (code abcdef1, published " in body
+            and "): 1 reproduced, 0 contradicted, 2 inconclusive, 0 not run; [what moved](runs/smoke/CHANGES.md)."
+            in body)

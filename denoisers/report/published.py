@@ -5,7 +5,8 @@ numbers generated from them.
 and the figures REPORT.md links (up to :data:`FIGURE_BUDGET_BYTES`; the rest are listed as left out; the copied
 REPORT.md names every file it does not hold as plain text instead of linking it, :func:`unlink_left_out`) into the run folder,
 with ``run.json``: the config file, the report's settings digest, every model's store key, the commit the run's
-code came from and the date. ``run_status`` compares those digests with HEAD's, so a reader sees whether
+code came from and the date. Replacing an earlier published run, it writes ``CHANGES.md`` (the claims whose
+verdict moved, :mod:`denoisers.report.verdict_changes`) and keeps the earlier run's tally in ``run.json``. ``run_status`` compares those digests with HEAD's, so a reader sees whether
 the published numbers still describe the code at hand.
 
 README blocks between ``<!-- published-run: <run folder> <config> -->`` and ``<!-- /published-run -->`` are
@@ -21,6 +22,8 @@ import re
 import shutil
 from pathlib import Path
 from typing import Any
+
+from denoisers.report.verdict_changes import CHANGES_FILE, tally_text
 
 RUN_FILE = "run.json"
 #: Figures of one published run, in all (PNG/SVG that REPORT.md links).
@@ -87,6 +90,9 @@ def publish_run(cfg: dict, config_file: str, results: Path, out: Path) -> dict[s
     for table in sorted((results / "tables").iterdir()):
         if table.suffix in (".csv", ".md"):
             shutil.copy2(table, staging / "tables" / table.name)
+    previous = _previous_run(out, staging, record)
+    if previous:
+        record["previous"] = previous
     tables = [f"tables/{t.name}" for t in (staging / "tables").iterdir()]
     (staging / "REPORT.md").write_text(unlink_left_out(text, {*figures, *tables}))
     for name in figures:
@@ -96,6 +102,27 @@ def publish_run(cfg: dict, config_file: str, results: Path, out: Path) -> dict[s
     shutil.rmtree(out, ignore_errors=True)
     staging.rename(out)
     return record
+
+
+def _label(record: dict[str, Any]) -> str:
+    return f"code {str(record.get('run_commit') or 'unknown')[:7]}, published {str(record.get('published', ''))[:10]}"
+
+
+def _previous_run(out: Path, staging: Path, record: dict[str, Any]) -> dict[str, Any] | None:
+    """When ``out`` holds an earlier published run with a claims table: write CHANGES.md into ``staging`` (the
+    claims whose verdict moved) and return the earlier run's commit, date and tally for run.json."""
+    import pandas as pd
+
+    from denoisers.report.verdict_changes import changes_markdown, tally
+
+    old_claims, new_claims = out / "tables" / "claims.csv", staging / "tables" / "claims.csv"
+    if not (old_claims.is_file() and (out / RUN_FILE).is_file() and new_claims.is_file()):
+        return None
+    old_record = json.loads((out / RUN_FILE).read_text())
+    old, new = pd.read_csv(old_claims), pd.read_csv(new_claims)
+    (staging / CHANGES_FILE).write_text(changes_markdown(old, new, _label(old_record), _label(record)))
+    return {"run_commit": old_record.get("run_commit"), "published": old_record.get("published"),
+            "tally": tally(old)}
 
 
 def run_status(cfg: dict, run_dir: Path) -> list[str]:
@@ -150,7 +177,12 @@ def readme_block(repo: Path, run: str, config: str, link_prefix: str = "") -> st
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
     counts = claims["verdict"].value_counts()
     lines += ["", "Claims: " + ", ".join(f"{int(count)} {verdict}" for verdict, count in counts.items())
-              + f" (of {len(claims)}; [claims table]({link_prefix}{run}/tables/claims.md)).", ""]
+              + f" (of {len(claims)}; [claims table]({link_prefix}{run}/tables/claims.md))."]
+    previous = record.get("previous")
+    if previous and (run_dir / CHANGES_FILE).is_file():
+        lines[-1] += (f" The run it replaced ({_label(previous)}): {tally_text(previous['tally'])}; "
+                      f"[what moved]({link_prefix}{run}/{CHANGES_FILE}).")
+    lines.append("")
     return "\n".join(lines)
 
 
