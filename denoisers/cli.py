@@ -14,6 +14,7 @@
   clean       remove an experiment's outputs, or only its stale training work directories (--stale)
   publish-run  a finished run's report, tables and figures, with its digests  -> runs/<name>/
   readme      regenerate the README's and docs' published-run blocks (--check: fail when out of date)
+  job-counts  regenerate the README's and docs' dag-jobs blocks from dry runs (--check: fail when out of date)
   store       the model store: list, publish, checkpoint, verify, check (denoisers.store.cli)
   methods     list the registered methods
 """
@@ -79,6 +80,9 @@ def _parser() -> argparse.ArgumentParser:
     publish.add_argument("--out", type=Path, required=True, help="runs/<name> (replaced)")
     readme = sub.add_parser("readme", help="regenerate the published-run blocks of README.md and docs/*.md")
     readme.add_argument("--check", action="store_true", help="only check; exit 1 when a block is out of date")
+    jobs = sub.add_parser("job-counts", help="regenerate the dag-jobs blocks (a config's job counts) of README.md and "
+                                             "docs/*.md from dry runs")
+    jobs.add_argument("--check", action="store_true", help="only check; exit 1 when a block is out of date")
 
     from denoisers.store.cli import add_parser as add_store_parser
 
@@ -199,6 +203,17 @@ def _run(args: argparse.Namespace) -> int:
 
         stale = [f"{path.name}: {run}" for path in [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").glob("*.md"))]
                  for run in update_blocks(path, REPO_ROOT, check=args.check)]
+        print(("out of date: " if args.check else "regenerated: ") + (", ".join(stale) or "none"))
+        return 1 if args.check and stale else 0
+
+    if args.command == "job-counts":
+        from denoisers.dag_counts import update_dag_blocks
+        from denoisers.provenance import REPO_ROOT
+
+        cache: dict[str, dict[str, int]] = {}
+        stale = [f"{path.name}: {config}"
+                 for path in [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").glob("*.md"))]
+                 for config in update_dag_blocks(path, REPO_ROOT, check=args.check, counts_of=cache)]
         print(("out of date: " if args.check else "regenerated: ") + (", ".join(stale) or "none"))
         return 1 if args.check and stale else 0
 

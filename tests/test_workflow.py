@@ -224,6 +224,7 @@ def test_cluster_config_passes_dry_run_and_lint(workflow_copy: Path) -> None:
     cluster = load_config(workflow_copy / "config/cluster.yaml")
     result = run_snakemake("-n", "--forceall", "--configfile", "config/cluster.yaml", cwd=workflow_copy, timeout=900)
     assert job_counts(result.stdout + result.stderr) == expected_jobs(cluster)
+    assert_documented("config/cluster.yaml", job_counts(result.stdout + result.stderr))
     lint = run_snakemake("--lint", "--configfile", "config/cluster.yaml", cwd=workflow_copy, timeout=900)
     assert "Lints for" not in lint.stdout + lint.stderr
     # Larger than the default config on every axis that costs compute.
@@ -277,10 +278,22 @@ def test_smoke_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
 
 
 @pytest.mark.slow
+def assert_documented(config: str, counts: dict[str, int]) -> None:
+    """The manual's generated job counts of ``config`` (dag-jobs blocks, denoisers.dag_counts) equal this dry run's."""
+    from denoisers.dag_counts import BLOCK, dag_block
+
+    pages = [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").glob("*.md"))]
+    blocks = [m["body"] for page in pages for m in BLOCK.finditer(page.read_text()) if m["config"] == config]
+    assert blocks, f"no dag-jobs block of {config} in README.md or docs/"
+    assert all(body == dag_block(config, counts) for body in blocks), (
+        f"the manual's job counts of {config} are out of date: run `python -m denoisers job-counts`")
+
+
 def test_default_dry_run_has_the_expected_jobs(workflow_copy: Path) -> None:
     counts = dry_run("--forceall", cwd=workflow_copy)
     assert counts == expected_jobs(load_config(workflow_copy / "config/config.yaml"))
     assert set(counts) == {*JOB_RULES, "all"} - {"verify_stored_model"}      # `verify` is not part of `all`
+    assert_documented("config/config.yaml", counts)
 
 
 @pytest.mark.slow
