@@ -37,7 +37,6 @@ STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "baselines
                  "verify")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "examples")
-JOB_STATS_LINE = re.compile(r"^(\w+)\s+(\d+)$")
 # The smoke config's experiment folder (config key output_dir): every path of its DAG is below it.
 SMOKE_OUT = load_config(REPO_ROOT / "config/smoke.yaml")["output_dir"]
 
@@ -55,20 +54,9 @@ def run_snakemake(*args: str, cwd: Path, check: bool = True, timeout: float = 12
 
 def job_counts(output: str) -> dict[str, int]:
     """Parse the first 'Job stats' table of a snakemake run into {rule: job count}."""
-    counts: dict[str, int] = {}
-    in_table = False
-    for line in output.splitlines():
-        if line.startswith("Job stats:"):
-            if counts:
-                break
-            in_table = True
-            continue
-        match = JOB_STATS_LINE.match(line.strip())
-        if in_table and match:
-            if match.group(1) == "total":
-                break
-            counts[match.group(1)] = int(match.group(2))
-    return counts
+    from denoisers.dag_counts import parse_job_stats
+
+    return parse_job_stats(output)
 
 
 def dry_run(*args: str, cwd: Path) -> dict[str, int]:
