@@ -69,9 +69,9 @@ def _sums_torch(image: torch.Tensor, features: torch.Tensor, neighbours: torch.T
     radius = (size // 2) * dilation
     pad = (radius, radius, radius, radius)
     image_p, neighbours_p = F.pad(image, pad), F.pad(neighbours, pad)
-    inside_p = F.pad(torch.ones(1, 1, height, width, dtype=image.dtype), pad)
+    inside_p = F.pad(torch.ones(1, 1, height, width, dtype=image.dtype, device=image.device), pad)
     num = torch.zeros_like(image)
-    den = torch.zeros(n, 1, height, width, dtype=image.dtype)
+    den = torch.zeros(n, 1, height, width, dtype=image.dtype, device=image.device)
     for dy, dx in tap_offsets(size, dilation):
         if center is not None and dy == 0 and dx == 0:
             weight = center
@@ -92,7 +92,7 @@ def _backward_torch(image: torch.Tensor, features: torch.Tensor, neighbours: tor
     radius = (size // 2) * dilation
     pad = (radius, radius, radius, radius)
     image_p, neighbours_p = F.pad(image, pad), F.pad(neighbours, pad)
-    inside_p = F.pad(torch.ones(1, 1, height, width, dtype=image.dtype), pad)
+    inside_p = F.pad(torch.ones(1, 1, height, width, dtype=image.dtype, device=image.device), pad)
     g_image_p = torch.zeros_like(image_p) if need[0] else None
     g_neighbours_p = torch.zeros_like(neighbours_p) if need[2] else None
     g_features = torch.zeros_like(features) if need[1] else None
@@ -131,10 +131,11 @@ class _AffinitySums(torch.autograd.Function):
     def forward(ctx, image, features, neighbours, bandwidth, center, size, dilation, backend):  # type: ignore[override]
         ctx.size, ctx.dilation, ctx.backend = size, dilation, backend
         ctx.save_for_backward(image, features, neighbours, bandwidth, center)
-        module = native.load_affinity() if backend != "torch" else None
+        on_cpu = image.device.type == "cpu"     # the native kernels read CPU memory; other devices use torch
+        module = native.load_affinity() if backend != "torch" and on_cpu else None
         if backend == "native" and module is None:
             raise RuntimeError("native affinity kernel unavailable (see the denoisers.native warning, or "
-                               f"{native.ENVIRONMENT_SWITCH}=0)")
+                               f"{native.ENVIRONMENT_SWITCH}=0), or the tensors are not on the CPU")
         if module is not None:
             return tuple(module.affinity_sums(image.contiguous(), features.contiguous(), neighbours.contiguous(),
                                               bandwidth.contiguous(),
@@ -147,10 +148,12 @@ class _AffinitySums(torch.autograd.Function):
         image, features, neighbours, bandwidth, center = ctx.saved_tensors
         n, _, height, width = image.shape
         grad_num = torch.zeros_like(image) if grad_num is None else grad_num.contiguous()
-        grad_den = torch.zeros(n, 1, height, width, dtype=image.dtype) if grad_den is None else grad_den.contiguous()
+        grad_den = torch.zeros(n, 1, height, width, dtype=image.dtype, device=image.device) if grad_den is None \
+            else grad_den.contiguous()
         need = tuple(bool(flag) for flag in ctx.needs_input_grad[:5])
-        # The native backward (affinity.cpp) in float32; otherwise (float64 gradcheck, no build) the torch reference.
-        module = native.load_affinity() if ctx.backend != "torch" else None
+        # The native backward (affinity.cpp) in float32 on the CPU; otherwise (float64 gradcheck, no build, another
+        # device) the torch reference.
+        module = native.load_affinity() if ctx.backend != "torch" and image.device.type == "cpu" else None
         tensors = (image, features, neighbours, bandwidth, center, grad_num, grad_den)
         if module is not None and hasattr(module, "affinity_sums_backward") and all(
                 t is None or t.dtype == torch.float32 for t in tensors):

@@ -153,21 +153,29 @@ def run_method(method, frames: Sequence, threads: int,
     before denoise(), which may modify its inputs; not timed)."""
     import torch
 
+    from denoisers.device import default_device, synchronize
+
     torch.set_num_threads(max(1, int(threads)))
     native.load()     # build or import the native kernels now, never inside the timed loop
+    device = getattr(method, "device", torch.device("cpu"))
     outputs, seconds, inputs_bad, outputs_bad, out_of_range, sample_maps = [], [], [], [], [], []
     maps: dict[str, list[np.ndarray]] = {}
     # Input bounds before the memory measurement (their temporaries are not the method's memory).
     bounds = [input_radiance_bound(frame) for frame in frames]
     checked = all(bound is not None for bound in bounds)
+    if device.type != "cpu":
+        frames = [frame.to(device) for frame in frames]   # copied to the method's device untimed, like the loading
     maxrss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     method.reset()
     with torch.no_grad(), PeakRSS() as memory:
         for frame, bound in zip(frames, bounds):
             inputs_bad.append(int(sum((~torch.isfinite(t)).sum().item()
                                       for t in (*frame.samples.values(), *frame.pixel.values()))))
+            synchronize(device)
             start = time.perf_counter()
-            result = method.denoise(frame)
+            with default_device(device):  # tensors a method creates without a device argument land there too
+                result = method.denoise(frame)
+            synchronize(device)       # a GPU method's time includes its queued kernels
             seconds.append(time.perf_counter() - start)
             if method.info.adaptive:
                 result, sample_map = _adaptive_result(method, frame, result)
@@ -248,9 +256,12 @@ def _prepare(cfg: dict, method_id: str, spp: int, results: Path | str | None = N
     (default: the config's output_dir)."""
     from denoisers import registry
 
+    from denoisers.device import torch_device
+
     spec = method_spec(cfg, method_id)
     method = registry.build(spec.method, resolve_method_params(cfg, spec.params, results, method=spec.method),
                             row=spec.id)
+    method.to(torch_device(cfg))     # compute.device
     return spec, method, spp * method.samples_factor
 
 
@@ -275,6 +286,7 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
     frame_TTTT.exr (radiance.R/G/B, linear HDR), frame_TTTT.png (tonemapped preview), timing.json (with
     the clip's settings digest, denoisers.experiment). A row with ``params: {model: <id>}`` loads
     ``<results>/models/<id>/best.pt`` (default: the config's output_dir). Returns the timing record."""
+    from denoisers.device import device_info
     from denoisers.experiment import DIGEST_KEY, Lineage
 
     spec, method, layers = _prepare(cfg, method_id, spp, results)
@@ -298,6 +310,7 @@ def denoise_clip(cfg: dict, method_id: str, scene: str, spp: int, render_dir: Pa
     record = {
         "method_id": spec.id, "method": spec.method, "params": spec.params, "scene": scene, "spp": spp,
         "samples_factor": method.samples_factor, "sample_layers": layers, "threads": int(threads),
+        "device": device_info(method.device.type),          # compute.device: where denoise() ran
         "width": int(width), "height": int(height), "frames": [int(t) for t in clip.frames],
         **timing_summary(result.seconds, width, height),
         "peak_memory_mb": result.peak_rss_extra_mb,

@@ -74,11 +74,17 @@ def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str | None]
     return versions
 
 
-def provenance(threads: dict[str, int] | None = None) -> dict[str, Any]:
-    """Everything above as one JSON-serialisable dict; ``threads`` names the thread settings in force."""
-    return {**git_state(), "packages": package_versions(), "python": platform.python_version(),
-            "cpu_model": cpu_model(), "cpu_isa": cpu_isa(), "cpu_count": os.cpu_count(), "threads": dict(threads or {}),
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+def provenance(threads: dict[str, int] | None = None, device: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Everything above as one JSON-serialisable dict; ``threads`` names the thread settings in force, ``device``
+    what torch and Mitsuba computed on (:func:`denoisers.device.device_info` of config ``compute.device``: the
+    GPU's model, driver and CUDA runtime on CUDA)."""
+    record = {**git_state(), "packages": package_versions(), "python": platform.python_version(),
+              "cpu_model": cpu_model(), "cpu_isa": cpu_isa(), "cpu_count": os.cpu_count(),
+              "threads": dict(threads or {}),
+              "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    if device is not None:
+        record["device"] = dict(device)
+    return record
 
 
 def describe(record: dict[str, Any]) -> list[str]:
@@ -89,6 +95,9 @@ def describe(record: dict[str, Any]) -> list[str]:
             if commit else "not a git checkout")
     packages = ", ".join(f"{name} {version or 'not installed'}" for name, version in record["packages"].items())
     threads = ", ".join(f"{key} {value}" for key, value in record.get("threads", {}).items()) or "–"
+    device = record.get("device") or {}
+    computes = (f"; torch and Mitsuba on {device['model']} (CUDA, driver {device.get('driver') or 'unknown'})"
+                if device.get("device") == "cuda" else "; torch and Mitsuba on the CPU" if device else "")
     return [f"- Code: {code}; Python {record['python']}; {packages}.",
-            f"- Machine: {record['cpu_model']}, {record['cpu_count']} logical cores; threads: {threads}.",
+            f"- Machine: {record['cpu_model']}, {record['cpu_count']} logical cores; threads: {threads}{computes}.",
             f"- Generated {record['date']}."]

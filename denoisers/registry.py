@@ -76,6 +76,15 @@ class Frame:
         """(C, H, W) box-filtered mean of a per-sample buffer over the frame's samples."""
         return self.samples[buffer].mean(dim=0)
 
+    def to(self, device: torch.device | str) -> "Frame":
+        """This frame with its sample and pixel tensors on ``device`` (the same frame on its own device)."""
+        device = torch.device(device)
+        if all(t.device == device for t in (*self.samples.values(), *self.pixel.values())):
+            return self
+        return Frame({k: v.to(device) for k, v in self.samples.items()},
+                     {k: v.to(device) for k, v in self.pixel.items()},
+                     self.index, self.camera_cut, self.meta, self.budget)
+
 
 @dataclass
 class AdaptiveOutput:
@@ -96,10 +105,22 @@ class Denoiser:
 
     info: ClassVar[MethodInfo]
     samples_factor: int = 1
+    #: Where denoise() computes (:meth:`to`); frames arrive there (denoisers.denoise_job.run_method).
+    device: torch.device = torch.device("cpu")
 
     def __init__(self, **params: Any) -> None:
         if params:
             raise TypeError(f"method {self.info.name!r} takes no parameters {sorted(params)}")
+
+    def to(self, device: torch.device | str) -> "Denoiser":
+        """Compute on ``device`` from now on (config ``compute.device``; a loaded network moves with it).
+        Returns ``self``. Subclasses holding tensors or a network override :meth:`_moved`."""
+        self.device = torch.device(device)
+        self._moved()
+        return self
+
+    def _moved(self) -> None:
+        """Called by :meth:`to` after ``self.device`` changed: move what the method holds."""
 
     def reset(self) -> None:
         """Forget all temporal state (start of a clip). Single-frame methods need not override."""

@@ -225,6 +225,7 @@ def time_methods(cfg: dict, scene: str, render_dir: Path, scene_dirs: dict[str, 
                  results: Path | str) -> dict[str, Any]:
     """The timing job's record: every (row id, spp) of ``runs`` timed interleaved on ``scene``, then the
     renderer's rate on every scene of ``scene_dirs`` ({scene id: scene folder})."""
+    from denoisers.device import configured_device, device_info
     from denoisers.provenance import provenance
 
     prepared = [prepare_run(cfg, method_id, spp, render_dir, frames=frames, results=results)
@@ -240,7 +241,7 @@ def time_methods(cfg: dict, scene: str, render_dir: Path, scene_dirs: dict[str, 
             "renderers": {name: render_rate(cfg, json.loads((Path(folder) / "manifest.json").read_text()), folder,
                                             repeats=repeats, threads=threads)
                           for name, folder in scene_dirs.items()},
-            "provenance": provenance({"timing": threads})}
+            "provenance": provenance({"timing": threads}, device=device_info(configured_device(cfg)))}
 
 
 # ------------------------------------------------------------------------------------------ config

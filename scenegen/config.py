@@ -217,6 +217,11 @@ def _cross_key_problems(cfg: dict[str, Any]) -> Iterator[str]:
     if scenes["frames"] <= warmup:
         yield (f"config key 'scenes.frames' = {scenes['frames']} leaves no frame after the "
                f"evaluation.warmup_frames = {warmup} warm-up frames; allowed: more than {warmup}")
+    device = (cfg.get("compute") or {}).get("device", "auto")
+    if render["variant"].startswith("cuda") and device == "cpu":
+        yield (f"config key 'render.variant' = {render['variant']!r} needs compute.device cuda, but it is cpu; "
+               "allowed: llvm_ad_rgb or scalar_rgb on the CPU (llvm_ad_rgb runs as cuda_ad_rgb under "
+               "compute.device cuda)")
     stability = cfg.get("stability") or {}
     if stability.get("spp") is not None and stability["spp"] + render["extra_radiance_spp"] > MAX_SAMPLE_LAYERS:
         yield (f"config keys 'stability.spp' + 'render.extra_radiance_spp' = "

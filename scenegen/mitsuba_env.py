@@ -3,7 +3,7 @@
 The LLVM backend needs libLLVM 19 on this platform (LLVM 15 crashes in the JIT with
 "Cannot select ... fminimum"), so ``DRJIT_LIBLLVM_PATH`` is pointed at it when unset.
 When the LLVM variant cannot be used, the scalar variant is selected with a loud warning:
-it is correct but one to two orders of magnitude slower.
+it is correct but one to two orders of magnitude slower. A CUDA variant that cannot be used is an error.
 """
 from __future__ import annotations
 
@@ -48,13 +48,17 @@ def init_mitsuba(variant: str = "llvm_ad_rgb") -> str:
 
     try:
         mi.set_variant(variant)
-        if variant.startswith("llvm"):
+        if variant.startswith(("llvm", "cuda")):
             import drjit as dr
 
             # Force the JIT to initialise now so a broken LLVM shows up here, not mid-render.
             dr.eval(mi.Float(1.0) + 1.0)
         _active_variant = variant
     except Exception as exc:  # noqa: BLE001 -- any failure of the backend means fallback
+        if variant.startswith("cuda"):
+            # compute.device cuda was asked for (or auto found a GPU): a scalar render would be silently slow.
+            raise RuntimeError(f"Mitsuba variant {variant!r} is unavailable ({type(exc).__name__}: {exc}); "
+                               "set compute.device cpu to render with llvm_ad_rgb") from exc
         message = (
             f"\n{'!' * 78}\nMitsuba variant {variant!r} is unavailable ({type(exc).__name__}: {exc}).\n"
             f"Falling back to {FALLBACK_VARIANT!r}: results are identical in expectation but rendering is\n"

@@ -141,10 +141,23 @@ def test_misspelled_top_level_key_is_rejected() -> None:
 
 def test_wrong_enum_value_lists_the_allowed_values() -> None:
     cfg = minimal_config()
-    cfg["render"]["variant"] = "cuda_ad_rgb"
+    cfg["render"]["variant"] = "cuda_ad_spectral"
     message = error_message(cfg)
-    assert "'render.variant'" in message and "'cuda_ad_rgb'" in message
+    assert "'render.variant'" in message and "'cuda_ad_spectral'" in message
     assert "llvm_ad_rgb" in message and "scalar_rgb" in message
+
+
+def test_a_cuda_variant_on_the_cpu_device_names_both_keys() -> None:
+    cfg = minimal_config()
+    cfg["render"]["variant"] = "cuda_ad_rgb"
+    cfg["compute"] = {"device": "cpu"}
+    message = error_message(cfg)
+    assert "'render.variant'" in message and "compute.device cuda" in message
+
+
+def test_compute_device_defaults_to_auto() -> None:
+    cfg = validate_config(minimal_config())
+    assert cfg["compute"] == {"device": "auto"}
 
 
 def test_wrong_enum_value_inside_a_list_names_the_item() -> None:

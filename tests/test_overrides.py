@@ -6,6 +6,7 @@ from pathlib import Path
 
 import yaml
 
+from denoisers.device import resolve_config_device
 from scenegen.config import config_digest, load_config, validate_config
 from scenegen.overrides import coerce_override_strings
 from tests.test_workflow import copy_workflow, run_snakemake
@@ -43,4 +44,5 @@ def test_nested_override_on_the_command_line(tmp_path: Path) -> None:
     merged = load_config(workflow / "config" / "smoke.yaml")
     assert merged["render"]["width"] == 48
     merged["render"]["reference_spp"] = 32
-    assert names == {config_digest(validate_config(merged))[:16]}
+    # ...and compute.device resolved where the DAG is planned (denoisers.device; auto -> cpu or cuda)
+    assert names == {config_digest(resolve_config_device(validate_config(merged)))[:16]}

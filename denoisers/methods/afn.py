@@ -61,8 +61,13 @@ class AFNDenoiser(Denoiser):
             model = load_model(self.checkpoint)
             if not isinstance(model, AFNNet):
                 raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not an AFN")
-            self._model = for_inference(model)
+            self._model = for_inference(model).to(self.device)
         return self._model
+
+    def _moved(self) -> None:
+        if self._model is not None:
+            self._model = self._model.to(self.device)
+        self.reset()
 
     def reset(self) -> None:
         self._history = None
@@ -83,7 +88,7 @@ class AFNDenoiser(Denoiser):
         if frame.camera_cut:
             self._history = None
         samples = {b: frame.samples[b][None] for b in SAMPLE_BUFFERS}
-        features = sample_features(samples, world_to_view(camera["to_world"])[None])
+        features = sample_features(samples, world_to_view(camera["to_world"]).to(self.device)[None])
         temporal = model.config.temporal
         with torch.no_grad():
             step = frame_step(model, features, samples["radiance"].mean(1),

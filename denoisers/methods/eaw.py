@@ -171,8 +171,8 @@ def filter_eaw(color: torch.Tensor, scaled_geometry: torch.Tensor, sigma_color: 
 
 def _native_kernels(color: torch.Tensor, geometry: torch.Tensor) -> ModuleType | None:
     """The native extension if it is enabled, built and supports these (C, H, W) colour and (G, H, W)
-    geometry images (float32, C = 3, G <= 8), else None."""
-    kernels = native.load()
+    geometry images (float32, C = 3, G <= 8, on the CPU), else None."""
+    kernels = native.load() if color.device.type == "cpu" else None   # C++ on host memory; elsewhere torch
     if (kernels is None or color.dtype != torch.float32 or geometry.dtype != torch.float32
             or color.shape[0] != 3 or geometry.shape[0] > kernels.max_eaw_geometry):
         return None

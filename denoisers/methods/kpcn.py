@@ -48,8 +48,13 @@ class KPCNDenoiser(Denoiser):
             model = load_model(self.checkpoint)
             if not isinstance(model, KPCNNet):
                 raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not a KPCN")
-            self._model = for_inference(model)
+            self._model = for_inference(model).to(self.device)
         return self._model
+
+    def _moved(self) -> None:
+        if self._model is not None:
+            self._model = self._model.to(self.device)
+        self.reset()
 
     def denoise(self, frame: Frame) -> torch.Tensor:
         check_sizes(self.info.name, frame.samples)
@@ -59,5 +64,5 @@ class KPCNDenoiser(Denoiser):
                              f"in view space; frame {frame.index} has none")
         samples = {b: frame.samples[b][None] for b in SAMPLE_BUFFERS}
         with torch.no_grad():
-            step = frame_step(self.model, samples, world_to_view(camera["to_world"])[None])
+            step = frame_step(self.model, samples, world_to_view(camera["to_world"]).to(self.device)[None])
         return torch.nan_to_num(step.output[0], nan=0.0, posinf=0.0, neginf=0.0)

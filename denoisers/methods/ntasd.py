@@ -76,8 +76,13 @@ class NTASDDenoiser(Denoiser):
 
             model = load_model(self.checkpoint)
             self._check_variant(model)
-            self._model = for_inference(model)
+            self._model = for_inference(model).to(self.device)
         return self._model
+
+    def _moved(self) -> None:
+        if self._model is not None:
+            self._model = self._model.to(self.device)
+        self.reset()
 
     def reset(self) -> None:
         self._history = None
@@ -95,7 +100,7 @@ class NTASDDenoiser(Denoiser):
         inputs = FrameInputs(layers=frame.samples["radiance"][None], albedo=frame.mean("albedo")[None],
                              normal=frame.pixel["gbuffer.normal"][None], depth=frame.pixel["gbuffer.depth"][None],
                              motion=frame.pixel["motion"][None], valid=frame.pixel["valid"][None],
-                             world_to_view=world_to_view(camera["to_world"])[None])
+                             world_to_view=world_to_view(camera["to_world"]).to(self.device)[None])
         step = frame_step(self.model, inputs, self._history, float(frame.budget))
         self._history = step.output if self.model.config.temporal else None
         radiance = torch.nan_to_num(decode(step.output[0]), nan=0.0, posinf=0.0, neginf=0.0)

@@ -71,20 +71,24 @@ class OpenImageDenoise(Denoiser):
         if self._size != (height, width):
             self._build(height, width)
         for name, image in images.items():
-            self._buffers[name][...] = image.permute(1, 2, 0).numpy()
+            self._buffers[name][...] = image.permute(1, 2, 0).cpu().numpy()
         self._filter.execute()
         error = self._device.get_error()
         if error is not None:
             raise RuntimeError(f"oidn: Open Image Denoise failed: {error}")
         output = torch.from_numpy(self._buffers["output"].copy()).permute(2, 0, 1).contiguous()
-        return sanitize(output)
+        return sanitize(output).to(self.device)
 
     def _build(self, height: int, width: int) -> None:
         """(Re)create the device, the filter and its shared (H, W, 3) float32 images."""
         pyoidn = self._pyoidn
         self.close()
-        device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
-        device.set_int("numThreads", self.threads or torch.get_num_threads())
+        if self.device.type == "cuda":
+            # OIDN's CUDA device reads and writes the same host images (system memory) as the CPU device.
+            device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CUDA)
+        else:
+            device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
+            device.set_int("numThreads", self.threads or torch.get_num_threads())
         device.commit()
         oidn_filter = pyoidn.Filter(device, pyoidn.OIDN_FILTER_TYPE_RT)
         self._buffers = {name: np.zeros((height, width, 3), dtype=np.float32)
@@ -100,6 +104,9 @@ class OpenImageDenoise(Denoiser):
         if error is not None:
             raise RuntimeError(f"oidn: could not set up Open Image Denoise: {error}")
         self._device, self._filter, self._size = device, oidn_filter, (height, width)
+
+    def _moved(self) -> None:
+        self.close()      # the OIDN device is rebuilt for the new device type at the next frame
 
     def close(self) -> None:
         """Release the OIDN filter and device (they are rebuilt on the next frame if needed)."""

@@ -74,7 +74,7 @@ class RecurrentAutoencoderDenoiser(Denoiser):
             if not isinstance(model, RecurrentAutoencoder):
                 raise TypeError(f"{self.checkpoint}: holds a {type(model).__name__}, not an RAE")
             self.check_model(model, f"method {self.info.name!r} ({self.checkpoint})")
-            self._model = for_inference(model)
+            self._model = for_inference(model).to(self.device)
         return self._model
 
     def check_model(self, model: RecurrentAutoencoder, where: str) -> None:
@@ -86,6 +86,11 @@ class RecurrentAutoencoderDenoiser(Denoiser):
     def features(self, frame: Frame) -> dict[str, torch.Tensor]:
         """Per-pixel radiance, albedo, normal, depth and roughness (C, H, W) of ``frame``: means over its samples."""
         return buffer_means(frame.samples, self.info.inputs, sample_dim=0)
+
+    def _moved(self) -> None:
+        if self._model is not None:
+            self._model = self._model.to(self.device)
+        self.reset()
 
     def reset(self) -> None:
         self._state = None
@@ -100,8 +105,9 @@ class RecurrentAutoencoderDenoiser(Denoiser):
         if self.reset_state_every_frame or frame.camera_cut:
             self._state = None
         means = self.features(frame)
+        rotation = world_to_view(camera["to_world"]).to(self.device)
         x, divisor = prepare_inputs(model.config, means["radiance"], means["albedo"], means["normal"],
-                                    means["depth"], means["roughness"], world_to_view(camera["to_world"]))
+                                    means["depth"], means["roughness"], rotation)
         out, self._state = model.inference_step(x[None], self._state)
         return torch.nan_to_num(decode_color(out[0], divisor, model.config.exponent), nan=0.0, posinf=0.0,
                                 neginf=0.0)

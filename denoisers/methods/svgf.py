@@ -177,7 +177,7 @@ class SVGF(Denoiser):
         With the native kernels (:mod:`denoisers.native`, unless ``MCDN_NATIVE=0``) the same passes run
         as one fused C++ loop per pass instead, and ``geometry`` is not used.
         """
-        kernels = native.load()
+        kernels = native.load() if illumination.device.type == "cpu" else None   # C++ on host memory
         if kernels is not None and illumination.dtype == torch.float32:
             filtered, history = kernels.svgf_atrous(
                 illumination.contiguous(), variance.contiguous(), normal.contiguous(), depth.contiguous(),
@@ -279,7 +279,7 @@ class SVGF(Denoiser):
         history = self._usable_history(frame, depth)
         if history is None:
             return illumination, moments, torch.ones_like(depth)
-        kernels = native.load()
+        kernels = native.load() if illumination.device.type == "cpu" else None
         if kernels is not None:
             integrated, integrated_moments, length = kernels.svgf_temporal(
                 history.state, frame.pixel["motion"].float().contiguous(), frame.pixel["valid"].float().contiguous(),

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from denoisers.evaluate import ALL_METRICS, EvaluationError
+from denoisers.device import configured_device, device_info
 from denoisers.provenance import describe, provenance
 from denoisers.report import figures as fig
 from denoisers.report import tables as tab
@@ -56,7 +57,8 @@ def _setup_lines(res: Results) -> list[str]:
            "or method settings) are refused, not combined."] if res.digests else []), "",
         "Provenance of this report (each trained model records its own in summary.json; see the training table):",
         "", *describe(provenance({"evaluation": cfg["evaluation"]["threads"],
-                                  "training": cfg.get("training", {}).get("threads", 0)})), ""]
+                                  "training": cfg.get("training", {}).get("threads", 0)},
+                                 device=device_info(configured_device(cfg)))), ""]
 
 
 def _reference_spp_text(cfg: dict) -> str:

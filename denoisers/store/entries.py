@@ -230,6 +230,7 @@ class ModelStore:
     def publish_checkpoint(self, cfg: dict, work_dir: Path) -> Entry:
         """Copy the trainer's resumable state in ``work_dir`` (``models/.work/<id>-<digest>``) into the store,
         replacing an earlier checkpoint of the same run (StoreError if it holds fewer steps than the stored one)."""
+        from denoisers.device import configured_device, device_info
         from denoisers.provenance import provenance
         from denoisers.training.checkpoints import load_checkpoint
 
@@ -261,7 +262,7 @@ class ModelStore:
                 "max_steps": spec.budget.get("max_steps"), "elapsed_seconds": float(data.get("elapsed_seconds", 0)),
                 "compute": fingerprint.get("compute"), "fingerprint": data["fingerprint"],
                 "files": {name: file_digest(work_dir / name) for name in CHECKPOINT_FILES},
-                "provenance": provenance({"training": spec.threads}),
+                "provenance": provenance({"training": spec.threads}, device=device_info(configured_device(cfg))),
                 "published": _now()}
         with atomic_directory(entry.path) as staging:
             for name in CHECKPOINT_FILES:

@@ -4,7 +4,8 @@
 optimizer with its resolved schedule, budget, compute as configured, threads), what its training data
 depend on (``denoisers.training.job.data_settings``: the render digests of its training and validation
 scenes, the split, the validation sequences) and the code version of its method
-(:func:`denoisers.store.code.code_digest`). ``checkpoint_key`` is the same without the budget, so a
+(:func:`denoisers.store.code.code_digest`); a model trained on CUDA also has ``device`` (CPU keys have none,
+:func:`denoisers.device.key_device`). ``checkpoint_key`` is the same without the budget, so a
 part-way checkpoint serves any budget of the same run (as the local ``models/.work`` directories do).
 
 The render digests are the config-level digests the workflow's render jobs are keyed by
@@ -18,6 +19,7 @@ import hashlib
 import json
 from typing import Any
 
+from denoisers.device import key_device
 from denoisers.store.code import code_digest
 from denoisers.training.models import ModelSpec, model_spec
 
@@ -33,7 +35,7 @@ def key_inputs(cfg: dict, spec: ModelSpec, budget: bool = True) -> dict[str, Any
     if not budget:
         settings = {**settings, "budget": None}
     return {"format": STORE_FORMAT, "settings": settings, "data": data_settings(cfg, spec),
-            "code": code_digest(spec.method)}
+            "code": code_digest(spec.method), **key_device(cfg)}
 
 
 def _digest(payload: dict[str, Any]) -> str:

@@ -54,11 +54,12 @@ def work_dir_for(models_root: Path, cfg: dict, spec: ModelSpec) -> Path:
     """The trainer's resumable directory: keyed by every setting but the budget, and by the step arithmetic
     ``compute`` resolves to on this machine (precision auto: bf16 or fp32), so a run moved to a machine that
     resolves it otherwise starts afresh instead of mixing the two."""
+    from denoisers.device import key_device
     from denoisers.training.precision import resolve_compute
 
     unbudgeted = ModelSpec(**{**spec.__dict__, "budget": {}})
     digest = settings_digest(unbudgeted, {**data_settings(cfg, spec),
-                                          "compute": resolve_compute(spec.compute).fingerprint()})
+                                          "compute": resolve_compute(spec.compute).fingerprint(), **key_device(cfg)})
     return Path(models_root) / WORK_DIR_NAME / f"{spec.id}-{digest[:12]}"
 
 
@@ -124,6 +125,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
     depend on them); ``threads``, if given, must agree (ValueError otherwise)."""
     import torch
 
+    from denoisers.device import torch_device
     from denoisers.training.data import fixed_batches, load_training_clips
     from denoisers.training.loop import Trainer, load_checkpoint
     from denoisers.training.tasks import task_builder
@@ -184,6 +186,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
         from denoisers.training.precision import resolve_compute
 
         store.fetch_checkpoint(cfg, run_spec.id, work_dir, resolve_compute(run_spec.compute).fingerprint())
+        # (the checkpoint key holds the device, denoisers.store.keys, so a CUDA run never continues a CPU one)
     checkpoint = work_dir / "checkpoint.pt"
     if full_id and checkpoint.exists() and int(load_checkpoint(checkpoint)["step"]) > spec.budget["max_steps"]:
         log.info("%s is past step %d: the half-budget model %s trains afresh in its own directory", checkpoint,
@@ -194,17 +197,29 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
         log.info("%s holds more steps than budget.max_steps = %d: training from scratch", checkpoint,
                  run_spec.budget["max_steps"])
         shutil.rmtree(work_dir)
+    from denoisers.device import configured_device, device_info, key_device
+    from denoisers.training.on_device import place
+
+    device = torch_device(cfg)
+    if device.type != "cpu":
+        # The CPU's bf16 autocast and oneDNN layouts do not apply on CUDA: the step runs in fp32 there.
+        config = dataclasses.replace(config, precision="fp32", channels_last=False)
+    task, dataset, validation = place(task, dataset, validation, device)
     trainer = Trainer(task, dataset, validation, config, work_dir,
                       fingerprint_extra={"model": run_spec.settings() | {"budget": None},
-                                         "data": data_settings(cfg, run_spec)})
-    result = trainer.run()
+                                         "data": data_settings(cfg, run_spec), **key_device(cfg)})
+    from denoisers.device import default_device
+
+    with default_device(device):
+        result = trainer.run()
 
     # Per-sequence validation metrics of the selected model (paired comparisons between models).
     best = load_checkpoint(result.best)
     trainer.model.load_state_dict(best["model_state"])
     rows = []
     for index, batch in enumerate(validation):
-        metrics = trainer.evaluate([batch])
+        with default_device(device):
+            metrics = trainer.evaluate([batch])
         rows.append({"sequence": index, "description": batch.describe(), **metrics})
     import pandas as pd
 
@@ -218,7 +233,9 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
                     "max_steps": spec.budget["max_steps"], "max_seconds": spec.budget.get("max_seconds"),
                     "threads": int(threads), "seconds_per_step": result.elapsed_seconds / max(result.steps, 1),
                     "settings_digest": _model_digest(cfg, spec), "store_key": key, "half_budget_of": full_id,
-                    "provenance": provenance({"training": int(threads)})})
+                    "provenance": provenance({"training": int(threads)},
+                                             device=device_info(configured_device(cfg))),
+                    "device": configured_device(cfg)})
     if hasattr(task, "config") and hasattr(task.config, "width"):
         from denoisers.nets import build_net, count_parameters
 

@@ -24,6 +24,7 @@ from scenegen.digests import masks_digest as scene_masks_digest
 from scenegen.scenarios import stability_control_ids
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.
 from denoisers import experiment
+from denoisers.device import DeviceError, resolve_config_device
 from denoisers.evaluate import (evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids,
                                 volume_method_specs)
 from denoisers.volume_eval import volume_problems
@@ -68,6 +69,12 @@ if schema_error is None:
             config_errors.append(f"({check.__name__} could not run beside the problems above: {err})")
 if config_errors:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(config_errors))
+# compute.device auto becomes cpu or cuda here, once, and render.variant the variant it runs as there: every digest,
+# store key and job reads the resolved value (denoisers.device; on a cluster set cuda, the login node may have none).
+try:
+    resolve_config_device(config)
+except (DeviceError, ValueError) as err:
+    raise WorkflowError(f"invalid configuration: {err}") from None
 
 
 wildcard_constraints:
