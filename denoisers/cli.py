@@ -170,14 +170,22 @@ def main(argv: list[str] | None = None) -> int:
     from denoisers.tuning import TuningError
     from scenegen.config import ConfigError
     from scenegen.dataset import DatasetError
+    from scenegen.exr import EXRError
+    from scenegen.retry_gate import record_failure, refuse_retry, simulated_memory_kill
 
+    # a retry of a deterministic failure stops here (and the one-node check can fake a kill for memory)
+    refused = simulated_memory_kill(args.command) or refuse_retry()
+    if refused is not None:
+        return refused
     try:
         return _run(args)
     except (MissingInputError, EvaluationError, DatasetError, ConfigError, CheckpointError,
             NonFiniteLossError, TuningError, SettingsMismatchError, CleanError, StoreError,
-            PublishError) as error:
-        # Expected failures get one clear line (the workflow prints the job's log), not a traceback.
+            PublishError, EXRError) as error:
+        # Expected failures get one clear line (the workflow prints the job's log), not a traceback; they depend
+        # on the config and the inputs only, so a retry is refused (scenegen.retry_gate).
         log.error("%s", error)
+        record_failure(error)
         return 1
 
 

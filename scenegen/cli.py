@@ -52,6 +52,23 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
                         stream=sys.stderr)
+    from scenegen.config import ConfigError
+    from scenegen.dataset import DatasetError
+    from scenegen.exr import EXRError
+    from scenegen.retry_gate import record_failure, refuse_retry, simulated_memory_kill
+
+    # a retry of a deterministic failure stops here (and the one-node check can fake a kill for memory)
+    refused = simulated_memory_kill(args.command) or refuse_retry()
+    if refused is not None:
+        return refused
+    try:
+        return _main(args)
+    except (ConfigError, DatasetError, EXRError) as error:   # the config or the inputs: a retry fails alike
+        record_failure(error)
+        raise
+
+
+def _main(args: argparse.Namespace) -> int:
     if args.command == "scenarios":
         from scenegen.scenarios import SCENARIOS
 

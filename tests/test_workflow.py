@@ -225,6 +225,32 @@ def test_cluster_config_passes_dry_run_and_lint(workflow_copy: Path) -> None:
     assert all(steps[m["id"]] > m["budget"]["max_steps"] for m in default["training"]["models"])
 
 
+#: Rules that compute on compute.device (Mitsuba or torch) and so ask for a GPU under cuda.
+GPU_RULES = frozenset({"generate_scene", "render_noisy", "render_reference", "derive_masks", "train_denoiser",
+                       "verify_stored_model", "denoise_clip", "robustness_clip", "denoise_scenario", "denoise_volume",
+                       "robustness_volume", "time_methods"})
+
+
+@pytest.mark.slow
+def test_gpu_cluster_overlay_asks_for_a_gpu_where_the_device_computes(workflow_copy: Path) -> None:
+    """config/cluster-gpu.yaml over config/cluster.yaml (issue 50 §2): the same DAG, planned here without a GPU
+    (compute.device cuda is taken as configured), every job of a rule that computes on the device asks for one GPU
+    and every other job for none."""
+    result = run_snakemake("-n", "--forceall", "--configfile", "config/cluster.yaml", "config/cluster-gpu.yaml",
+                           cwd=workflow_copy, timeout=900)
+    text = result.stdout + result.stderr
+    assert result.returncode == 0, text[-3000:]
+    cluster = load_config(workflow_copy / "config/cluster.yaml")
+    assert job_counts(text) == expected_jobs(cluster)
+    asks: dict[str, set[bool]] = {}
+    for rule, body in re.findall(r"^rule (\w+):\n(.*?)(?=^\S|\Z)", text, flags=re.M | re.S):
+        resources = re.search(r"resources: (.*)", body)
+        if resources:
+            asks.setdefault(rule, set()).add("gpu=1" in resources.group(1))
+    assert asks and all(asks[rule] == {rule in GPU_RULES} for rule in asks), asks
+    assert GPU_RULES & set(asks) >= {"render_noisy", "train_denoiser", "denoise_clip"}, sorted(asks)
+
+
 @pytest.mark.slow
 def test_isik2021_config_passes_dry_run_and_lint(workflow_copy: Path) -> None:
     """config/isik2021.yaml (issue 13: every AFN variant of Tables 2-5 and KPCN, a long run) builds its whole DAG
@@ -730,6 +756,19 @@ def test_slurm_profile_sets_resources_for_every_rule() -> None:
     # A job never gets more threads than the CPUs SLURM allocates to it.
     for rule, threads in profile.get("set-threads", {}).items():
         assert rule in rule_names() and threads <= profile["set-resources"][rule]["cpus_per_task"], rule
+    # Issue 50 §2: a retry gets more memory and time; failures do not stop the run; the short per-clip jobs go in
+    # batches; the timing jobs have their node to themselves.
+    assert profile["keep-going"] is True and profile["retries"] >= 1
+    for rule, resources in profile["set-resources"].items():
+        for key in ("mem_mb", "runtime"):
+            assert key not in resources or "* attempt" in str(resources[key]), (rule, key)
+    grouped = dict(entry.split("=") for entry in profile["groups"])
+    assert set(grouped) == {"denoise_clip", "evaluate_clip", "robustness_clip", "denoise_scenario", "score_scenario",
+                            "denoise_volume", "evaluate_volume", "robustness_volume"}
+    components = dict(entry.split("=") for entry in profile["group-components"])
+    assert set(components) == set(grouped.values()) and all(int(n) > 1 for n in components.values())
+    assert all("--exclusive" in profile["set-resources"][rule]["slurm_extra"] for rule in ("time_methods",
+                                                                                          "time_training"))
 
 
 def test_local_profile_runs_on_two_cores() -> None:

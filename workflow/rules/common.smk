@@ -34,6 +34,7 @@ from denoisers.timing import timed_runs, timing_scene, timing_settings
 from denoisers.training.speed import TRAINING_SPEED_FILE, speed_models, speed_settings
 from denoisers.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
+from scenegen.retry_gate import clear_markers as clear_retry_markers
 from denoisers.training.models import (HALF_SUFFIX, half_of, method_model, model_dir, model_spec, same_training_as,
                                        trained_model_specs, training_problems, training_runtime_minutes,
                                        training_split)
@@ -98,6 +99,19 @@ VOLUME_SCENES = volume_scene_ids(config)
 # The experiment's folder (config key output_dir): every output, log and benchmark of every rule is below it,
 # so two configs with different output_dir never share a file.
 OUT = output_root(config).as_posix()
+
+
+#: Environment variable naming the SLURM partition of the jobs that compute on the GPU under compute.device cuda.
+GPU_PARTITION_VARIABLE = "MCDN_SLURM_GPU_PARTITION"
+
+
+def gpu_resources() -> dict:
+    """Resources of a rule that computes on compute.device (Mitsuba, torch): on cuda one GPU (the SLURM executor's
+    `gpu`, i.e. --gpus=1) and, when $MCDN_SLURM_GPU_PARTITION is set, that partition; nothing on the CPU."""
+    if config["compute"]["device"] != "cuda":
+        return {}
+    partition = os.environ.get(GPU_PARTITION_VARIABLE)
+    return {"gpu": 1, **({"slurm_partition": partition} if partition else {})}
 
 
 def results_path(path: str) -> str:
@@ -299,8 +313,11 @@ def write_resolved_config(path: str) -> None:
 
 
 # Written when jobs are about to run, not at parse time: a dry run (-n) and a failed config check write nothing.
+# A new run also forgets which jobs failed deterministically in the last one (scenegen.retry_gate: their retries
+# within one run are refused; the next run, after a fix, tries them again). onstart runs in the main process only.
 onstart:
     write_resolved_config(RESOLVED_CONFIG_FILE)
+    clear_retry_markers(Path(OUT) / "logs")
 
 
 def resolved_config_file(wildcards, output) -> str:

@@ -37,6 +37,7 @@ rule denoise_clip:
     resources:
         mem_mb=4000,
         runtime=60,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers denoise --config {params.config_file} --method-id {wildcards.method}"
         " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
@@ -94,6 +95,7 @@ rule robustness_clip:
     resources:
         mem_mb=4000,
         runtime=60,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers robustness --config {params.config_file} --method-id {wildcards.method}"
         " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"

@@ -30,6 +30,7 @@ rule render_noisy:
     resources:
         mem_mb=4000,
         runtime=60,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m scenegen render-noisy --config {params.config_file} --scene {wildcards.scene}"
         " --chunk {params.chunk} --scene-dir {input.scene_dir} --out {output.chunk_dir} --threads {threads} > {log} 2>&1"
@@ -61,6 +62,7 @@ rule render_reference:
     resources:
         mem_mb=4000,
         runtime=240,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m scenegen render-reference --config {params.config_file} --scene {wildcards.scene}"
         " --chunk {params.chunk} --scene-dir {input.scene_dir} --out {output.chunk_dir} --threads {threads} > {log} 2>&1"

@@ -23,6 +23,7 @@ rule generate_scene:
     resources:
         mem_mb=4000,
         runtime=20,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m scenegen generate --config {params.config_file} --scene {wildcards.scene}"
         " --out {output.scene_dir} > {log} 2>&1"

@@ -33,6 +33,7 @@ rule derive_masks:
     resources:
         mem_mb=2000,
         runtime=20,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m scenegen derive-masks --config {params.config_file} --scene {wildcards.scene}"
         " --scene-dir {input.scene_dir} --render-dir {params.render_dir} --out {output.masks_dir}"
@@ -62,6 +63,7 @@ rule denoise_scenario:
     resources:
         mem_mb=4000,
         runtime=30,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers denoise --config {params.config_file} --method-id {wildcards.method}"
         " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"

@@ -37,6 +37,7 @@ rule time_methods:
     resources:
         mem_mb=8000,
         runtime=120,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers time --config {params.config_file} --scene {params.scene}"
         " --render-dir {params.render_dir} --scenes-root {params.scenes_root} --results {params.results}"

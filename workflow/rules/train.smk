@@ -38,7 +38,8 @@ rule train_denoiser:
     priority: 5
     resources:
         mem_mb=8000,
-        runtime=lambda wildcards: training_runtime_minutes(config, wildcards.model),  # from budget.max_seconds
+        runtime=lambda wildcards, attempt: training_runtime_minutes(config, wildcards.model) * attempt,  # budget
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers train --config {params.config_file} --model-id {wildcards.model}"
         " --render-root {params.render_root} --out {output.model_dir} > {log} 2>&1"
@@ -64,7 +65,8 @@ rule verify_stored_model:
     threads: config["training"]["threads"]
     resources:
         mem_mb=8000,
-        runtime=lambda wildcards: training_runtime_minutes(config, wildcards.model),
+        runtime=lambda wildcards, attempt: training_runtime_minutes(config, wildcards.model) * attempt,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers store verify --config {params.config_file} --model-id {wildcards.model}"
         " --render-root {params.render_root} --out {output.result} > {log} 2>&1"

@@ -31,6 +31,7 @@ rule denoise_volume:
     resources:
         mem_mb=4000,
         runtime=30,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers denoise --config {params.config_file} --method-id {wildcards.method}"
         " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
@@ -88,6 +89,7 @@ rule robustness_volume:
     resources:
         mem_mb=4000,
         runtime=30,
+        **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers robustness --config {params.config_file} --method-id {wildcards.method}"
         " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
