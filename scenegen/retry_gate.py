@@ -107,7 +107,8 @@ def _slurm_job_memory_mb() -> int | None:
     if not job:
         return None
     try:
-        shown = subprocess.run(["scontrol", "show", "job", "-o", job], capture_output=True, text=True, timeout=30).stdout
+        shown = subprocess.run(["scontrol", "show", "job", "-o", job], capture_output=True, text=True,
+                               timeout=30).stdout
     except (OSError, subprocess.SubprocessError):
         return None
     found = re.search(r"MinMemoryNode=(\d+)([MG])", shown)

@@ -233,11 +233,11 @@ GPU_RULES = frozenset({"generate_scene", "render_noisy", "render_reference", "de
 
 @pytest.mark.slow
 def test_gpu_cluster_overlay_asks_for_a_gpu_where_the_device_computes(workflow_copy: Path) -> None:
-    """config/cluster-gpu.yaml over config/cluster.yaml (issue 50 §2): the same DAG, planned here without a GPU
-    (compute.device cuda is taken as configured), every job of a rule that computes on the device asks for one GPU
-    and every other job for none."""
-    result = run_snakemake("-n", "--forceall", "--configfile", "config/cluster.yaml", "config/cluster-gpu.yaml",
-                           cwd=workflow_copy, timeout=900)
+    """config/overlays/cluster-gpu.yaml over config/cluster.yaml (issue 50 §2): the same DAG, planned here without a
+    GPU (compute.device cuda is taken as configured), every job of a rule that computes on the device asks for one
+    GPU and every other job for none."""
+    result = run_snakemake("-n", "--forceall", "--configfile", "config/cluster.yaml",
+                           "config/overlays/cluster-gpu.yaml", cwd=workflow_copy, timeout=900)
     text = result.stdout + result.stderr
     assert result.returncode == 0, text[-3000:]
     cluster = load_config(workflow_copy / "config/cluster.yaml")
