@@ -292,3 +292,20 @@ def test_inference_places_nothing_on_the_cpu(config: Path, row, tmp_path: Path, 
             result = method.denoise(frame)
         radiance = result.radiance if isinstance(result, registry.AdaptiveOutput) else result
         assert radiance.device.type == "meta", f"{row.method} returned a {radiance.device} tensor"
+
+
+def test_oidn_falls_back_to_its_cpu_device_where_pyoidn_has_no_cuda_one(caplog: pytest.LogCaptureFixture) -> None:
+    """OIDN asked for CUDA on a machine (or pyoidn build) without it builds its CPU device and says so."""
+    import logging
+
+    from denoisers import registry
+
+    method = registry.build("oidn")
+    method.device = torch.device("cuda")          # as Denoiser.to would set it (no tensor is moved here)
+    works, _ = device_module.cuda_status()
+    with caplog.at_level(logging.WARNING, logger="denoisers.methods.oidn"):
+        method._build(8, 8)
+    assert method._filter is not None and method._size == (8, 8)
+    if not works:
+        assert "no CUDA device in pyoidn" in caplog.text and "runs on the CPU" in caplog.text
+    method.close()

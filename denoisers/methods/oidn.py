@@ -2,6 +2,8 @@
 instead (it stands where the OptiX denoiser stands in Isik et al. 2021, Tables 2-3)."""
 from __future__ import annotations
 
+import logging
+
 from typing import Any
 
 import numpy as np
@@ -12,6 +14,8 @@ from denoisers.registry import Denoiser, Frame, register
 
 #: OIDN's quality presets (the ``quality`` filter parameter).
 QUALITIES = ("default", "fast", "balanced", "high")
+
+log = logging.getLogger(__name__)
 
 
 def _import_pyoidn() -> Any:
@@ -83,13 +87,20 @@ class OpenImageDenoise(Denoiser):
         """(Re)create the device, the filter and its shared (H, W, 3) float32 images."""
         pyoidn = self._pyoidn
         self.close()
+        device = None
         if self.device.type == "cuda":
             # OIDN's CUDA device reads and writes the same host images (system memory) as the CPU device.
             device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CUDA)
-        else:
+            device.commit()
+            error = device.get_error()
+            if error is not None:     # this pyoidn build or driver has no CUDA device: OIDN on the CPU, said so
+                log.warning("oidn: no CUDA device in pyoidn (%s); Open Image Denoise runs on the CPU", error)
+                device.release()
+                device = None
+        if device is None:
             device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
             device.set_int("numThreads", self.threads or torch.get_num_threads())
-        device.commit()
+            device.commit()
         oidn_filter = pyoidn.Filter(device, pyoidn.OIDN_FILTER_TYPE_RT)
         self._buffers = {name: np.zeros((height, width, 3), dtype=np.float32)
                          for name in ("color", *self.auxiliary, "output")}
