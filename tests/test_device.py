@@ -309,3 +309,21 @@ def test_oidn_falls_back_to_its_cpu_device_where_pyoidn_has_no_cuda_one(caplog: 
     if not works:
         assert "no CUDA device in pyoidn" in caplog.text and "runs on the CPU" in caplog.text
     method.close()
+
+
+def test_the_reports_timing_line_names_the_device() -> None:
+    from types import SimpleNamespace
+
+    from denoisers.report.writer import _timing_line
+
+    record = {"renderers": {"test_000": {"samples_per_s": 2e6, "repeats": 3, "layers": 4}}, "frames": 4,
+              "scene": "test_000", "threads": 1, "repeats": 5,
+              "sgemm": {"gflops_per_s_median": 50.0, "gflops_per_s": [49.0, 51.0]},
+              "provenance": {"device": {"device": "cuda", "model": "NVIDIA H100 80GB HBM3", "driver": "580.159.04"}}}
+    res = SimpleNamespace(timing=SimpleNamespace(record=record), cfg={"evaluation": {}})
+    assert "on NVIDIA H100 80GB HBM3 (CUDA, driver 580.159.04; rows and renderer)" in _timing_line(res)
+    record["provenance"] = {"device": {"device": "cpu", "model": "AMD EPYC", "cores": 2}}
+    assert "on the CPU (AMD EPYC)" in _timing_line(res)
+    del record["provenance"]                      # a timing job from before the setting
+    assert "rule time_methods) timed every configured row (and the capacity ablations' sizes) on the first" in \
+        _timing_line(res)

@@ -87,8 +87,11 @@ def _timing_line(res: Results) -> str:
     job = res.timing.record
     rates = [rate["samples_per_s"] / 1e6 for rate in job["renderers"].values()]
     renderer = next(iter(job["renderers"].values()), {"repeats": 0, "layers": 0})
+    device = job.get("provenance", {}).get("device") or {}
+    where = (f" on {device['model']} (CUDA, driver {device.get('driver') or 'unknown'}; rows and renderer)"
+             if device.get("device") == "cuda" else f" on the CPU ({device['model']})" if device else "")
     return (f"Timing: one job alone on the machine (rule time_methods) timed every configured row (and the capacity "
-            f"ablations' sizes) on the first "
+            f"ablations' sizes){where} on the first "
             f"{job['frames']} frames of {job['scene']} with {job['threads']} thread(s), in {job['repeats']} "
             "interleaved rounds after a warm-up round (one pass of every row per round, all I/O excluded); a pass "
             "is the median seconds per `denoise()` call without the first frame, a row's ms/frame the median over "
