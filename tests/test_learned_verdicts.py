@@ -60,6 +60,19 @@ def test_one_seed_adds_no_replica_and_three_add_two_per_model() -> None:
     assert model_spec(cfg, "ntasd_kpn_seed2").seed == model_spec(cfg, "ntasd_seed2").seed != model_spec(cfg, "ntasd").seed
 
 
+def test_a_model_with_its_own_seeds_trains_that_often_and_keeps_its_key() -> None:
+    """Issue 48: a model (and its ablation variants' base) may set ``seeds`` in place of training.seeds; the key of
+    its first seed does not see the setting."""
+    cfg = default_config(3)
+    before = model_key(cfg, "dasr")
+    entry = next(m for m in cfg["training"]["models"] if m["id"] == "dasr")
+    entry["seeds"] = 1
+    cfg = validate_config(cfg)
+    ids = {spec.id for spec in trained_model_specs(cfg)}
+    assert "dasr_seed1" not in ids and "ntasd_seed1" in ids and "ntasd_seed2" in ids
+    assert model_key(cfg, "dasr") == before
+
+
 def test_seed_count_does_not_re_key_the_first_seed() -> None:
     one, three = default_config(1), default_config(3)
     for spec in model_specs(one):
@@ -123,6 +136,14 @@ def test_tables_show_the_seed_mean_and_spread() -> None:
     assert line["n_seeds"] == 3 and line["mean"] == pytest.approx(np.mean(expected))
     assert line["seed_sd"] == pytest.approx(np.std(seed_means, ddof=1))
     assert summary.loc[("eaw", 1, "psnr")]["n_seeds"] == 1 and np.isnan(summary.loc[("eaw", 1, "psnr")]["seed_sd"])
+    # The row labels: seed count and spread on a trained row with seeds; "(1 seed)" on a trained row that trains
+    # once beside it (a model's own seeds: 1); nothing on a hand-written method.
+    from denoisers.report.tables import _seed_label
+
+    flat = summary_table(res)
+    assert _seed_label(flat, "rae", 1, trained=True) == f"rae (3 seeds, PSNR sd {np.std(seed_means, ddof=1):.2f} dB)"
+    assert _seed_label(flat, "eaw", 1, trained=False) == "eaw"
+    assert _seed_label(flat, "eaw", 1, trained=True) == "eaw (1 seed)"
 
 
 # ------------------------------------------------------------------------------------------ verdicts

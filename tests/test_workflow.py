@@ -22,8 +22,9 @@ import yaml
 from denoisers.evaluate import ABLATION_ROLE, method_specs, plan_runs, robustness_runs
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
-from denoisers.training.models import (method_model, model_specs, same_training_as, training_split,
-                                       trains_on_volumes)
+from denoisers.device import resolve_config_device
+from denoisers.training.models import (method_model, model_specs, same_training_as, trained_model_specs,
+                                       training_split, trains_on_volumes)
 from scenegen.config import (chunk_count, config_digest, load_config, scene_ids, stability_scene_ids, volume_scene_ids,
                              volume_training_split)
 
@@ -98,7 +99,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     # Training reads every train_* scene (the held-out validation scenes too); the evaluation needs only the
     # models its rows name, the report and the default target every configured model.
     train_scenes = sum(training_split(cfg), [])
-    all_models = len(model_specs(cfg))
+    all_models = len(trained_model_specs(cfg))      # seed replicas and half-budget twins included
 
     # The models the evaluated rows name (the configured rows' and the ablation rows', one per variant), plus
     # the base of a variant whose training is its base's (same_training_as): its job copies the base's weights.
@@ -506,9 +507,11 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     assert len(scenario) == jobs["denoise_scenario"]
     config_files = {re.search(r"--config (\S+)", command).group(1) for command in scenegen + denoisers}
     assert len(config_files) == 1
-    # A dry run does not write the resolved config; its name is the digest of the validated config.
+    # A dry run does not write the resolved config; its name is the digest of the validated config with its
+    # compute.device resolved (denoisers.device: auto -> cpu or cuda, where the DAG is planned).
     resolved_path = workflow_copy / config_files.pop()
-    assert not resolved_path.exists() and resolved_path.name == f"{config_digest(cfg)[:16]}.yaml"
+    assert not resolved_path.exists()
+    assert resolved_path.name == f"{config_digest(resolve_config_device(cfg))[:16]}.yaml"
     assert any("render-noisy" in command and "--chunk 1 " in command for command in scenegen)
 
     volume = [line for line in denoisers if "python -m denoisers denoise " in line and "/volumes/denoised/" in line]

@@ -11,6 +11,7 @@ import numpy as np
 from denoisers.evaluate import ALL_METRICS, REFERENCE_METHODS
 from denoisers.report.collect import DERIVED_METRICS, TIMING_COLUMNS, Results, TrainedModels
 from denoisers.report.stats import HIGHER_IS_BETTER, LABELS, fmt, fmt_ci, markdown_table, mean_ci
+from denoisers.training.models import method_model
 from scenegen.config import SCENE_SPLITS, scene_ids
 
 if TYPE_CHECKING:
@@ -72,11 +73,14 @@ def summary_lookup(summary: pd.DataFrame) -> dict[tuple[str, int, str], tuple[fl
     return {(r.method_id, r.spp, r.metric): (r.mean, r.ci_low, r.ci_high, r.n_scenes) for r in summary.itertuples()}
 
 
-def _seed_label(summary: pd.DataFrame, method_id: str, spp: int) -> str:
-    """The row's name, with its seed count and the PSNR spread over seeds when it has more than one seed."""
+def _seed_label(summary: pd.DataFrame, method_id: str, spp: int, trained: bool = False) -> str:
+    """The row's name, with its seed count and the PSNR spread over seeds when it has more than one seed, and
+    "(1 seed)" on a trained row that trains once where other trained rows of the summary train more often (a
+    model's own ``seeds: 1``, issue 48: its tables say so)."""
     line = summary[(summary.method_id == method_id) & (summary.spp == spp) & (summary.metric == "psnr")]
     if line.empty or int(line.n_seeds.iloc[0]) < 2:
-        return method_id
+        several = not summary.empty and int(summary.n_seeds.max()) > 1
+        return f"{method_id} (1 seed)" if trained and several and not line.empty else method_id
     return f"{method_id} ({int(line.n_seeds.iloc[0])} seeds, PSNR sd {float(line.seed_sd.iloc[0]):.2f} dB)"
 
 
@@ -86,7 +90,8 @@ def summary_markdown(res: Results, summary: pd.DataFrame) -> str:
     arrows = {True: "↑", False: "↓"}
     parts = []
     for spp in res.cfg["evaluation"]["spp"]:
-        rows = [[_seed_label(summary, spec.id, spp), *[fmt_ci(*lookup[(spec.id, spp, m)][:3], m) for m in SUMMARY_SHOWN],
+        rows = [[_seed_label(summary, spec.id, spp, method_model(spec.params) is not None),
+                 *[fmt_ci(*lookup[(spec.id, spp, m)][:3], m) for m in SUMMARY_SHOWN],
                  speed_text(res, spec.id, spp), "⚠" if res.flag(spec.id, spp) else "ok"]
                 for spec in res.main_specs if res.ran(spec.id, spp)]
         flags = [res.flag(spec.id, spp) for spec in res.main_specs if res.ran(spec.id, spp)]

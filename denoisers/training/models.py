@@ -139,10 +139,14 @@ def seed_count(cfg: dict) -> int:
 
 
 def model_seed_count(cfg: dict, model_id: str) -> int:
-    """How many times model ``model_id`` trains: its ablation's ``seeds`` where that is set (e.g. 1 for a capacity
-    sweep, which feeds measurements, not claims), else :func:`seed_count`."""
-    own = {entry["id"]: int(entry["seeds"]) for entry in (cfg.get("training") or {}).get("ablations", [])
-           if entry.get("seeds")}
+    """How many times model ``model_id`` trains: its own ``seeds`` (a ``training.models`` entry) or its ablation's
+    where that is set (e.g. 1 for a capacity sweep, which feeds measurements, not claims), else
+    :func:`seed_count`."""
+    training = cfg.get("training") or {}
+    for entry in training.get("models", []):
+        if entry["id"] == model_id and entry.get("seeds"):
+            return int(entry["seeds"])
+    own = {entry["id"]: int(entry["seeds"]) for entry in training.get("ablations", []) if entry.get("seeds")}
     if own:
         for spec in model_specs(cfg):
             if spec.id == model_id and spec.ablation in own:

@@ -106,8 +106,8 @@ GPU_PARTITION_VARIABLE = "MCDN_SLURM_GPU_PARTITION"
 
 
 def gpu_resources() -> dict:
-    """Resources of a rule that computes on compute.device (Mitsuba, torch): on cuda one GPU (the SLURM executor's
-    `gpu`, i.e. --gpus=1) and, when $MCDN_SLURM_GPU_PARTITION is set, that partition; nothing on the CPU."""
+    """Resources of the jobs that compute on compute.device (Mitsuba, torch). Under cuda one GPU (the SLURM
+    executor's `gpu`, i.e. --gpus=1) and, when $MCDN_SLURM_GPU_PARTITION is set, that partition; none on the CPU."""
     if config["compute"]["device"] != "cuda":
         return {}
     partition = os.environ.get(GPU_PARTITION_VARIABLE)
