@@ -87,6 +87,13 @@ def _parser() -> argparse.ArgumentParser:
     from denoisers.store.cli import add_parser as add_store_parser
 
     add_store_parser(sub)
+    session = sub.add_parser("train-session", help="train models until a deadline, then publish the finished ones "
+                                                   "and checkpoint the rest into the store (denoisers.store.session)")
+    session.add_argument("models", nargs="+", help="model ids (seed replicas and _half twins included)")
+    session.add_argument("--minutes", type=float, required=True, help="stop the run after this many minutes")
+    session.add_argument("--snakemake", default="", help="more Snakemake arguments, one string, e.g. "
+                                                         "\"--configfile config/isik2021.yaml --config 'training={seeds: 3}'\"")
+    session.add_argument("--log", type=Path, help="append the run's output here (default: the terminal)")
 
     tune = sub.add_parser("tune", help="grid-search a baseline's parameters on the training scenes (tuning.methods)")
     tune.add_argument("--config", type=Path, required=True, help="resolved config YAML")
@@ -213,6 +220,18 @@ def _run(args: argparse.Namespace) -> int:
                  for run in update_blocks(path, REPO_ROOT, check=args.check)]
         print(("out of date: " if args.check else "regenerated: ") + (", ".join(stale) or "none"))
         return 1 if args.check and stale else 0
+
+    if args.command == "train-session":
+        import shlex
+
+        from denoisers.store.session import train_session
+
+        result = train_session(args.models, args.minutes, shlex.split(args.snakemake), log=args.log)
+        state = "stopped at the deadline" if result.stopped_at_deadline else f"finished (exit {result.returncode})"
+        print(f"run {state}; published: {', '.join(result.published) or 'none'}; checkpointed: "
+              f"{', '.join(result.checkpointed) or 'none'}; untouched: {', '.join(result.untouched) or 'none'}")
+        print("commit store/ now: only what is committed survives the machine")
+        return 0 if result.stopped_at_deadline or result.returncode == 0 else 1
 
     if args.command == "job-counts":
         from denoisers.dag_counts import update_dag_blocks

@@ -1,0 +1,131 @@
+"""Training that outlives the machine: train models until a deadline, then keep everything in the store.
+
+The machines here live about 3 hours and only what is committed survives, so a long training (the Isik run,
+issue 48; the seed replicas, issue 46) is a series of sessions. ``python -m denoisers train-session`` is one of
+them:
+
+1. it runs the workflow for the given models (``scripts/run-main.sh results/models/<id> ...``, so a stored model is
+   installed and a stored part-way checkpoint continued, denoisers.training.job) in its own process group;
+2. at ``--minutes`` it stops that run (SIGTERM to the group; the trainers checkpoint every 300 s and every
+   ``training.validate_every`` steps, so at most that much work is lost);
+3. it publishes every model that finished in this session (``store publish``) and the part-way state of every one
+   that did not (``store checkpoint``: the next machine continues from it), using the resolved config the run wrote.
+
+Commit ``store/`` afterwards; the next session runs the same command and goes on.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from denoisers.store.code import REPO_ROOT
+
+#: Seconds between checks of the run.
+POLL_SECONDS = 10.0
+#: Seconds the stopped run gets to exit after SIGTERM before SIGKILL.
+STOP_GRACE_SECONDS = 60.0
+
+
+@dataclass
+class SessionResult:
+    """What one session did: the run's exit status (None: stopped at the deadline), and per model what was kept."""
+
+    returncode: int | None
+    stopped_at_deadline: bool
+    published: list[str] = field(default_factory=list)
+    checkpointed: list[str] = field(default_factory=list)
+    untouched: list[str] = field(default_factory=list)
+
+
+def run_until(command: Sequence[str], deadline_s: float, cwd: Path = REPO_ROOT,
+              log: Path | None = None) -> tuple[int | None, bool]:
+    """Run ``command`` in a new process group until it exits or ``deadline_s`` seconds have passed; then SIGTERM
+    the group (SIGKILL after :data:`STOP_GRACE_SECONDS`). Returns (exit status or None, stopped at the deadline)."""
+    stream = open(log, "ab") if log is not None else None  # noqa: SIM115 -- closed below
+    try:
+        process = subprocess.Popen(list(command), cwd=cwd, stdout=stream, stderr=subprocess.STDOUT if stream else None,
+                                   start_new_session=True)
+        end = time.monotonic() + deadline_s
+        while process.poll() is None and time.monotonic() < end:
+            time.sleep(min(POLL_SECONDS, max(0.0, end - time.monotonic())))
+        if process.poll() is not None:
+            return process.returncode, False
+        os.killpg(process.pid, signal.SIGTERM)
+        try:
+            process.wait(timeout=STOP_GRACE_SECONDS)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+        return None, True
+    finally:
+        if stream is not None:
+            stream.close()
+
+
+def resolved_config(output_dir: Path, since: float) -> Path:
+    """The resolved config the run wrote (``<output_dir>/.config/<digest>.yaml``, the newest since ``since``; the
+    newest of all when the run found it already written)."""
+    files = sorted((output_dir / ".config").glob("*.yaml"), key=lambda p: p.stat().st_mtime)
+    if not files:
+        raise FileNotFoundError(f"{output_dir / '.config'}: no resolved config; did the run start?")
+    recent = [p for p in files if p.stat().st_mtime >= since]
+    return (recent or files)[-1]
+
+
+def keep(output_dir: Path, model_ids: Sequence[str], since: float,
+         store_command: Callable[[list[str]], int]) -> tuple[list[str], list[str], list[str]]:
+    """Publish the models of ``model_ids`` that finished since ``since`` and checkpoint the runs that moved since then
+    but did not finish; ``store_command(args)`` runs ``python -m denoisers store <args>``. Returns (published,
+    checkpointed, untouched) ids. A half-budget twin's run is its full model's (``{id}_half`` -> ``{id}``)."""
+    from denoisers.training.models import HALF_SUFFIX
+
+    config = resolved_config(output_dir, since)
+    models = output_dir / "models"
+    published, checkpointed, untouched = [], [], []
+    for model_id in model_ids:
+        summary = models / model_id / "summary.json"
+        if summary.is_file() and summary.stat().st_mtime >= since and "installed_from_store" not in summary.read_text():
+            if store_command(["publish", "--config", str(config), "--model-id", model_id]) == 0:
+                published.append(model_id)
+                continue
+        run_id = model_id[:-len(HALF_SUFFIX)] if model_id.endswith(HALF_SUFFIX) else model_id
+        moved = [p for p in models.glob(f".work/{run_id}-*/checkpoint.pt") if p.stat().st_mtime >= since]
+        finished = (models / run_id / "summary.json").is_file()
+        if moved and not finished and run_id not in checkpointed:
+            if store_command(["checkpoint", "--config", str(config), "--model-id", run_id]) == 0:
+                checkpointed.append(run_id)
+                continue
+        if model_id not in published and run_id not in checkpointed:
+            untouched.append(model_id)
+    return published, checkpointed, untouched
+
+
+def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequence[str] = (),
+                  output_dir: Path | None = None, log: Path | None = None,
+                  run_command: Sequence[str] | None = None) -> SessionResult:
+    """One session (module docstring). ``run_command`` replaces ``scripts/run-main.sh <targets> <args>`` (tests)."""
+    from scenegen.config import load_config, output_root
+
+    if output_dir is None:
+        config_files = [snakemake_args[i + 1] for i, a in enumerate(snakemake_args[:-1]) if a == "--configfile"]
+        output_dir = output_root(load_config(config_files[-1] if config_files else REPO_ROOT / "config" / "config.yaml"))
+    output_dir = Path(output_dir)
+    if not output_dir.is_absolute():
+        output_dir = REPO_ROOT / output_dir
+    targets = [f"{output_dir.relative_to(REPO_ROOT).as_posix()}/models/{m}" for m in model_ids]
+    command = list(run_command) if run_command is not None else \
+        ["bash", str(REPO_ROOT / "scripts" / "run-main.sh"), *targets, *snakemake_args]
+    since = time.time() - 1.0
+
+    def store(args: list[str]) -> int:
+        return subprocess.run([sys.executable, "-m", "denoisers", "store", *args], cwd=REPO_ROOT).returncode
+
+    returncode, stopped = run_until(command, minutes * 60.0, log=log)
+    published, checkpointed, untouched = keep(output_dir, model_ids, since, store)
+    return SessionResult(returncode, stopped, published, checkpointed, untouched)

@@ -1,0 +1,61 @@
+"""denoisers.store.session: a training run stopped at its deadline, then what finished published and what moved
+checkpointed (the store calls are recorded here; tests/test_store.py covers publish and checkpoint themselves)."""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+from denoisers.store.session import keep, resolved_config, run_until
+
+
+def test_a_run_past_its_deadline_is_stopped_and_one_before_it_is_not(tmp_path: Path) -> None:
+    started = time.monotonic()
+    code, stopped = run_until([sys.executable, "-c", "import time; time.sleep(120)"], 1.0, cwd=tmp_path)
+    assert (code, stopped) == (None, True) and time.monotonic() - started < 30
+    # A child of the run (a training job) goes with it: the whole process group is stopped.
+    marker = tmp_path / "child.pid"
+    script = (f"import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', 'import time; "
+              f"time.sleep(120)']); open({str(marker)!r}, 'w').write(str(p.pid)); time.sleep(120)")
+    code, stopped = run_until([sys.executable, "-c", script], 3.0, cwd=tmp_path)
+    assert stopped
+    child = int(marker.read_text())
+    time.sleep(0.5)
+    assert not Path(f"/proc/{child}").exists() or "Z" in Path(f"/proc/{child}/stat").read_text().split()[2]
+    assert run_until([sys.executable, "-c", "raise SystemExit(3)"], 30.0, cwd=tmp_path) == (3, False)
+
+
+def _touch(path: Path, text: str = "{}", age_s: float = 0.0) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    if age_s:
+        old = time.time() - age_s
+        os.utime(path, (old, old))
+    return path
+
+
+def test_finished_models_are_published_and_moved_runs_checkpointed(tmp_path: Path) -> None:
+    out = tmp_path / "results"
+    since = time.time() - 100
+    _touch(out / ".config" / "old.yaml", age_s=1000)
+    config = _touch(out / ".config" / "abc.yaml")
+    _touch(out / "models" / "done" / "summary.json")                                   # finished this session
+    _touch(out / "models" / "installed" / "summary.json", '{"installed_from_store": true}')
+    _touch(out / "models" / ".work" / "partway-0123" / "checkpoint.pt")                 # moved, not finished
+    _touch(out / "models" / ".work" / "idle-0123" / "checkpoint.pt", age_s=1000)       # from an earlier session
+    _touch(out / "models" / ".work" / "full-0123" / "checkpoint.pt")                   # the twin's run, going on
+    _touch(out / "models" / "full_half" / "summary.json")                              # ...whose twin finished
+    calls: list[list[str]] = []
+
+    def store(args: list[str]) -> int:
+        calls.append(args)
+        return 0
+
+    assert resolved_config(out, since) == config
+    published, checkpointed, untouched = keep(out, ["done", "installed", "partway", "idle", "full_half", "full"],
+                                              since, store)
+    assert published == ["done", "full_half"] and checkpointed == ["partway", "full"]
+    assert untouched == ["installed", "idle"]
+    assert calls[0] == ["publish", "--config", str(config), "--model-id", "done"]
+    assert ["checkpoint", "--config", str(config), "--model-id", "partway"] in calls
