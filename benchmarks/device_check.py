@@ -28,7 +28,6 @@ Speed only counts as a ratio measured here, in one run on one machine.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import math
 import os
