@@ -135,8 +135,10 @@ def render_baseline(config: str, baseline: Path, reference_spp: int) -> dict:
     no libLLVM): the scene, its llvm_ad_rgb render's statistics (``cpu_stats.npz``) and timings (``cpu.json``)."""
     import numpy as np
 
+    from denoisers.device import device_info
+
     record = _render_child(config, "cpu", baseline / "scene", baseline / "render_cpu", reference_spp, True)
-    record["devices"] = {"cpu": __import__("denoisers.device", fromlist=["device_info"]).device_info("cpu")}
+    record["devices"] = {"cpu": device_info("cpu")}
     np.savez_compressed(baseline / "cpu_stats.npz", **radiance_statistics(baseline / "render_cpu"))
     (baseline / "cpu.json").write_text(json.dumps(record, indent=1) + "\n")
     return record

@@ -125,7 +125,7 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
     depend on them); ``threads``, if given, must agree (ValueError otherwise)."""
     import torch
 
-    from denoisers.device import torch_device
+    from denoisers.device import configured_device, default_device, device_info, key_device, torch_device
     from denoisers.training.data import fixed_batches, load_training_clips
     from denoisers.training.loop import Trainer, load_checkpoint
     from denoisers.training.tasks import task_builder
@@ -197,7 +197,6 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
         log.info("%s holds more steps than budget.max_steps = %d: training from scratch", checkpoint,
                  run_spec.budget["max_steps"])
         shutil.rmtree(work_dir)
-    from denoisers.device import configured_device, device_info, key_device
     from denoisers.training.on_device import place
 
     device = torch_device(cfg)
@@ -208,8 +207,6 @@ def train_model(cfg: dict, model_id: str, render_root: Path, out_dir: Path, thre
     trainer = Trainer(task, dataset, validation, config, work_dir,
                       fingerprint_extra={"model": run_spec.settings() | {"budget": None},
                                          "data": data_settings(cfg, run_spec), **key_device(cfg)})
-    from denoisers.device import default_device
-
     with default_device(device):
         result = trainer.run()
 
