@@ -56,7 +56,7 @@ BENCHMARK_FOLDERS = {"denoise": "denoise_clip", "evaluate": "evaluate_clip", "ro
 DEFAULT_REFERENCE_INTEGRATOR = "mcdn_features"
 #: Sidecar ``integrator`` of surface noisy frames (they do not record it); volumetric clips record theirs.
 DEFAULT_NOISY_INTEGRATOR = "mcdn_features"
-#: Integrators of a volumetric clip's references and noisy layers (scenegen.volume_render).
+#: Integrators of a volumetric clip's references and noisy layers (scenegen.volumes.render).
 VOLUME_REFERENCE_INTEGRATOR, VOLUME_NOISY_INTEGRATOR = "volpath", "mcdn_volpath_features"
 
 

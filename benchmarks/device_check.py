@@ -269,7 +269,7 @@ def inference_section(cfg: dict, frames: int, work: Path, models: dict) -> dict:
     import torch
 
     from denoisers import registry
-    from denoisers.denoise_job import _frames, _load_method_clip, run_method
+    from denoisers.jobs.denoise import _frames, _load_method_clip, run_method
     from denoisers.evaluate import method_specs
 
     cores = os.cpu_count() or 1

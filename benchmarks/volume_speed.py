@@ -1,7 +1,7 @@
 """Volumetric rendering rate: our per-sample feature integrator against Mitsuba's ``volpath``, side by side.
 
 Issue 14 asks the noisy renders of the volumetric clips to cost at most 1.5x ``volpath`` for the same scene and
-total spp. For each field kind and a few seeds this draws a clip (scenegen.volume_scenes, frame 0), then renders
+total spp. For each field kind and a few seeds this draws a clip (scenegen.volumes.scenes, frame 0), then renders
 ``--spp`` samples per pixel both ways, alternating which goes first per round, after one warm-up render each
 (kernel compilation excluded):
 
@@ -38,9 +38,9 @@ def main() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    import scenegen.volume_integrator  # noqa: F401 -- registers mcdn_volpath_features
+    import scenegen.volumes.integrator  # noqa: F401 -- registers mcdn_volpath_features
     from scenegen.render import sample_wavefront
-    from scenegen.volume_scenes import FIELD_KINDS, generate_volume_clip
+    from scenegen.volumes.scenes import FIELD_KINDS, generate_volume_clip
 
     print(f"variant {variant}, {args.size}x{args.size}, {args.spp} spp, {args.rounds} rounds, "
           f"{dr.thread_count()} threads")

@@ -12,7 +12,7 @@ first ``k`` layers, which is exactly what rendering ``k`` samples there would gi
 * :func:`gather_mean` / :func:`masked_samples` -- the per-pixel mean of the first ``k`` layers (and the
   per-sample tensor with the layers beyond ``k`` zeroed), vectorised over pixels.
 * :func:`budget_total`, :func:`budget_problems`, :func:`realised_spp` -- the sample accounting the
-  evaluation applies to every adaptive row (denoisers.denoise_job, denoisers.scoring).
+  evaluation applies to every adaptive row (denoisers.jobs.denoise, denoisers.jobs.scoring).
 * :func:`render_adaptive` -- the "renderer" of training: real densities -> integer maps -> gathered means,
   with the renderer gradient below for the backward pass.
 
@@ -60,7 +60,7 @@ import torch
 #: Tolerance of the float budget product n M before flooring (n given as a decimal, e.g. 1.1 x 10 px).
 BUDGET_EPSILON = 1e-9
 ROUNDING_SCHEMES = ("largest_remainder", "stochastic")
-#: Per-frame sample maps of an adaptive row beside its denoised frames (denoisers.denoise_job):
+#: Per-frame sample maps of an adaptive row beside its denoised frames (denoisers.jobs.denoise):
 #: arrays ``frames`` (T,) int64 and ``sample_maps`` (T, H, W) uint8.
 SAMPLE_MAPS_FILE = "sample_maps.npz"
 

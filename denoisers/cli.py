@@ -153,7 +153,7 @@ def load_evaluation_config(path: Path, build_models: bool = True) -> dict:
     (``build_models`` False: without the checks that build methods or networks, see TORCH_FREE_COMMANDS)."""
     from denoisers.evaluate import evaluation_problems
     from denoisers.training.models import training_problems
-    from denoisers.tuning import tuning_problems
+    from denoisers.jobs.tuning import tuning_problems
     from scenegen.config import ConfigError, load_config
 
     cfg = load_config(path)
@@ -174,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     from denoisers.errors import CheckpointError, MissingInputError, NonFiniteLossError
     from denoisers.report.published import PublishError
     from denoisers.store import StoreError
-    from denoisers.tuning import TuningError
+    from denoisers.jobs.tuning import TuningError
     from scenegen.config import ConfigError
     from scenegen.dataset import DatasetError
     from scenegen.exr import EXRError
@@ -277,7 +277,7 @@ def _run(args: argparse.Namespace) -> int:
                  "step %s", args.model_id, summary["steps"], summary["elapsed_seconds"], summary["seconds_per_step"],
                  summary["stopped_by"], summary["best_value"] or float("nan"), summary["best_step"])
     elif args.command == "denoise":
-        from denoisers.denoise_job import denoise_clip
+        from denoisers.jobs.denoise import denoise_clip
 
         record = denoise_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
                               threads=args.threads, results=args.results)
@@ -288,7 +288,7 @@ def _run(args: argparse.Namespace) -> int:
     elif args.command == "tune":
         import json
 
-        from denoisers.tuning import format_result, tune_method
+        from denoisers.jobs.tuning import format_result, tune_method
         from scenegen.atomic import write_text_atomic
 
         from denoisers.experiment import DIGEST_KEY, Lineage
@@ -312,7 +312,7 @@ def _run(args: argparse.Namespace) -> int:
         import json
 
         from denoisers.experiment import DIGEST_KEY, Lineage
-        from denoisers.timing import timed_runs, timing_settings, time_methods
+        from denoisers.jobs.timing import timed_runs, timing_settings, time_methods
         from scenegen.atomic import write_text_atomic
         from scenegen.config import output_root
 
@@ -349,12 +349,12 @@ def _run(args: argparse.Namespace) -> int:
         for line in describe_record(record):
             log.info("%s", line)
     elif args.command == "evaluate":
-        from denoisers.scoring import evaluate_clip
+        from denoisers.jobs.scoring import evaluate_clip
 
         table = evaluate_clip(cfg, args.denoised, args.render_dir, args.out)
         log.info("%s: %d frames, mean PSNR %.2f dB", args.denoised, len(table), table["psnr"].mean())
     elif args.command == "robustness":
-        from denoisers.robustness import robustness_clip
+        from denoisers.jobs.robustness import robustness_clip
 
         summary = robustness_clip(cfg, args.method_id, args.scene, args.spp, args.render_dir, args.out,
                                   threads=args.threads, results=args.results)
@@ -362,7 +362,7 @@ def _run(args: argparse.Namespace) -> int:
                  "%.2f dB", args.method_id, args.scene, summary["injected"], summary["nonfinite_outputs"],
                  summary["out_of_range_outputs"], summary["mean_psnr"])
     elif args.command == "score-scenario":
-        from denoisers.stability_job import score_scenario
+        from denoisers.jobs.stability import score_scenario
 
         record = score_scenario(cfg, args.denoised, args.render_dir, args.masks, args.out, args.control_denoised,
                                 args.control_render_dir)

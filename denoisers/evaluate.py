@@ -7,9 +7,9 @@ on all of them too (its cost is one job per scene and row, like the evaluation's
 
 The jobs behind the evaluation rules live in modules that import this one (never the reverse):
 
-* denoisers.denoise_job: rule denoise_clip, one method on one evaluated scene at one spp -> EXR + PNG + timing.json
-* denoisers.scoring:     rule evaluate_clip, per-frame metrics of a denoised clip against the reference -> CSV
-* denoisers.robustness:  rule robustness_clip, one method on a clip with injected spikes and NaN/Inf -> CSV
+* denoisers.jobs.denoise: rule denoise_clip, one method on one evaluated scene at one spp -> EXR + PNG + timing.json
+* denoisers.jobs.scoring:     rule evaluate_clip, per-frame metrics of a denoised clip against the reference -> CSV
+* denoisers.jobs.robustness:  rule robustness_clip, one method on a clip with injected spikes and NaN/Inf -> CSV
 
 This module imports nothing heavy: the Snakefile calls the config-level helpers (method list, test
 scenes, which (method, spp) pairs can run) while it is parsed, and importing torch there would slow
@@ -73,7 +73,7 @@ class MethodSpec:
     """One evaluation row: row name, registry name, constructor parameters, the sample counts it is
     evaluated at, whether it runs in the spike/NaN scenario, and its role: ``"method"`` for a row of
     ``evaluation.methods``, ``"ablation"`` for a row added for a trained ablation variant, ``"volume"`` for a
-    row of ``volumes.rows`` (run on the volumetric clips only, denoisers.volume_eval)."""
+    row of ``volumes.rows`` (run on the volumetric clips only, denoisers.jobs.volumes)."""
 
     id: str
     method: str

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from denoisers.training.models import method_model, model_spec, settings_digest, training_split
-from denoisers.tuning import TUNED_KEY, tuning_entry
+from denoisers.jobs.tuning import TUNED_KEY, tuning_entry
 from scenegen.config import config_digest, short_digest
 # The scene and render digests live with the scene generator (the training job needs them too); re-exported.
 from scenegen.digests import (NOISY_ONLY_KEYS, REFERENCE_ONLY_KEYS, SCENE_LAYOUT_KEYS, render_digest,  # noqa: F401
@@ -149,7 +149,7 @@ class Lineage:
 
     def timing(self, scene: str, runs: list[tuple[RowSpec, int]]) -> str:
         """The timing job (timing/timing.json): its settings and the denoised digests of the (row, spp) it
-        times (denoisers.timing.timed_runs)."""
+        times (denoisers.jobs.timing.timed_runs)."""
         settings = {key: value for key, value in self.cfg["evaluation"].get("timing", {}).items() if key != "enabled"}
         rows = [self.denoised(spec, scene, spp) for spec, spp in runs]
         return short_digest(config_digest({"timing": settings, "scene": scene, "rows": rows}))

@@ -105,7 +105,7 @@ class Denoiser:
 
     info: ClassVar[MethodInfo]
     samples_factor: int = 1
-    #: Where denoise() computes (:meth:`to`); frames arrive there (denoisers.denoise_job.run_method).
+    #: Where denoise() computes (:meth:`to`); frames arrive there (denoisers.jobs.denoise.run_method).
     device: torch.device = torch.device("cpu")
 
     def __init__(self, **params: Any) -> None:

@@ -31,7 +31,7 @@ SAMPLE_BUFFERS: dict[str, tuple[str, ...]] = {
     "roughness": ("Y",),
     "flags": ("emissive", "metallic", "transmissive", "specular_bounce"),
     "position": ("X", "Y", "Z"),
-    # Volumetric clips only (scenegen.volume_integrator): at the camera ray's first real collision.
+    # Volumetric clips only (scenegen.volumes.integrator): at the camera ray's first real collision.
     "sigma_t": ("Y",),
     "medium": ("Y",),
     "transmittance": ("Y",),

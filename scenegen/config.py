@@ -34,7 +34,7 @@ STABILITY_PREFIX = "stab_"
 #: Suffix of a scenario's failure-free control clip, stab_{name}__still (scenegen.scenarios.hold_final_frame):
 #: rendered and denoised like its scenario, scored only as the steady state of the scenario's lag metric.
 STABILITY_CONTROL_SUFFIX = "__still"
-#: Scene ids of the volumetric clips (config section ``volumes``, scenegen.volume_scenes):
+#: Scene ids of the volumetric clips (config section ``volumes``, scenegen.volumes.scenes):
 #: vol_{split}_{scenario}_{index:03d}, split "test" or "train". Rendered with the volumetric integrators only.
 VOLUME_PREFIX = "vol_"
 VOLUME_SPLITS = ("test", "train")

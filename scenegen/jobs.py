@@ -65,7 +65,7 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
                  manifest["n_frames"])
         return manifest
     if scene_id.startswith(VOLUME_PREFIX):
-        from scenegen.volume_render import generate_volume_scene
+        from scenegen.volumes.render import generate_volume_scene
 
         return generate_volume_scene(cfg, scene_id, out_dir)
     seed = scene_seed(cfg["seed"], scene_id)
@@ -85,7 +85,7 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
 
     settings = RenderSettings.from_config(scene_render_config(cfg, scene_id))
     if scene_id.startswith(VOLUME_PREFIX):
-        from scenegen.volume_render import run_render_volume_noisy
+        from scenegen.volumes.render import run_render_volume_noisy
 
         return run_render_volume_noisy(cfg, scene_id, chunk, scene_dir, out_dir, settings)
     variant = init_mitsuba(settings.variant)
@@ -142,7 +142,7 @@ def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, 
     settings = dataclasses.replace(RenderSettings.from_config(scene_render_config(cfg, scene_id)),
                                    reference_spp=scene_reference_spp(cfg, scene_id))
     if scene_id.startswith(VOLUME_PREFIX):
-        from scenegen.volume_render import run_render_volume_reference
+        from scenegen.volumes.render import run_render_volume_reference
 
         return run_render_volume_reference(cfg, scene_id, chunk, scene_dir, out_dir, settings)
     variant = init_mitsuba(settings.variant)

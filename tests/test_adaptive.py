@@ -1,5 +1,5 @@
 """Adaptive sampling from stored layers (denoisers/adaptive.py, the adaptive method interface in
-registry.py / denoise_job.py / scoring.py, denoisers/methods/adaptive_baselines.py)."""
+registry.py / denoise.py / scoring.py, denoisers/methods/adaptive_baselines.py)."""
 from __future__ import annotations
 
 import json
@@ -12,7 +12,8 @@ import pytest
 import torch
 import yaml
 
-from denoisers import adaptive, denoise_job, evaluate, registry, scoring
+from denoisers import adaptive, evaluate, registry
+from denoisers.jobs import denoise, scoring
 from denoisers.adaptive import BudgetError, budget_total, gather_mean, masked_samples, normalize_sample_map
 from denoisers.evaluate import EvaluationError
 from denoisers.registry import AdaptiveOutput, Denoiser, Frame
@@ -188,7 +189,7 @@ def test_variance_adaptive_spends_the_budget_where_the_noise_is() -> None:
 
 
 # ------------------------------------------------------------------------------------------------
-# Through the evaluation: denoise_job and scoring on a tiny synthetic clip with radiance-only layers
+# Through the evaluation: jobs.denoise and jobs.scoring on a tiny synthetic clip with radiance-only layers
 # ------------------------------------------------------------------------------------------------
 
 def _write_clip(render_dir: Path, seed: int = 0) -> np.ndarray:
@@ -278,7 +279,7 @@ def test_adaptive_rows_through_denoise_and_scoring(clip_dir: Path, tmp_path: Pat
     clip = load_clip(clip_dir, buffers=("radiance",), reference=False)
     assert clip.samples["radiance"].shape[1] == FULL + EXTRA
     out = tmp_path / "uniform"
-    record = denoise_job.denoise_clip(cfg, "uniform", "test_000", 4, clip_dir, out)
+    record = denoise.denoise_clip(cfg, "uniform", "test_000", 4, clip_dir, out)
     # Uniform at budget 4 = the mean of the first 4 layers, two of them radiance-only layers.
     for t in range(FRAMES):
         image = evaluate.read_radiance_exr(out / f"frame_{t:04d}.exr")
@@ -293,7 +294,7 @@ def test_adaptive_rows_through_denoise_and_scoring(clip_dir: Path, tmp_path: Pat
     assert table["realised_spp"].tolist() == [4.0] * FRAMES and table["budget_spp"].tolist() == [4.0] * FRAMES
 
     out = tmp_path / "variance"
-    record = denoise_job.denoise_clip(cfg, "variance", "test_000", 4, clip_dir, out)
+    record = denoise.denoise_clip(cfg, "variance", "test_000", 4, clip_dir, out)
     assert all(2.0 < spp <= 4.0 for spp in record["realised_spp_per_frame"])     # pilot 2, then by variance
     with np.load(out / adaptive.SAMPLE_MAPS_FILE) as data:
         maps = data["sample_maps"].astype(np.int64)
@@ -301,7 +302,7 @@ def test_adaptive_rows_through_denoise_and_scoring(clip_dir: Path, tmp_path: Pat
     table = scoring.evaluate_clip(cfg, out, clip_dir, tmp_path / "variance.csv")
     np.testing.assert_allclose(table["realised_spp"], maps.mean(axis=(1, 2)))
     # Non-adaptive rows keep their columns.
-    denoise_job.denoise_clip(cfg, "noisy", "test_000", 2, clip_dir, tmp_path / "noisy")
+    denoise.denoise_clip(cfg, "noisy", "test_000", 2, clip_dir, tmp_path / "noisy")
     assert "realised_spp" not in scoring.evaluate_clip(cfg, tmp_path / "noisy", clip_dir, tmp_path / "n.csv").columns
 
     # A sample map edited after the fact is caught by scoring, naming the row and frame.
@@ -318,11 +319,11 @@ def test_adaptive_frames_carry_all_layers_aux_from_the_full_layers_only(clip_dir
     runs = {(run.spec.id, run.spp): run for run in evaluate.plan_runs(cfg)}
     assert runs[("aux", 4)].runnable, runs[("aux", 4)].not_run       # albedo: 2 layers suffice for an adaptive row
     AuxAdaptive.seen.clear()
-    record = denoise_job.denoise_clip(cfg, "aux", "test_000", 4, clip_dir, tmp_path / "aux")
+    record = denoise.denoise_clip(cfg, "aux", "test_000", 4, clip_dir, tmp_path / "aux")
     assert AuxAdaptive.seen[0] == {"radiance": FULL + EXTRA, "albedo": FULL, "budget": 4.0}
     assert record["realised_spp"] == 4.0
     with pytest.raises(EvaluationError, match=r"row 'greedy', scene test_000: frame 1 uses 169 samples for 168 pixels"):
-        denoise_job.denoise_clip(cfg, "greedy", "test_000", 1, clip_dir, tmp_path / "greedy")
+        denoise.denoise_clip(cfg, "greedy", "test_000", 1, clip_dir, tmp_path / "greedy")
     assert not (tmp_path / "greedy").exists()
 
 
@@ -335,7 +336,7 @@ def test_a_non_adaptive_output_of_an_adaptive_method_names_method_and_frame(test
     try:
         frame = _frame(torch.rand(4, 3, 4, 4), 2)
         with pytest.raises(EvaluationError, match="'test_plain_adaptive', frame 0: denoise\\(\\) returned Tensor"):
-            denoise_job.run_method(Plain(), [frame], threads=1)
+            denoise.run_method(Plain(), [frame], threads=1)
     finally:
         registry._REGISTRY.pop("test_plain_adaptive", None)
     assert math.isclose(adaptive.realised_spp(torch.tensor([[1, 2], [3, 4]])), 2.5)

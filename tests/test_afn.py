@@ -332,7 +332,7 @@ def test_method_matches_the_training_prediction() -> None:
 def test_method_reports_its_lambda_maps_and_the_evaluation_stores_them() -> None:
     """Denoiser.diagnostics of the temporal model: lambda (H, W) of the last frame, 0 at the first frame, the
     blend the frame step used; run_method (the evaluation's loop) stacks them per frame; single-frame: none."""
-    from denoisers.denoise_job import run_method
+    from denoisers.jobs.denoise import run_method
 
     torch.manual_seed(0)
     model = AFNNet(AFNConfig(**SMALL)).eval()

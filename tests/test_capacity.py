@@ -16,7 +16,7 @@ from denoisers.report import report_outputs
 from denoisers.report.capacity import (capacity_section, capacity_table, output_name, select_smallest,
                                        selection_statement)
 from denoisers.report.collect import Results, TrainedModel, TrainedModels
-from denoisers.timing import TimingJob, timed_runs
+from denoisers.jobs.timing import TimingJob, timed_runs
 from denoisers.training.models import capacity_model_ids, model_specs, training_problems
 from scenegen.config import ConfigError, validate_config
 from tests.test_evaluate import smoke_config as _smoke_config

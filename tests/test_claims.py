@@ -21,7 +21,7 @@ from denoisers import evaluate
 from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_SPEED_ROUNDS, NOT_RUN, REPRODUCED, Part,
                                      claims_table, evaluate_claim)
 from denoisers.report.collect import Results
-from denoisers.timing import TIMING_SCHEMA, TimingJob
+from denoisers.jobs.timing import TIMING_SCHEMA, TimingJob
 from denoisers.reproductions import all_claims, all_reproductions
 from scenegen.config import validate_config
 

@@ -1,5 +1,5 @@
-"""Tests for the evaluation planning and jobs (denoisers/evaluate.py, denoise_job.py, scoring.py,
-robustness.py): rows and runs, denoise, per-frame metrics, robustness.
+"""Tests for the evaluation planning and jobs (denoisers/evaluate.py, jobs/denoise.py, jobs/scoring.py,
+jobs/robustness.py): rows and runs, denoise, per-frame metrics, robustness.
 
 Every test runs on a tiny synthetic clip written in the on-disk data format (no rendering): a static
 smooth image with multiplicative noise per sample layer and constant auxiliary buffers.
@@ -17,7 +17,8 @@ import pytest
 import torch
 import yaml
 
-from denoisers import denoise_job, evaluate, metrics, registry, robustness, scoring
+from denoisers import evaluate, metrics, registry
+from denoisers.jobs import denoise, robustness, scoring
 from denoisers.registry import Denoiser, Frame, MissingInputError
 from scenegen.config import validate_config
 from scenegen.channels import noisy_channels, pixel_channels, reference_channels
@@ -151,7 +152,7 @@ def test_test_scenes_exclude_training_scenes() -> None:
 def test_denoise_writes_exr_png_and_timing(scene_dir: Path, tmp_path: Path) -> None:
     cfg = smoke_config(methods=BASIC_METHODS)
     out = tmp_path / "denoised" / "path_x2" / "test_000" / "spp2"
-    record = denoise_job.denoise_clip(cfg, "path_x2", "test_000", 2, scene_dir, out, threads=1)
+    record = denoise.denoise_clip(cfg, "path_x2", "test_000", 2, scene_dir, out, threads=1)
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted([f"frame_{t:04d}.{ext}" for t in range(FRAMES) for ext in ("exr", "png")]
                            + ["timing.json"])
@@ -183,7 +184,7 @@ def test_denoise_writes_exr_png_and_timing(scene_dir: Path, tmp_path: Path) -> N
 def test_evaluate_writes_per_frame_metrics(scene_dir: Path, tmp_path: Path) -> None:
     cfg = smoke_config(methods=BASIC_METHODS, warmup_frames=2)
     denoised = tmp_path / "denoised"
-    denoise_job.denoise_clip(cfg, "noisy", "test_000", 4, scene_dir, denoised)
+    denoise.denoise_clip(cfg, "noisy", "test_000", 4, scene_dir, denoised)
     table = scoring.evaluate_clip(cfg, denoised, scene_dir, tmp_path / "m.csv")
     on_disk = pd.read_csv(tmp_path / "m.csv")
     assert list(on_disk.columns) == ["frame", *evaluate.ALL_METRICS, "camera_cut", "nonfinite_output",
@@ -205,7 +206,7 @@ def test_temporal_metrics_restart_after_a_camera_cut(tmp_path: Path) -> None:
     render_dir = tmp_path / "test_000"
     write_synthetic_scene(render_dir, frames=5, camera_cut=3)
     cfg = smoke_config(methods=BASIC_METHODS, warmup_frames=1)
-    denoise_job.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, tmp_path / "d")
+    denoise.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, tmp_path / "d")
     table = scoring.evaluate_clip(cfg, tmp_path / "d", render_dir, tmp_path / "m.csv")
     # Frame 3 follows the cut: its "temporal difference" spans two shots and is not scored.
     assert table["tpsnr"].isna().tolist() == [True, False, False, True, False]
@@ -217,7 +218,7 @@ def test_missing_buffer_names_buffer_and_method(tmp_path: Path, box_method: str)
     write_synthetic_scene(render_dir, omit=("albedo",))
     cfg = smoke_config(methods=[{"id": "box", "method": "test_box3"}])
     with pytest.raises(MissingInputError) as excinfo:
-        denoise_job.denoise_clip(cfg, "box", "test_000", 1, render_dir, tmp_path / "out")
+        denoise.denoise_clip(cfg, "box", "test_000", 1, render_dir, tmp_path / "out")
     assert excinfo.value.buffer == "albedo"
     assert "'albedo'" in str(excinfo.value) and "box (test_box3)" in str(excinfo.value)
     assert not (tmp_path / "out").exists()
@@ -226,14 +227,14 @@ def test_missing_buffer_names_buffer_and_method(tmp_path: Path, box_method: str)
 def test_too_few_layers_is_a_missing_input_error(scene_dir: Path, tmp_path: Path) -> None:
     cfg = smoke_config(methods=BASIC_METHODS)
     with pytest.raises(MissingInputError, match=r"path_x2 \(path_tracing\).*'radiance'.*8 sample layers needed"):
-        denoise_job.denoise_clip(cfg, "path_x2", "test_000", 4, scene_dir, tmp_path / "out")
+        denoise.denoise_clip(cfg, "path_x2", "test_000", 4, scene_dir, tmp_path / "out")
 
 
 def test_resolution_mismatch_names_both_files(tmp_path: Path) -> None:
     render_dir = tmp_path / "test_000"
     write_synthetic_scene(render_dir, reference_size=(HEIGHT, WIDTH - 2))
     cfg = smoke_config(methods=BASIC_METHODS)
-    denoise_job.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, tmp_path / "d")
+    denoise.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, tmp_path / "d")
     # The loader compares noisy and reference sizes as well; evaluate reads the files directly.
     with pytest.raises(evaluate.EvaluationError, match=r"resolution mismatch: .*frame_0000\.exr is 12x16.*"
                                                        r"reference .*frame_0000\.exr is 12x14"):
@@ -244,7 +245,7 @@ def test_resolution_mismatch_names_both_files(tmp_path: Path) -> None:
 def test_frame_count_mismatch_names_both_directories(scene_dir: Path, tmp_path: Path) -> None:
     cfg = smoke_config(methods=BASIC_METHODS)
     denoised = tmp_path / "d"
-    denoise_job.denoise_clip(cfg, "noisy", "test_000", 1, scene_dir, denoised)
+    denoise.denoise_clip(cfg, "noisy", "test_000", 1, scene_dir, denoised)
     (denoised / "frame_0003.exr").unlink()
     with pytest.raises(evaluate.EvaluationError, match=r"frame count mismatch: .*d holds 3 denoised frames.*"
                                                        r"reference holds 4 reference frames"):
@@ -377,7 +378,7 @@ def test_nonfinite_outputs_are_counted_and_scored_as_zero(scene_dir: Path, tmp_p
     np.testing.assert_array_equal(last, outputs[-1])  # written as returned, NaN and Inf included
 
     denoised = tmp_path / "denoised"
-    record = denoise_job.denoise_clip(cfg, "bad", "test_000", 2, scene_dir, denoised, threads=1)
+    record = denoise.denoise_clip(cfg, "bad", "test_000", 2, scene_dir, denoised, threads=1)
     assert record["nonfinite_outputs"] == FRAMES * per_frame
     assert record["nonfinite_outputs_per_frame"] == [per_frame] * FRAMES
     check(scoring.evaluate_clip(cfg, denoised, scene_dir, tmp_path / "m.csv"))
@@ -519,7 +520,7 @@ def test_out_of_range_outputs_are_counted_per_frame(scene_dir: Path, tmp_path: P
                                 {"id": "albedo", "method": "test_albedo_only"}, *BASIC_METHODS])
     assert cfg["evaluation"]["out_of_range_factor"] == 10
     expected = [3 * (t + 1) for t in range(FRAMES)]  # every channel of frame.index + 1 pixels
-    record = denoise_job.denoise_clip(cfg, "boom", "test_000", 2, scene_dir, tmp_path / "boom", threads=1)
+    record = denoise.denoise_clip(cfg, "boom", "test_000", 2, scene_dir, tmp_path / "boom", threads=1)
     assert record["out_of_range_outputs_per_frame"] == expected
     assert record["out_of_range_outputs"] == sum(expected) == 30
     assert record["out_of_range_factor"] == 10 and record["out_of_range_checked"] is True
@@ -534,11 +535,11 @@ def test_out_of_range_outputs_are_counted_per_frame(scene_dir: Path, tmp_path: P
 
     # The factor comes from the config: 1e7 x the largest sample is above every output of Exploding.
     cfg["evaluation"]["out_of_range_factor"] = 1e7
-    record = denoise_job.denoise_clip(cfg, "boom", "test_000", 2, scene_dir, tmp_path / "boom_1e7", threads=1)
+    record = denoise.denoise_clip(cfg, "boom", "test_000", 2, scene_dir, tmp_path / "boom_1e7", threads=1)
     assert record["out_of_range_outputs"] == 0 and record["out_of_range_factor"] == 1e7
 
     # A method that reads no radiance has no input range: nothing counted, and the record says so.
-    record = denoise_job.denoise_clip(cfg, "albedo", "test_000", 2, scene_dir, tmp_path / "albedo", threads=1)
+    record = denoise.denoise_clip(cfg, "albedo", "test_000", 2, scene_dir, tmp_path / "albedo", threads=1)
     assert record["out_of_range_outputs"] == 0 and record["out_of_range_outputs_per_frame"] == [0] * FRAMES
     assert record["out_of_range_checked"] is False
 
@@ -546,7 +547,7 @@ def test_out_of_range_outputs_are_counted_per_frame(scene_dir: Path, tmp_path: P
 @pytest.mark.parametrize("method", ["noisy", "eaw"])
 def test_normal_methods_have_no_out_of_range_outputs(scene_dir: Path, tmp_path: Path, method: str) -> None:
     cfg = smoke_config(methods=[{"id": method, "method": method}])
-    record = denoise_job.denoise_clip(cfg, method, "test_000", 4, scene_dir, tmp_path / method, threads=1)
+    record = denoise.denoise_clip(cfg, method, "test_000", 4, scene_dir, tmp_path / method, threads=1)
     assert record["out_of_range_outputs"] == 0 and record["out_of_range_outputs_per_frame"] == [0] * FRAMES
     assert record["out_of_range_checked"] is True
     summary = robustness.robustness_clip(cfg, method, "test_000", 2, scene_dir, tmp_path / "robust", threads=1)

@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from denoisers import denoise_job, evaluate, scoring
+from denoisers import evaluate
+from denoisers.jobs import denoise, scoring
 from denoisers.clean import CleanError, clean_experiment
 from denoisers.experiment import DIGEST_KEY, Lineage, SettingsMismatchError
 from denoisers.report.collect import collect
@@ -161,7 +162,7 @@ def test_denoise_and_evaluate_record_digests_and_refuse_a_clip_of_other_settings
     write_synthetic_scene(render_dir)
     denoised = evaluate.denoised_dir(tmp_path, "noisy", "test_000", 1)
     csv = evaluate.metrics_csv(tmp_path, "noisy", "test_000", 1)
-    record = denoise_job.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, denoised)
+    record = denoise.denoise_clip(cfg, "noisy", "test_000", 1, render_dir, denoised)
     scoring.evaluate_clip(cfg, denoised, render_dir, csv)
     row, lineage = evaluate.method_spec(cfg, "noisy"), Lineage(cfg)
     assert record[DIGEST_KEY] == lineage.denoised(row, "test_000", 1)

@@ -1,5 +1,5 @@
 """The Iglesias-Guitian comparison on the volumetric clips: volume rows and their not-run reasons
-(denoisers.volume_eval), collecting their metrics with digest checks (denoisers.report.volumes), the per-scenario
+(denoisers.jobs.volumes), collecting their metrics with digest checks (denoisers.report.volumes), the per-scenario
 table and C4.1 / C4.3 decided over the clips (denoisers.reproductions.iglesias2022)."""
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage, SettingsMism
 from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED
 from denoisers.report.volumes import VolumeResults, collect_volumes
 from denoisers.reproductions import iglesias2022
-from denoisers.volume_eval import (volume_denoised_dir, volume_metrics_csv, volume_problems, volume_runs,
+from denoisers.jobs.volumes import (volume_denoised_dir, volume_metrics_csv, volume_problems, volume_runs,
                                    volume_test_scene_ids)
 from scenegen.config import load_config
 
@@ -209,7 +209,7 @@ def test_c42_is_decided_on_the_spike_scenario_over_the_clips() -> None:
     rows = [{"id": "vol_noisy", "method": "noisy"}, {"id": "vol_wrls", "method": "wrls", "robustness": True},
             {"id": "vol_rls", "method": "rls", "robustness": True}]
     cfg = volume_config(rows=rows, denoise_spp=[2])
-    from denoisers.volume_eval import volume_robustness_runs
+    from denoisers.jobs.volumes import volume_robustness_runs
 
     assert [(run.spec.id, run.spp) for run in volume_robustness_runs(cfg)] == [("vol_wrls", 2), ("vol_rls", 2)]
     res = synthetic(cfg, CLEAR, {("vol_rls", 2): np.linspace(20.0, 26.0, 4) + 2.0})

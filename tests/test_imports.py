@@ -247,7 +247,7 @@ def test_scoring_jobs_do_not_import_torch() -> None:
 
     probe = ("import sys\n"
              "from denoisers.cli import TORCH_FREE_COMMANDS, load_evaluation_config\n"
-             "import denoisers.scoring, denoisers.stability_job, denoisers.stability_metrics, denoisers.metrics\n"
+             "import denoisers.jobs.scoring, denoisers.jobs.stability, denoisers.stability_metrics, denoisers.metrics\n"
              "assert {'evaluate', 'score-scenario'} <= TORCH_FREE_COMMANDS\n"
              "load_evaluation_config('config/config.yaml', build_models=False)\n"
              "print('torch' in sys.modules)\n"

@@ -380,7 +380,7 @@ def test_report_has_tables_figures_and_claims(pipeline: PipelineRun) -> None:
     from scipy import stats
 
     from denoisers.report.claims import MIN_SPEED_ROUNDS
-    from denoisers.timing import TIMING_JOB_FILE, read_timing_job
+    from denoisers.jobs.timing import TIMING_JOB_FILE, read_timing_job
 
     job = read_timing_job(pipeline.results / TIMING_JOB_FILE)
     logs = np.log(np.divide(job.row("wrls", 2)["pass_ms_per_frame"], job.row("rae", 2)["pass_ms_per_frame"]))
@@ -510,7 +510,7 @@ def test_every_output_records_the_settings_digest_of_this_config(pipeline: Pipel
             assert summary[DIGEST_KEY] == lineage.robustness(method_spec(cfg, run.spec.id), scene, run.spp)
             checked += 1
     # The volume rows on the evaluated volumetric clips: metrics, denoised clip, spike scenario.
-    from denoisers.volume_eval import (volume_denoised_dir, volume_metrics_csv, volume_robustness_dir,
+    from denoisers.jobs.volumes import (volume_denoised_dir, volume_metrics_csv, volume_robustness_dir,
                                        volume_robustness_runs, volume_runs, volume_test_scene_ids)
 
     for scene in volume_test_scene_ids(cfg):
@@ -534,7 +534,7 @@ def test_every_output_records_the_settings_digest_of_this_config(pipeline: Pipel
         record = json.loads((pipeline.results / "tuning" / f"{entry['method']}.json").read_text())
         assert record[DIGEST_KEY] == lineage.tuning(entry["method"])
         checked += 1
-    from denoisers.timing import TIMING_JOB_FILE, timed_runs
+    from denoisers.jobs.timing import TIMING_JOB_FILE, timed_runs
 
     timing = json.loads((pipeline.results / TIMING_JOB_FILE).read_text())
     assert timing[DIGEST_KEY] == lineage.timing("test_000", [(method_spec(cfg, r), s) for r, s in timed_runs(cfg)])
@@ -551,7 +551,7 @@ def test_every_output_records_the_settings_digest_of_this_config(pipeline: Pipel
 def test_the_timing_job_times_every_configured_row_and_the_report_uses_it(pipeline: PipelineRun) -> None:
     """Rule time_methods: every runnable configured row at every evaluated spp, in interleaved rounds, with
     the renderer's rate at the same threads; the timing table and C4.4 read it, not the denoise jobs."""
-    from denoisers.timing import TIMING_JOB_FILE, read_timing_job, timed_runs, timing_settings
+    from denoisers.jobs.timing import TIMING_JOB_FILE, read_timing_job, timed_runs, timing_settings
 
     job = read_timing_job(pipeline.results / TIMING_JOB_FILE)
     settings = timing_settings(pipeline.cfg)
@@ -599,7 +599,7 @@ def test_the_stability_suite_scores_every_row_and_builds_the_atlas(pipeline: Pip
     """Issue 15 in the real smoke DAG: every runnable (row, spp) of the suite is scored on every scenario (per-frame
     CSV and a summary with the failure metrics), the atlas files exist, and ATLAS.md and REPORT.md name every row."""
     from denoisers.report.atlas import atlas_outputs
-    from denoisers.stability_job import scores_csv, stability_runs
+    from denoisers.jobs.stability import scores_csv, stability_runs
     from scenegen.config import stability_scene_ids
 
     scenes = stability_scene_ids(pipeline.cfg)

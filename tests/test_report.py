@@ -17,13 +17,14 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from denoisers import denoise_job, evaluate, robustness, scoring
+from denoisers import evaluate
+from denoisers.jobs import denoise, robustness, scoring
 from denoisers.report import build_report, report_outputs
 from denoisers.report.claims import claims_table
 from denoisers.report.collect import collect
 from denoisers.report.stats import HIGHER_IS_BETTER, mean_ci
 from denoisers.reproductions import all_claims
-from denoisers.timing import TIMING_SCHEMA
+from denoisers.jobs.timing import TIMING_SCHEMA
 from tests.test_evaluate import smoke_config, synthetic_reference, write_synthetic_scene
 
 SCENES = ("test_000", "test_001", "test_002")
@@ -297,7 +298,7 @@ def test_report_from_real_evaluation_outputs(tmp_path: Path) -> None:
     for run in evaluate.plan_runs(cfg):
         if run.runnable:
             out = evaluate.denoised_dir(tmp_path, run.spec.id, "test_000", run.spp)
-            denoise_job.denoise_clip(cfg, run.spec.id, "test_000", run.spp, tmp_path / "renders" / "test_000", out)
+            denoise.denoise_clip(cfg, run.spec.id, "test_000", run.spp, tmp_path / "renders" / "test_000", out)
             scoring.evaluate_clip(cfg, out, tmp_path / "renders" / "test_000",
                                   evaluate.metrics_csv(tmp_path, run.spec.id, "test_000", run.spp))
     for run in evaluate.robustness_runs(cfg):

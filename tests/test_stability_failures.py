@@ -57,8 +57,8 @@ def render(cfg: dict, scene: str, root: Path, masks: bool = True) -> None:
 
 
 def denoise(cfg: dict, root: Path, row: str, scene: str) -> Path:
-    from denoisers.denoise_job import denoise_clip
-    from denoisers.stability_job import scenario_denoised_dir
+    from denoisers.jobs.denoise import denoise_clip
+    from denoisers.jobs.stability import scenario_denoised_dir
 
     out = scenario_denoised_dir(root, row, scene, SPP)
     if not out.is_dir():
@@ -68,7 +68,7 @@ def denoise(cfg: dict, root: Path, row: str, scene: str) -> Path:
 
 def denoise_and_score(cfg: dict, root: Path, row: str, scene: str) -> dict:
     """Denoise ``scene`` (and its control clip, if it has one) with ``row`` and score it as rule score_scenario."""
-    from denoisers.stability_job import score_scenario, scores_csv
+    from denoisers.jobs.stability import score_scenario, scores_csv
     from scenegen.scenarios import scenario_control
 
     control = scenario_control(cfg, scene)
@@ -112,8 +112,8 @@ def history_suite(tmp_path_factory) -> dict[str, dict[str, dict]]:
 def lag_region_error(root: Path, row: str, scene: str) -> np.ndarray:
     """(T,) tonemapped MSE of ``row``'s output on clip ``scene`` over the moving-shadow scenario's shadow masks."""
     from denoisers.evaluate import read_frame_files, read_radiance_exr
-    from denoisers.scoring import load_references
-    from denoisers.stability_job import load_masks, scenario_denoised_dir
+    from denoisers.jobs.scoring import load_references
+    from denoisers.jobs.stability import load_masks, scenario_denoised_dir
     from denoisers.stability_metrics import masked_mse
 
     frames, _, reference, _ = load_references(root / "renders" / scene)
@@ -159,7 +159,7 @@ def test_frame_by_frame_oidn_flickers_more_than_svgf_on_a_static_room(suite) -> 
 
 @pytest.mark.slow
 def test_masks_match_the_renderer_geometry_and_scores_are_deterministic(suite, tmp_path: Path) -> None:
-    from denoisers.stability_job import load_masks, score_scenario
+    from denoisers.jobs.stability import load_masks, score_scenario
     from scenegen.dataset import load_clip
 
     cfg, root = suite

@@ -301,7 +301,7 @@ def test_smoke_stability_target_plans_the_expected_jobs(tmp_path: Path) -> None:
 
 
 def test_stability_rows_must_be_evaluation_rows() -> None:
-    from denoisers.stability_job import stability_rows
+    from denoisers.jobs.stability import stability_rows
 
     cfg = load_config(REPO_ROOT / "config/smoke.yaml")
     assert [spec.id for spec in stability_rows(cfg)] == ["noisy", "svgf", "oidn"]

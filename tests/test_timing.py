@@ -1,4 +1,4 @@
-"""The timing job (denoisers/timing.py): passes, medians and spread, rows timed on the same frames."""
+"""The timing job (denoisers/jobs/timing.py): passes, medians and spread, rows timed on the same frames."""
 from __future__ import annotations
 
 import time
@@ -11,7 +11,7 @@ import torch
 
 from denoisers import registry
 from denoisers.registry import Denoiser, Frame
-from denoisers.timing import (TimingJob, pass_seconds, prepare_run, speed_ratios, summarise_passes, time_interleaved,
+from denoisers.jobs.timing import (TimingJob, pass_seconds, prepare_run, speed_ratios, summarise_passes, time_interleaved,
                               time_run, timed_runs, timing_scene)
 from tests.test_evaluate import smoke_config, write_synthetic_scene
 
@@ -132,7 +132,7 @@ def test_the_raes_fused_inference_convolutions_are_counted() -> None:
 
     from denoisers.nets import for_inference
     from denoisers.nets.rae import RAEConfig, RecurrentAutoencoder
-    from denoisers.timing import flop_counter
+    from denoisers.jobs.timing import flop_counter
 
     config = RAEConfig(features=("normal", "depth", "roughness"), width=0.25)
     model = RecurrentAutoencoder(config).eval()

@@ -1,4 +1,4 @@
-"""Tuning apart from testing (denoisers/tuning.py, rule tune_method).
+"""Tuning apart from testing (denoisers/jobs/tuning.py, rule tune_method).
 
 Baseline parameters are chosen by a grid search that sees training scenes only; the grid search finds
 a known optimum on synthetic clips; evaluation rows with ``tuned: true`` read its result; no shipped
@@ -19,7 +19,7 @@ import yaml
 from denoisers import registry
 from denoisers.registry import Denoiser, Frame
 from denoisers.training.models import resolve_method_params
-from denoisers.tuning import (TuningError, check_training_scenes, grid_combinations, tune_method,
+from denoisers.jobs.tuning import (TuningError, check_training_scenes, grid_combinations, tune_method,
                               tuned_params, tuning_problems)
 from scenegen.config import load_config, scene_ids, validate_config
 from scenegen.seeds import scene_seed

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import scenegen.volume_integrator  # noqa: F401 -- registers mcdn_volpath_features
-from scenegen.volume_integrator import VOLUME_AOVS
+import scenegen.volumes.integrator  # noqa: F401 -- registers mcdn_volpath_features
+from scenegen.volumes.integrator import VOLUME_AOVS
 
 SIZE = 24
 BLOCK = 4

@@ -1,4 +1,4 @@
-"""Volumetric clips through the scene jobs (scenegen.volume_render, scenegen.volume_motion): config ids and
+"""Volumetric clips through the scene jobs (scenegen.volumes.render, scenegen.volumes.motion): config ids and
 settings, digests, the rendered files and their buffers, the closest-collision G-buffer, motion vectors
 (zero and valid under light and transfer-function edits; under camera motion checked against Mitsuba's own
 sensor projection and by warping the previous reference), determinism."""
@@ -19,7 +19,7 @@ from scenegen.channels import VOLUME_BUFFERS
 from scenegen.dataset import MissingBufferError, load_clip, load_reference_frame
 from scenegen.digests import render_digest, scene_digest
 from scenegen.motion import warp_previous
-from scenegen.volume_motion import OBJECT_ENVIRONMENT, OBJECT_MEDIUM, OBJECT_SURFACE, closest_collision_gbuffer
+from scenegen.volumes.motion import OBJECT_ENVIRONMENT, OBJECT_MEDIUM, OBJECT_SURFACE, closest_collision_gbuffer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -144,7 +144,7 @@ def test_camera_motion_follows_mitsubas_projection_of_the_closest_collision(rend
     import drjit as dr
     import mitsuba as mi
 
-    from scenegen.volume_scenes import VolumeClip
+    from scenegen.volumes.scenes import VolumeClip
 
     cfg, root = rendered
     scene_id = "vol_test_camera_000"
@@ -214,8 +214,8 @@ def test_a_users_npy_field_renders_as_its_own_evaluated_clip(tmp_path) -> None:
     """volumes.extra: the .npy values are mapped linearly from [min, max] to [0, 1] and through the given transfer
     function (checked voxel by voxel by hand), the box takes the array's aspect, the clip is evaluated, and a changed
     file is refused by name."""
-    from denoisers.volume_eval import volume_test_scene_ids
-    from scenegen.volume_scenes import VolumeClip
+    from denoisers.jobs.volumes import volume_test_scene_ids
+    from scenegen.volumes.scenes import VolumeClip
 
     field = np.zeros((4, 6, 8), np.int16)                      # [z, y, x]: x is the longest axis
     field[1:3, 2:4, 3:6] = 300

@@ -1,4 +1,4 @@
-"""Seeded volumetric clips (scenegen.volume_scenes): determinism of manifests and fields, one animated element
+"""Seeded volumetric clips (scenegen.volumes.scenes): determinism of manifests and fields, one animated element
 per scenario, frame 0 renders with a visible medium, and per-frame edits of a loaded scene match fresh loads."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from scenegen.volume_scenes import (FIELD_KINDS, SCENARIOS, VolumeClip, field_from_manifest, frame_updates,
+from scenegen.volumes.scenes import (FIELD_KINDS, SCENARIOS, VolumeClip, field_from_manifest, frame_updates,
                                     generate_volume_clip)
 
 FRAMES = 3
@@ -123,8 +123,8 @@ def test_frame_updates_match_a_fresh_load(scenario, light):
 def test_occupied_bounds_are_the_voxels_a_transfer_function_makes_visible():
     """Hand-placed voxels in a (D, H, W) = [z, y, x] field inside a box from (0, 0, 0) to (4, 2, 8): the bounds
     cover exactly the voxels whose extinction passes the visibility threshold in any frame."""
-    from scenegen.volume_framing import VISIBLE_OPTICAL_DEPTH, occupied_bounds
-    from scenegen.volumes import TransferFunction
+    from scenegen.volumes.framing import VISIBLE_OPTICAL_DEPTH, occupied_bounds
+    from scenegen.volumes.media import TransferFunction
 
     field = np.zeros((8, 4, 4), np.float32)          # voxels of 1 x 0.5 x 1 scene units (x, y, z)
     field[2:5, 1, 3] = 0.5                           # z 2..4, y 1, x 3: visible only in the second frame
@@ -155,7 +155,7 @@ def test_the_camera_frames_the_visible_volume(seed, scenario, aspect):
     import drjit as dr
     import mitsuba as mi
 
-    from scenegen.volume_framing import FRAME_FILL, occupied_bounds
+    from scenegen.volumes.framing import FRAME_FILL, occupied_bounds
 
     width = 64
     height = int(round(width * aspect))

@@ -1,4 +1,4 @@
-"""Heterogeneous media (scenegen.volumes): grid axes, transfer functions, shells, determinism, user fields,
+"""Heterogeneous media (scenegen.volumes.media): grid axes, transfer functions, shells, determinism, user fields,
 and transfer-function edits of a loaded scene. Reference values are hand-computed or analytic."""
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenegen.volume_fields import load_field, noise_cloud, smoke_plume
-from scenegen.volume_mesh import shells_from_mesh
-from scenegen.volumes import TransferFunction, medium_shape, update_medium
+from scenegen.volumes.fields import load_field, noise_cloud, smoke_plume
+from scenegen.volumes.mesh import shells_from_mesh
+from scenegen.volumes.media import TransferFunction, medium_shape, update_medium
 
 # extinction 0 -> 0, 0.5 -> 4, 1 -> 10; albedo red at 0 to blue at 1
 TF_A = TransferFunction(extinction=[(0.0, 0.0), (0.5, 4.0), (1.0, 10.0)],

@@ -124,7 +124,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     used_inputs = train_scenes if used_models or tuned else []
     # The timing job (rule time_methods): one, if any configured row is runnable; its inputs (the timing
     # scene's noisy renders, the rows' models and tuning results) are needed by the evaluation anyway.
-    from denoisers.timing import timed_runs
+    from denoisers.jobs.timing import timed_runs
 
     timed = 1 if test_scenes and timed_runs(cfg) else 0
     evaluation = {"denoise_clip": evaluated, "evaluate_clip": evaluated, "robustness_clip": robustness,
@@ -138,7 +138,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     # its chunks (one per clip) and one derive_masks job; every runnable (configured row, stability.denoise_spp)
     # denoises and scores every clip (denoise_scenario, score_scenario), with the models and tuning results those
     # rows need (and so the training scenes' renders), and one build_atlas job.
-    from denoisers.stability_job import stability_runs
+    from denoisers.jobs.stability import stability_runs
 
     from scenegen.scenarios import stability_control_ids
 
@@ -155,7 +155,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
                  "build_atlas": 1 if stab else 0, "train_denoiser": stab_models, "tune_method": len(stab_tuned)}
     # The volumetric clips (target `volumes`, also part of `report` and `all`): their scenes and chunks (one per
     # clip), and every runnable (volume row, spp) denoised and scored on every vol_test_* clip.
-    from denoisers.volume_eval import volume_robustness_runs, volume_runs, volume_test_scene_ids
+    from denoisers.jobs.volumes import volume_robustness_runs, volume_runs, volume_test_scene_ids
 
     vol, vol_test = volume_scene_ids(cfg), volume_test_scene_ids(cfg)
     runnable_volume = [run for run in volume_runs(cfg) if run.runnable] if vol_test else []

@@ -26,7 +26,7 @@ class EdgeAvoidingATrous(Denoiser):
 
     Parameters (the paper gives the form of each term; its values are set per scene). The defaults
     below are starting values; the shipped configs choose sigma_color, sigma_normal and sigma_position
-    by the grid search of ``denoisers.tuning`` on the training scenes (rule tune_method, rows with
+    by the grid search of ``denoisers.jobs.tuning`` on the training scenes (rule tune_method, rows with
     ``params: {tuned: true}``), which prints and records the chosen values:
 
     - ``sigma_color`` (8.0): sigma_rt of the colour term in the first pass, in units of the frame's mean

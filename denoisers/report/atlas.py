@@ -1,7 +1,7 @@
 """The failure atlas of the stability suite (issue 15 §3; rule build_atlas, linked from REPORT.md).
 
 Reads every scores file of rule score_scenario (<out>/stability/scores/{row}/{scene}/spp{spp}.json, written by
-denoisers.stability_job) and writes, below <out>/stability/:
+denoisers.jobs.stability) and writes, below <out>/stability/:
 
 * ``tables/atlas.csv`` / ``.md``: scenario x row table of the masked PSNR (the failure's region; whole frame for
   the scenarios without a focus mask), the worst cell of every row in bold: the scenario where the row falls
@@ -72,7 +72,7 @@ def collect_scores(cfg: dict, results_dir: Path) -> tuple[pd.DataFrame, list[dic
     import pandas as pd
 
     from denoisers.experiment import DIGEST_KEY
-    from denoisers.stability_job import scores_csv, scores_lineage, stability_rows, stability_runs, stability_settings
+    from denoisers.jobs.stability import scores_csv, scores_lineage, stability_rows, stability_runs, stability_settings
 
     scenes = stability_scene_ids(cfg)
     try:
@@ -136,7 +136,7 @@ def input_ratios(scores: pd.DataFrame, cfg: dict) -> dict[tuple[str, int], float
     """{(scenario, spp): ghosting ratio of the per-frame noisy input row} (empty without a configured ``noisy``
     row): how far the content change alone moves the lag-region error from the control clip's, the baseline a
     temporal row's ratio is read against."""
-    from denoisers.stability_job import stability_rows
+    from denoisers.jobs.stability import stability_rows
 
     inputs = [spec.id for spec in stability_rows(cfg) if spec.method == "noisy"]
     if not inputs or scores.empty:
@@ -188,7 +188,7 @@ def build_atlas(cfg: dict, results_dir: Path) -> list[Path]:
     from denoisers.report import atlas_figures as figs
     from denoisers.report.stats import formatted, frame_to_markdown
     from denoisers.report.tables import write_table
-    from denoisers.stability_job import stability_rows, stability_settings
+    from denoisers.jobs.stability import stability_rows, stability_settings
     from scenegen.atomic import write_text_atomic
 
     results_dir = Path(results_dir)
@@ -273,7 +273,7 @@ def rows_sentence(cfg: dict) -> str:
     """Which rows the atlas holds: every configured row of evaluation.methods, or those ``stability.rows`` names
     with the ones it leaves out named."""
     from denoisers.evaluate import METHOD_ROLE, method_specs
-    from denoisers.stability_job import stability_rows
+    from denoisers.jobs.stability import stability_rows
 
     configured = [spec.id for spec in method_specs(cfg) if spec.role == METHOD_ROLE]
     chosen = [spec.id for spec in stability_rows(cfg)]

@@ -47,7 +47,7 @@ def plot_family(scores: pd.DataFrame, scenarios: Sequence[str], rows: Sequence[s
 def _score_frames(results_dir: Path, row: str, scene: str, spp: int):
     import pandas as pd
 
-    from denoisers.stability_job import scores_csv
+    from denoisers.jobs.stability import scores_csv
 
     path = scores_csv(results_dir, row, scene, spp)
     return pd.read_csv(path) if path.is_file() else None
@@ -96,7 +96,7 @@ def plot_strip(cfg: dict, scores: pd.DataFrame, results_dir: Path, scene: str, r
     """Every row (first spp) and the reference at the worst frame (largest mean lag-region error over the rows):
     full frame with the mask outlined, and a crop centred on the mask, enlarged."""
     from denoisers.evaluate import preview_rgb8, read_frame_files, read_radiance_exr
-    from denoisers.stability_job import load_masks, scenario_denoised_dir
+    from denoisers.jobs.stability import load_masks, scenario_denoised_dir
     from denoisers.stability_metrics import focus_mask
     from scenegen.dataset import find_frames, load_reference_frame
 

@@ -480,7 +480,7 @@ def compare_rows(res: Results, a: str, b: str, metric: str, spp: int, claimed: s
 def compare_speed(res: Results, a: str, b: str, spp: int, claimed: str = "lower") -> SpeedPart | str:
     """Speed part 'row a @ spp is faster (claimed 'lower') than row b @ spp' from the timing job's per-round
     ratios, or the reason it cannot be decided (no timing job, or a row it did not time)."""
-    from denoisers.timing import speed_ratios
+    from denoisers.jobs.timing import speed_ratios
 
     if res.timing is None:
         return "no timing job output (rule time_methods; evaluation.timing.enabled)"

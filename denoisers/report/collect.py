@@ -36,10 +36,10 @@ from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
 from denoisers.report.seeds import SeedAveraged, seed_mean
 from denoisers.report.stats import pooled_psnr
 from denoisers.report.volumes import VolumeResults, collect_volumes
-from denoisers.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timed_runs, timing_scene, timing_settings
+from denoisers.jobs.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timed_runs, timing_scene, timing_settings
 from denoisers.training.models import ModelSpec, half_budget_specs, model_dir, model_specs, seed_replicas
 from denoisers.training.speed import TRAINING_SPEED_FILE, read_training_speed, speed_models
-from denoisers.tuning import TUNED_KEY, tuning_file
+from denoisers.jobs.tuning import TUNED_KEY, tuning_file
 from scenegen.config import CUSTOM_PREFIX, output_root
 
 if TYPE_CHECKING:

@@ -466,7 +466,7 @@ def tuning_table(res: Results) -> pd.DataFrame:
 
     import pandas as pd
 
-    from denoisers.tuning import tuning_file
+    from denoisers.jobs.tuning import tuning_file
 
     rows = []
     for entry in (res.cfg.get("tuning") or {}).get("methods", []):

@@ -1,4 +1,4 @@
-"""Collecting the volumetric clips' evaluation (rules denoise_volume, evaluate_volume; denoisers.volume_eval): the
+"""Collecting the volumetric clips' evaluation (rules denoise_volume, evaluate_volume; denoisers.jobs.volumes): the
 per-frame metrics of every volume row on every vol_test_* clip, checked against this config's settings digests
 like every other output the report reads (denoisers.experiment.Lineage)."""
 from __future__ import annotations
@@ -13,7 +13,7 @@ from denoisers.evaluate import (ALL_METRICS, ROBUSTNESS_CSV, ROBUSTNESS_SUMMARY,
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage
 from denoisers.report.seeds import SeedAveraged
 from denoisers.report.stats import pooled_psnr
-from denoisers.volume_eval import (volume_denoised_dir, volume_metrics_csv, volume_robustness_dir, volume_robustness_runs,
+from denoisers.jobs.volumes import (volume_denoised_dir, volume_metrics_csv, volume_robustness_dir, volume_robustness_runs,
                                    volume_runs, volume_test_scene_ids)
 from scenegen.config import volume_clip_spec
 

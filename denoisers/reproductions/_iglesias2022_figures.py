@@ -13,7 +13,7 @@ import numpy as np
 
 from denoisers.evaluate import FRAME_EXR, EvaluationError, preview_rgb8, read_radiance_exr
 from denoisers.report.figures import placeholder, pyplot
-from denoisers.volume_eval import volume_denoised_dir
+from denoisers.jobs.volumes import volume_denoised_dir
 
 if TYPE_CHECKING:
     from denoisers.report.volumes import VolumeResults

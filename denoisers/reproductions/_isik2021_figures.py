@@ -60,7 +60,7 @@ def plot_fig8(res: Results, path: Path) -> str:
 
 
 def lambda_map(res: Results, row: str, scene: str, spp: int) -> tuple[int, np.ndarray] | None:
-    """(grid frame, (H, W) lambda) from a row's maps.npz (denoisers.denoise_job), None without one."""
+    """(grid frame, (H, W) lambda) from a row's maps.npz (denoisers.jobs.denoise), None without one."""
     path = denoised_dir(res.results_dir, row, scene, spp) / MAPS_FILE
     if not res.ran(row, spp) or not path.is_file():
         return None

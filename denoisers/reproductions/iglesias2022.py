@@ -325,7 +325,7 @@ def volume_brightness_table(res: Results) -> pd.DataFrame:
 
     from denoisers.evaluate import read_frame_files, read_radiance_exr
     from denoisers.filters import REC709_LUMINANCE
-    from denoisers.volume_eval import volume_denoised_dir
+    from denoisers.jobs.volumes import volume_denoised_dir
     from scenegen.dataset import find_frames, load_reference_frame
 
     vol = res.volumes

@@ -15,7 +15,7 @@ and ``denoisers.methods`` do with the methods); their own source is hashed but t
 another family's network does not re-key a model.
 
 :func:`method_code_digest` is the same digest for a hand-set method's tuning (``store/tuning``): its registry
-module and ``denoisers.tuning``, transitively.
+module and ``denoisers.jobs.tuning``, transitively.
 
 How a module is hashed: ``ast.dump`` of its parsed source with every docstring removed and without line
 numbers. Comments are not in the tree, and formatting is not in the dump, so neither changes the digest;
@@ -263,7 +263,7 @@ def method_module(method: str, root: Path = REPO_ROOT) -> str:
 def _cached_method_digest(method: str, root: str) -> str:
     base = Path(root)
     roots = {name: ast.parse(module_path(name, base).read_text())  # type: ignore[union-attr]
-             for name in (method_module(method, base), "denoisers.tuning")}
+             for name in (method_module(method, base), "denoisers.jobs.tuning")}
     digest = hashlib.sha256()
     for name, tree in sorted(_closure(roots, base).items()):
         text = ast.dump(_strip_docstrings(tree), annotate_fields=False, include_attributes=False)

@@ -333,7 +333,7 @@ def resolve_method_params(cfg: dict, params: Mapping[str, Any], results: Path | 
     ``tuned: true`` adds ``method``'s parameters from <results>/tuning/{method}.json (the row's own params
     win). ``results`` defaults to the config's output_dir. With ``method`` None (planning, before any tuning
     ran) ``tuned`` is dropped without reading."""
-    from denoisers.tuning import TUNED_KEY, tuned_params
+    from denoisers.jobs.tuning import TUNED_KEY, tuned_params
 
     results = output_root(cfg) if results is None else results
     resolved = dict(params)

@@ -27,12 +27,12 @@ from denoisers import experiment
 from denoisers.device import DeviceError, resolve_config_device
 from denoisers.evaluate import (evaluation_problems, method_specs, robustness_dir, evaluated_scene_ids,
                                 volume_method_specs)
-from denoisers.volume_eval import volume_problems
+from denoisers.jobs.volumes import volume_problems
 from denoisers.report import report_outputs
 from denoisers.report.atlas import atlas_outputs
-from denoisers.timing import timed_runs, timing_scene, timing_settings
+from denoisers.jobs.timing import timed_runs, timing_scene, timing_settings
 from denoisers.training.speed import TRAINING_SPEED_FILE, speed_models, speed_settings
-from denoisers.tuning import tuning_problems
+from denoisers.jobs.tuning import tuning_problems
 from scenegen.overrides import coerce_override_strings
 from scenegen.retry_gate import clear_markers as clear_retry_markers
 from denoisers.training.models import (HALF_SUFFIX, half_of, method_model, model_dir, model_spec, same_training_as,

@@ -1,7 +1,7 @@
 # Helpers of workflow/rules/stability.smk (input functions, digests); included by the Snakefile
 # after common.smk, whose imports and helpers they use.
 # ---------------------------------------------------------------------------------------------
-# The stability suite's evaluation (workflow/rules/stability.smk, denoisers.stability_job): every configured
+# The stability suite's evaluation (workflow/rules/stability.smk, denoisers.jobs.stability): every configured
 # row of evaluation.methods (not the ablation variants) denoises every stab_* clip at stability.denoise_spp
 # (rule denoise_scenario), is scored against the reference, masks and events (score_scenario), and build_atlas
 # writes the failure atlas. Planned (importing torch) only when one of these jobs is part of the DAG.
@@ -13,7 +13,7 @@ _stability_runs = []
 def stability_run_list() -> list:
     """Runnable denoisers.evaluate.Run objects of the stability suite."""
     if STABILITY_SCENES and not _stability_runs:
-        from denoisers.stability_job import stability_runs
+        from denoisers.jobs.stability import stability_runs
 
         _stability_runs.append([run for run in stability_runs(config) if run.runnable])
     return _stability_runs[0] if _stability_runs else []
@@ -29,7 +29,7 @@ def scenario_outputs(kind: str):
 def check_scenario_target(job_rule: str, pattern: str, controls: bool = False):
     """Input function of denoise_scenario (``controls``: the control clips too) / score_scenario: a stability
     scene, and a row and spp the suite runs."""
-    from denoisers.stability_job import scenario_target_problem
+    from denoisers.jobs.stability import scenario_target_problem
 
     scenes = STABILITY_SCENES + (STABILITY_CONTROLS if controls else [])
 
@@ -69,7 +69,7 @@ def scenario_control_args(wildcards) -> str:
 
 
 def scenario_score_digest(wildcards) -> str:
-    from denoisers.stability_job import score_digest
+    from denoisers.jobs.stability import score_digest
 
     return score_digest(config)
 
@@ -79,6 +79,6 @@ def stability_mask_dirs(wildcards=None) -> list[str]:
 
 
 def atlas_digest(wildcards) -> str:
-    from denoisers.stability_job import atlas_digest as digest
+    from denoisers.jobs.stability import atlas_digest as digest
 
     return digest(config)

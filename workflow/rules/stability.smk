@@ -4,7 +4,7 @@
 # derives where and when each scenario's difficulty happens from those renders.
 #   derive_masks:     <output_dir>/stability/{scene}/masks/frame_{t:04d}.exr + events.json
 # Every configured row of evaluation.methods (not the ablation variants) then runs on every clip at
-# stability.denoise_spp (denoisers.stability_job), and the failure atlas is built from the scores:
+# stability.denoise_spp (denoisers.jobs.stability), and the failure atlas is built from the scores:
 #   denoise_scenario: <output_dir>/stability/denoised/{method}/{scene}/spp{spp}/ (as denoise_clip's outputs)
 #   score_scenario:   <output_dir>/stability/scores/{method}/{scene}/spp{spp}.csv + .json (failure metrics; the
 #                     lag metric's steady state from the scenario's failure-free control stab_{name}__still,

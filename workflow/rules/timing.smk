@@ -1,4 +1,4 @@
-# The timing job (denoisers/timing.py): every configured row at every evaluated spp (and every size of a capacity
+# The timing job (denoisers/jobs/timing.py): every configured row at every evaluated spp (and every size of a capacity
 # ablation at evaluation.ablation_spp), timed on the same frames of
 # one evaluated scene (evaluation.timing.scene) in interleaved rounds, and the renderer's samples/s on every
 # evaluated scene at the same thread count. It takes every core, so no other job runs beside it; the report's speed numbers, the

@@ -39,9 +39,9 @@ import numpy as np
 from scenegen.camera import look_at_matrix
 from scenegen.generate import FLOAT_DECIMALS, _jsonable
 from scenegen.seeds import derive_seed
-from scenegen.volume_fields import noise_cloud, smoke_plume
-from scenegen.volume_framing import UP, framing_distance, framing_spill, occupied_bounds, orbit_radius
-from scenegen.volumes import TransferFunction
+from scenegen.volumes.fields import noise_cloud, smoke_plume
+from scenegen.volumes.framing import UP, framing_distance, framing_spill, occupied_bounds, orbit_radius
+from scenegen.volumes.media import TransferFunction
 
 FORMAT_VERSION = 1
 SCENARIOS = ("camera", "light", "transfer_function")
@@ -145,7 +145,7 @@ def field_from_description(description: dict) -> np.ndarray:
     if kind == "smoke_plume":
         return smoke_plume(np.random.default_rng(int(description["seed"])), resolution, **params)
     if kind == "shells":
-        from scenegen.volume_mesh import shells_from_mesh
+        from scenegen.volumes.mesh import shells_from_mesh
 
         return shells_from_mesh(_shell_mesh(params), resolution, int(params["layers"]))
     raise ValueError(f"unknown field kind {kind!r}; expected one of {FIELD_KINDS}")
@@ -293,8 +293,8 @@ class VolumeClip:
         """Mitsuba scene dict of ``frame`` (``medium=False`` leaves the volume out, e.g. for comparisons)."""
         import mitsuba as mi
 
-        import scenegen.volume_integrator  # noqa: F401 -- registers mcdn_volpath_features
-        from scenegen.volumes import medium_shape
+        import scenegen.volumes.integrator  # noqa: F401 -- registers mcdn_volpath_features
+        from scenegen.volumes.media import medium_shape
 
         if not 0 <= frame < self.frames:
             raise IndexError(f"frame {frame} outside clip of {self.frames} frames")
@@ -466,7 +466,7 @@ def frame_updates(scene: Any, clip: VolumeClip, frame: int) -> list[str]:
     ``scene_dict(frame)`` (the test checks this)."""
     import mitsuba as mi
 
-    from scenegen.volumes import update_medium
+    from scenegen.volumes.media import update_medium
 
     if not 0 <= frame < clip.frames:
         raise IndexError(f"frame {frame} outside clip of {clip.frames} frames")

@@ -3,8 +3,8 @@ robustness_clip.
 
 * ``robustness_clip`` (rule robustness_clip): one method on a clip with injected spikes and NaN/Inf -> CSV
 
-The method runs through the same loop as rule denoise_clip (denoisers.denoise_job.run_method) and is
-scored like rule evaluate_clip (denoisers.scoring.score_sequence), from the outputs in memory.
+The method runs through the same loop as rule denoise_clip (denoisers.jobs.denoise.run_method) and is
+scored like rule evaluate_clip (denoisers.jobs.scoring.score_sequence), from the outputs in memory.
 """
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from denoisers.denoise_job import _frames, _load_method_clip, _prepare, out_of_range_record, run_method
+from denoisers.jobs.denoise import _frames, _load_method_clip, _prepare, out_of_range_record, run_method
 from denoisers.evaluate import ROBUSTNESS_CSV, ROBUSTNESS_LAST_EXR, ROBUSTNESS_SUMMARY, write_radiance_exr
-from denoisers.scoring import score_sequence
+from denoisers.jobs.scoring import score_sequence
 from scenegen.atomic import atomic_directory
 
 

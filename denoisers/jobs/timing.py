@@ -81,13 +81,13 @@ class TimedRun:
         return int(self.frames[0].height * self.frames[0].width)
 
     def run_pass(self, threads: int) -> float:
-        from denoisers.denoise_job import run_method
+        from denoisers.jobs.denoise import run_method
 
         return pass_seconds(run_method(self.method, self.frames, threads).seconds)
 
     def count_flops(self, threads: int) -> int:
         """FLOPs per frame of one extra, untimed pass (torch operators only), stored in ``flops_per_frame``."""
-        from denoisers.denoise_job import run_method
+        from denoisers.jobs.denoise import run_method
 
         counter = flop_counter()
         with counter:
@@ -136,7 +136,7 @@ def flop_counter() -> Any:
 def prepare_run(cfg: dict, method_id: str, spp: int, render_dir: Path, *, frames: int,
                 results: Path | str) -> TimedRun:
     """Build row ``method_id`` and load the first ``frames`` frames of ``render_dir`` at ``spp``."""
-    from denoisers.denoise_job import _frames, _load_method_clip, _prepare
+    from denoisers.jobs.denoise import _frames, _load_method_clip, _prepare
 
     if frames < 1:
         raise ValueError(f"timing needs frames >= 1, got {frames}")

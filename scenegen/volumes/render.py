@@ -1,15 +1,15 @@
 """Jobs of the volumetric clips (scene ids vol_*): generate a clip, render its noisy per-sample frames and its
 references, into the same on-disk layout as the surface scenes (docs/data-format.md, "Volumetric clips").
 
-* generate: :func:`scenegen.volume_scenes.generate_volume_clip` from the scene's seed (the config's seed and
+* generate: :func:`scenegen.volumes.scenes.generate_volume_clip` from the scene's seed (the config's seed and
   the scene id), the scenario named by the id and the ``volumes`` section; writes ``manifest.json`` (the
   complete description; the field is regenerated from it, same bytes).
 * noisy: ``spp`` independent 1-spp layers per frame from ``mcdn_volpath_features`` in one wavefront
   (scenegen.render.sample_wavefront): radiance, albedo, position, depth, sigma_t, medium, transmittance;
-  the per-pixel closest-collision G-buffer and motion vectors of scenegen.volume_motion.
+  the per-pixel closest-collision G-buffer and motion vectors of scenegen.volumes.motion.
 * reference: two independent halves with Mitsuba's ``volpath`` (same depths), radiance only.
 
-The scene of frame 0 is loaded once and edited per frame (scenegen.volume_scenes.frame_updates): a
+The scene of frame 0 is loaded once and edited per frame (scenegen.volumes.scenes.frame_updates): a
 transfer-function edit rewrites the medium grids in place, camera and light edits one transform.
 """
 from __future__ import annotations
@@ -42,7 +42,7 @@ NOISY_LAYOUT: tuple[tuple[str, int], ...] = (("radiance", 3), ("position", 3), (
 
 def generate_volume_scene(cfg: dict, scene_id: str, out_dir: Path) -> dict:
     """Draw the clip of ``scene_id`` and write its ``manifest.json`` to ``out_dir`` (atomically)."""
-    from scenegen.volume_scenes import generate_volume_clip
+    from scenegen.volumes.scenes import generate_volume_clip
 
     volumes = cfg["volumes"]
     split, scenario, _ = volume_clip_spec(cfg, scene_id)
@@ -61,7 +61,7 @@ def generate_volume_scene(cfg: dict, scene_id: str, out_dir: Path) -> dict:
 
 
 def _load_clip(scene_dir: Path) -> tuple[dict, Any]:
-    from scenegen.volume_scenes import VolumeClip
+    from scenegen.volumes.scenes import VolumeClip
 
     path = Path(scene_dir) / "manifest.json"
     if not path.is_file():
@@ -86,7 +86,7 @@ def _load_scene(clip: Any, settings: RenderSettings, integrator: str):
     """Frame 0's Mitsuba scene with ``integrator`` ('features': mcdn_volpath_features, 'volpath')."""
     import mitsuba as mi
 
-    import scenegen.volume_integrator  # noqa: F401 -- registers mcdn_volpath_features
+    import scenegen.volumes.integrator  # noqa: F401 -- registers mcdn_volpath_features
 
     scene = clip.scene_dict(0, width=settings.width, height=settings.height, spp=1)
     kind = "mcdn_volpath_features" if integrator == "features" else "volpath"
@@ -111,8 +111,8 @@ def run_render_volume_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Pat
     """Render the noisy frames of a volumetric clip (one chunk: the whole clip)."""
     from scenegen.channels import noisy_channels, pixel_channels
     from scenegen.dataset import write_frame
-    from scenegen.volume_motion import closest_collision_gbuffer, volume_motion_vectors
-    from scenegen.volume_scenes import frame_updates
+    from scenegen.volumes.motion import closest_collision_gbuffer, volume_motion_vectors
+    from scenegen.volumes.scenes import frame_updates
 
     variant, manifest, clip, scene = _open_clip(scene_id, chunk, scene_dir, settings, "features")
     samples_per_frame = settings.spp * settings.width * settings.height
@@ -154,7 +154,7 @@ def run_render_volume_reference(cfg: dict, scene_id: str, chunk: int, scene_dir:
     """Render the references of a volumetric clip with Mitsuba's volpath: two independent halves per frame."""
     from scenegen.channels import reference_channels
     from scenegen.dataset import write_frame
-    from scenegen.volume_scenes import frame_updates
+    from scenegen.volumes.scenes import frame_updates
 
     variant, manifest, clip, scene = _open_clip(scene_id, chunk, scene_dir, settings, "volpath")
     half_spp = settings.reference_spp // 2

@@ -3,7 +3,7 @@
 * ``evaluate_clip`` (rule evaluate_clip): per-frame metrics of a denoised clip against the reference -> CSV
 
 ``score_sequence`` (per-frame and temporal metrics of a (T, 3, H, W) sequence) is shared with the
-robustness job (denoisers.robustness). The metrics and pandas are imported by the functions that use them.
+robustness job (denoisers.jobs.robustness). The metrics and pandas are imported by the functions that use them.
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@
   for a method with per-pixel diagnostics, Denoiser.diagnostics: e.g. AFN's temporal weight lambda)
 
 ``run_method`` is the measured loop (per-frame time, peak RSS, non-finite and out-of-range counts)
-that the robustness job (denoisers.robustness) and the timing job (denoisers.timing) reuse, with the
+that the robustness job (denoisers.jobs.robustness) and the timing job (denoisers.jobs.timing) reuse, with the
 loading helpers ``_prepare``, ``_load_method_clip`` and ``_frames``. Rows, output paths and the EXR/PNG
 writers come from denoisers.evaluate; torch, the registry and the dataset loader are imported by the
 functions that use them.

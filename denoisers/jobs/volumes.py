@@ -1,7 +1,7 @@
 """The volumetric clips' evaluation (Iglesias-Guitian et al. 2022; issue 14 §3): which rows run on which clips,
 and where their outputs go.
 
-* rule denoise_volume: ``python -m denoisers denoise`` (denoisers.denoise_job.denoise_clip, unchanged) on a
+* rule denoise_volume: ``python -m denoisers denoise`` (denoisers.jobs.denoise.denoise_clip, unchanged) on a
   vol_test_* clip -> <out>/volumes/denoised/{method}/{scene}/spp{spp}/ (frames, timing.json, like denoise_clip);
 * rule evaluate_volume: ``python -m denoisers evaluate`` (per-frame metrics against the volpath reference)
   -> <out>/volumes/metrics/{method}/{scene}/spp{spp}.csv + .json;

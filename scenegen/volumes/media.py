@@ -12,7 +12,7 @@ Conventions (Iglesias-Guitian et al. 2022 volumetric scenes):
   edits an already-loaded scene through ``mi.traverse`` (transfer-function animation without rebuilding).
   A volumetric scene needs the ``volpath`` integrator: ``path`` silently ignores media.
 
-Scalar fields: scenegen.volume_fields (procedural, .npy) and scenegen.volume_mesh (shells of a mesh).
+Scalar fields: scenegen.volumes.fields (procedural, .npy) and scenegen.volumes.mesh (shells of a mesh).
 :class:`TransferFunction` is pure numpy; :func:`medium_shape` and :func:`update_medium` import mitsuba
 lazily and expect a variant to be set (``scenegen.mitsuba_env.init_mitsuba()``).
 """
@@ -24,7 +24,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from scenegen.volume_fields import _check_range
+from scenegen.volumes.fields import _check_range
 
 # ---------------------------------------------------------------------------------------------
 # Transfer functions

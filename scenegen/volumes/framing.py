@@ -1,4 +1,4 @@
-"""Camera framing of a volumetric clip (scenegen.volume_scenes): which part of the box a transfer function makes
+"""Camera framing of a volumetric clip (scenegen.volumes.scenes): which part of the box a transfer function makes
 visible, and how far an orbiting camera must stand so that part fills at most ``FRAME_FILL`` of the frame.
 Positions and distances in scene units, angles in radians unless a name says degrees; y is up.
 """
@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from scenegen.volumes import TransferFunction
+from scenegen.volumes.media import TransferFunction
 
 UP = (0.0, 1.0, 0.0)
 

@@ -1,7 +1,7 @@
 """The stability suite's evaluation (issue 15 §2): which rows run on the scenario clips, where their outputs
 go, and the job behind rule score_scenario.
 
-* rule denoise_scenario: ``python -m denoisers denoise`` (denoisers.denoise_job.denoise_clip, unchanged) on a
+* rule denoise_scenario: ``python -m denoisers denoise`` (denoisers.jobs.denoise.denoise_clip, unchanged) on a
   stab_* clip -> <out>/stability/denoised/{method}/{scene}/spp{spp}/
 * rule score_scenario: :func:`score_scenario` -> <out>/stability/scores/{method}/{scene}/spp{spp}.csv (per-frame
   failure metrics, denoisers.stability_metrics) + .json (clip summary and settings digest)
@@ -144,7 +144,7 @@ def _load_denoised_clip(cfg: dict, denoised: Path, render_dir: Path,
     config's, or (``expected`` = (row, scene, spp)) that is not the one asked for."""
     from denoisers.evaluate import EvaluationError, TIMING_FILE, method_spec, read_frame_files, read_radiance_exr
     from denoisers.experiment import DIGEST_KEY, Lineage, check_recorded
-    from denoisers.scoring import load_references
+    from denoisers.jobs.scoring import load_references
 
     timing_path = Path(denoised) / TIMING_FILE
     if not timing_path.is_file():

@@ -2,8 +2,8 @@
 clouds and smoke plumes, and users' ``.npy`` volumes. A field is a float32 array (D, H, W) with values in
 [0, 1], indexed [z, y, x] on the unit cube: voxel [k, j, i] has its centre at ((i + 0.5) / W, (j + 0.5) / H,
 (k + 0.5) / D) in (x, y, z), the layout of Mitsuba's ``gridvolume``. Pure numpy and deterministic: the same
-``rng`` state and parameters give the same bytes. Fields from meshes: scenegen.volume_mesh; transfer
-functions and the Mitsuba medium: scenegen.volumes.
+``rng`` state and parameters give the same bytes. Fields from meshes: scenegen.volumes.mesh; transfer
+functions and the Mitsuba medium: scenegen.volumes.media.
 """
 from __future__ import annotations
 

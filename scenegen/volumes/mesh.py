@@ -1,7 +1,7 @@
 """'Anatomy-like' scalar fields from closed triangle meshes (Iglesias-Guitian et al. 2022 volumetric scenes):
 the distance of each voxel centre inside the mesh to its surface, normalised, optionally quantised into
 nested shells ('skin' outside, 'bone' inside) that a transfer function can reveal. Grid layout as in
-scenegen.volume_fields. The inside test and the point-to-triangle distances are numpy (no rtree/embree).
+scenegen.volumes.fields. The inside test and the point-to-triangle distances are numpy (no rtree/embree).
 """
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from scenegen.volume_fields import Resolution, _centres, _check_range, _grid_shape, voxel_centres
+from scenegen.volumes.fields import Resolution, _centres, _check_range, _grid_shape, voxel_centres
 
 #: Elements of one (points x triangles) work array in the mesh queries (~8 MB of float64).
 _MESH_CHUNK_ELEMENTS = 1 << 20
