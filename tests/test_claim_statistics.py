@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, REPRODUCED, Decision, Part, holm_rejected,
-                                     scenes_needed)
+from denoisers.report.verdicts import (CONTRADICTED, INCONCLUSIVE, REPRODUCED, Decision, Part, holm_rejected,
+                                       scenes_needed)
 
 
 def part(diffs: list[float], claimed: str = "higher") -> Part:

@@ -18,8 +18,8 @@ import yaml
 from scipy import stats
 
 from denoisers import evaluate
-from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_SPEED_ROUNDS, NOT_RUN, REPRODUCED, Part,
-                                     claims_table, evaluate_claim)
+from denoisers.report.claims import claims_table, evaluate_claim
+from denoisers.report.verdicts import CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_SPEED_ROUNDS, NOT_RUN, REPRODUCED, Part
 from denoisers.report.collect import Results
 from denoisers.jobs.timing import TIMING_SCHEMA, TimingJob
 from denoisers.reproductions import all_claims, all_reproductions

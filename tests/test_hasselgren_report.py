@@ -17,7 +17,8 @@ import pytest
 
 from denoisers import evaluate
 from denoisers.adaptive import SAMPLE_MAPS_FILE
-from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED, evaluate_claim
+from denoisers.report.claims import evaluate_claim
+from denoisers.report.verdicts import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED
 from denoisers.report.collect import Results
 from denoisers.reproductions import hasselgren2020 as h
 from tests.test_claims import AGAINST, CLEAR, ONE_SCENE, SPANNING, TWO_SCENES, Table, build, claims_config

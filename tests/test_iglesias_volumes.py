@@ -15,7 +15,7 @@ import torch
 from denoisers.evaluate import TIMING_FILE, method_spec, volume_method_specs
 from denoisers.registry import Frame
 from denoisers.experiment import DIGEST_KEY, DigestLedger, Lineage, SettingsMismatchError
-from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED
+from denoisers.report.verdicts import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED
 from denoisers.report.volumes import VolumeResults, collect_volumes
 from denoisers.reproductions import iglesias2022
 from denoisers.jobs.volumes import (volume_denoised_dir, volume_metrics_csv, volume_problems, volume_runs,

@@ -12,7 +12,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED, evaluate_claim
+from denoisers.report.claims import evaluate_claim
+from denoisers.report.verdicts import CONTRADICTED, INCONCLUSIVE, NOT_RUN, REPRODUCED
 from denoisers.reproductions import isik2021 as isik
 from scenegen.config import validate_config
 from tests.test_claims import AGAINST, CLEAR, SPANNING, TWO_SCENES, Table, build, claims_config

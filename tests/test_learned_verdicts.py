@@ -13,7 +13,8 @@ import torch
 import yaml
 
 from denoisers import evaluate
-from denoisers.report.claims import CONTRADICTED, INCONCLUSIVE, REPRODUCED, claims_table, evaluate_claim
+from denoisers.report.claims import claims_table, evaluate_claim
+from denoisers.report.verdicts import CONTRADICTED, INCONCLUSIVE, REPRODUCED
 from denoisers.report.tables import SUMMARY_METRICS, summary_table
 from denoisers.store import model_key
 from denoisers.training.job import train_model

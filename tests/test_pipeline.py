@@ -35,7 +35,7 @@ from denoisers.experiment import DIGEST_KEY, Lineage
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.report import report_outputs
-from denoisers.report.claims import INCONCLUSIVE, NOT_RUN
+from denoisers.report.verdicts import INCONCLUSIVE, NOT_RUN
 from denoisers.reproductions import all_claims
 from denoisers.training.models import MODEL_FILES, capacity_model_ids, model_dir, model_specs
 from scenegen.config import (CUSTOM_PREFIX, chunk_count, chunk_frames, load_config, scene_frame_count, scene_ids,
@@ -379,7 +379,7 @@ def test_report_has_tables_figures_and_claims(pipeline: PipelineRun) -> None:
     # scipy's t-interval of the log time ratios (at least MIN_SPEED_ROUNDS rounds, else inconclusive).
     from scipy import stats
 
-    from denoisers.report.claims import MIN_SPEED_ROUNDS
+    from denoisers.report.verdicts import MIN_SPEED_ROUNDS
     from denoisers.jobs.timing import TIMING_JOB_FILE, read_timing_job
 
     job = read_timing_job(pipeline.results / TIMING_JOB_FILE)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from denoisers.report.claims import Part
+from denoisers.report.verdicts import Part
 from denoisers.report.collect import Results
 from denoisers.report.stats import fmt, fmt_ci, markdown_table, mean_ci
 from denoisers.report.tables import equal_time_table, speed_text

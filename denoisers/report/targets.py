@@ -19,7 +19,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from denoisers.report.claims import CONTRADICTED, REPRODUCED, Part, RowNeed, compare_rows, row_at
+from denoisers.report.claims import RowNeed, compare_rows, row_at
+from denoisers.report.verdicts import CONTRADICTED, REPRODUCED, Part
 from denoisers.report.stats import HIGHER_IS_BETTER, NON_INFERIORITY_MARGIN
 
 if TYPE_CHECKING:

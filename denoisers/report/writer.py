@@ -15,8 +15,9 @@ from denoisers.report import tables as tab
 from denoisers.report import targets
 from denoisers.report.atlas import report_section as atlas_section
 from denoisers.report.capacity import capacity_section
-from denoisers.report.claims import (CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_SPEED_ROUNDS, MIN_UNITS, NOT_RUN, REPRODUCED,
-                                     claims_table)
+from denoisers.report.claims import claims_table
+from denoisers.report.verdicts import (CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_SPEED_ROUNDS, MIN_UNITS, NOT_RUN,
+                                       REPRODUCED)
 from denoisers.report.collect import CROP_GAP_DB, MIN_TRAINING_STEPS, Results, collect
 from denoisers.report.color_balance import color_balance_section
 from denoisers.report.outputs import FIGURE_ROWS, report_outputs

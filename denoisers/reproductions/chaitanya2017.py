@@ -11,7 +11,8 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from denoisers.report.claims import Claim, Decision, RowNeed, compare_rows, not_run, spp_available
+from denoisers.report.claims import Claim, RowNeed, compare_rows, spp_available
+from denoisers.report.verdicts import Decision, not_run
 from denoisers.report.stats import LABELS, fmt, fmt_ci, formatted, frame_to_markdown, mean_ci, with_ci_columns
 from denoisers.reproductions.base import Reproduction
 from denoisers.training.models import INPUT_ABLATION, LOSS_ABLATION, model_specs

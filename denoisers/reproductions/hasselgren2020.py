@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from denoisers.evaluate import TIMING_FILE, denoised_dir, method_specs
-from denoisers.report.claims import Claim, Decision, RowNeed, compare_rows, missing_rows, not_run, spp_available
+from denoisers.report.claims import Claim, RowNeed, compare_rows, missing_rows, spp_available
+from denoisers.report.verdicts import Decision, not_run
 from denoisers.report.claims import row_at as claims_row_at
 from denoisers.report.stats import fmt, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction

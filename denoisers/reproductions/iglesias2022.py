@@ -14,8 +14,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from denoisers.report.claims import (Claim, Decision, Fact, Part, RowNeed, compare_rows, compare_speed, not_run,
-                                     row_at, seed_differences, seeds_of, spp_available, training_spp)
+from denoisers.report.claims import (Claim, RowNeed, compare_rows, compare_speed, row_at, seed_differences, seeds_of,
+                                     spp_available, training_spp)
+from denoisers.report.verdicts import Decision, Fact, Part, not_run
 from denoisers.report.seeds import seed_mean
 from denoisers.report.stats import LABELS, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction

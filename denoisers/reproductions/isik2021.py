@@ -15,7 +15,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from denoisers.report.claims import Claim, Decision, Part, RowNeed, compare_rows, not_run, seed_differences, seeds_of
+from denoisers.report.claims import Claim, RowNeed, compare_rows, seed_differences, seeds_of
+from denoisers.report.verdicts import Decision, Part, not_run
 from denoisers.report.seeds import seed_mean
 from denoisers.report.stats import LABELS, MUCH_WORSE_MARGIN_DB, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions import _isik2021_paper as paper
@@ -103,7 +104,7 @@ def claim_spps(res: Results, rows: list[str | None]) -> list[int]:
 def _pairs(res: Results, pairs: list[tuple[str | None, str | None, str, str, str]], note: str,
            threshold: float = 0.0) -> Decision:
     """Parts (row a, row b, metric, claimed, label) at every claim spp both rows ran at, claimed beyond
-    ``threshold`` (claims.Part.threshold)."""
+    ``threshold`` (verdicts.Part.threshold)."""
     missing = sorted({label for a, b, _, _, label in pairs if a is None or b is None})
     if missing:
         return not_run("missing rows: " + "; ".join(missing))
