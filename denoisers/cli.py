@@ -89,7 +89,8 @@ def _parser() -> argparse.ArgumentParser:
     add_store_parser(sub)
     session = sub.add_parser("train-session", help="train models until a deadline, then publish the finished ones "
                                                    "and checkpoint the rest into the store (denoisers.store.session)")
-    session.add_argument("models", nargs="+", help="model ids (seed replicas and _half twins included)")
+    session.add_argument("models", nargs="*", help="model ids (seed replicas and _half twins included); none: every "
+                                                   "training of the config (the stored ones installed)")
     session.add_argument("--minutes", type=float, required=True, help="stop the run after this many minutes")
     session.add_argument("--snakemake", default="", help="more Snakemake arguments, one string, e.g. "
                                                          "\"--configfile config/isik2021.yaml --config 'training={seeds: 3}'\"")

@@ -59,3 +59,30 @@ def test_finished_models_are_published_and_moved_runs_checkpointed(tmp_path: Pat
     assert untouched == ["installed", "idle"]
     assert calls[0] == ["publish", "--config", str(config), "--model-id", "done"]
     assert ["checkpoint", "--config", str(config), "--model-id", "partway"] in calls
+
+
+def test_without_model_ids_a_session_keeps_every_training_of_the_config(tmp_path: Path) -> None:
+    """No ids: the run targets the stage ``train`` and the session looks at every training the resolved config
+    has (seed replicas and twins included, variants that reuse another model's weights left out)."""
+    import yaml
+
+    from denoisers.store.session import configured_trainings, train_session
+    from denoisers.training.models import same_training_as, trained_model_specs
+    from scenegen.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "smoke.yaml")
+    cfg["training"].update(seeds=2, half_budget=True)
+    every = [spec.id for spec in trained_model_specs(cfg)]
+    reused = [model_id for model_id in every if same_training_as(cfg, model_id)]
+    assert reused and "rae_seed1" in every and "rae_seed1_half" in every     # the case is not empty
+
+    out = tmp_path / "results"
+    config_text = yaml.safe_dump(cfg, sort_keys=False)
+    # The stand-in run writes the resolved config, as the workflow's onstart does, and trains nothing.
+    script = (f"import pathlib; p = pathlib.Path({str(out / '.config' / 'abc.yaml')!r}); "
+              f"p.parent.mkdir(parents=True); p.write_text({config_text!r})")
+    result = train_session([], 1.0, output_dir=out, run_command=[sys.executable, "-c", script])
+    assert result.returncode == 0 and not result.stopped_at_deadline
+    assert configured_trainings(out / ".config" / "abc.yaml") == [m for m in every if m not in reused]
+    assert result.untouched == [m for m in every if m not in reused]
+    assert result.published == [] and result.checkpointed == []

@@ -5,7 +5,9 @@ issue 48; the seed replicas, issue 46) is a series of sessions. ``python -m deno
 them:
 
 1. it runs the workflow for the given models (``scripts/run-main.sh results/models/<id> ...``, so a stored model is
-   installed and a stored part-way checkpoint continued, denoisers.training.job) in its own process group;
+   installed and a stored part-way checkpoint continued, denoisers.training.job) in its own process group; without
+   model ids, for every model the config trains (the stage target ``train``: seed replicas and half-budget twins
+   included, the stored ones installed), so a session need not know what earlier ones finished;
 2. at ``--minutes`` it stops that run (SIGTERM to the group; the trainers checkpoint every 300 s and every
    ``training.validate_every`` steps, so at most that much work is lost);
 3. it publishes every model that finished in this session (``store publish``) and the part-way state of every one
@@ -106,10 +108,23 @@ def keep(output_dir: Path, model_ids: Sequence[str], since: float,
     return published, checkpointed, untouched
 
 
+def configured_trainings(config_file: Path) -> list[str]:
+    """Ids of every training of a resolved config (``trained_model_specs``: seed replicas and half-budget twins
+    included), without the variants that publish another model's weights (``same_training_as``)."""
+    import yaml
+
+    from denoisers.training.models import same_training_as, trained_model_specs
+
+    cfg = yaml.safe_load(Path(config_file).read_text())
+    return [spec.id for spec in trained_model_specs(cfg) if same_training_as(cfg, spec.id) is None]
+
+
 def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequence[str] = (),
                   output_dir: Path | None = None, log: Path | None = None,
                   run_command: Sequence[str] | None = None) -> SessionResult:
-    """One session (module docstring). ``run_command`` replaces ``scripts/run-main.sh <targets> <args>`` (tests)."""
+    """One session (module docstring); no ``model_ids``: every training of the config (:func:`configured_trainings`
+    of the resolved config the run wrote). ``run_command`` replaces ``scripts/run-main.sh <targets> <args>``
+    (tests)."""
     from scenegen.config import load_config, output_root
 
     if output_dir is None:
@@ -118,7 +133,7 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
     output_dir = Path(output_dir)
     if not output_dir.is_absolute():
         output_dir = REPO_ROOT / output_dir
-    targets = [f"{output_dir.relative_to(REPO_ROOT).as_posix()}/models/{m}" for m in model_ids]
+    targets = [f"{output_dir.relative_to(REPO_ROOT).as_posix()}/models/{m}" for m in model_ids] or ["train"]
     command = list(run_command) if run_command is not None else \
         ["bash", str(REPO_ROOT / "scripts" / "run-main.sh"), *targets, *snakemake_args]
     since = time.time() - 1.0
@@ -127,5 +142,7 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
         return subprocess.run([sys.executable, "-m", "denoisers", "store", *args], cwd=REPO_ROOT).returncode
 
     returncode, stopped = run_until(command, minutes * 60.0, log=log)
+    if not model_ids:
+        model_ids = configured_trainings(resolved_config(output_dir, since))
     published, checkpointed, untouched = keep(output_dir, model_ids, since, store)
     return SessionResult(returncode, stopped, published, checkpointed, untouched)
