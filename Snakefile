@@ -22,6 +22,8 @@ report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/common_training.smk"
+include: "workflow/rules/common_evaluate.smk"
 include: "workflow/rules/common_timing.smk"
 include: "workflow/rules/common_stability.smk"
 include: "workflow/rules/common_volumes.smk"
