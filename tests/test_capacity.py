@@ -15,7 +15,8 @@ from denoisers.evaluate import evaluation_problems, method_specs
 from denoisers.report import report_outputs
 from denoisers.report.capacity import (capacity_section, capacity_table, output_name, select_smallest,
                                        selection_statement)
-from denoisers.report.collect import Results, TrainedModel, TrainedModels
+from denoisers.report.collect import Results
+from denoisers.report.trained import TrainedModel, TrainedModels
 from denoisers.jobs.timing import TimingJob, timed_runs
 from denoisers.training.models import capacity_model_ids, model_specs, training_problems
 from scenegen.config import ConfigError, validate_config

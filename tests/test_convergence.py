@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from denoisers.report.claims import UNDERTRAINED_NOTE, claims_table
-from denoisers.report.collect import TrainedModel, TrainedModels
+from denoisers.report.trained import TrainedModel, TrainedModels
 from denoisers.report.tables import training_table
 from denoisers.reproductions import all_claims
 from denoisers.training.models import model_specs

@@ -36,7 +36,8 @@ from denoisers.training.models import capacity_ablations, model_specs
 if TYPE_CHECKING:
     import pandas as pd
 
-    from denoisers.report.collect import Results, TrainedModel
+    from denoisers.report.collect import Results
+    from denoisers.report.trained import TrainedModel
     from denoisers.training.spec import ModelSpec
 
 #: A size is adequate when its mean test PSNR is within this many dB of the best size's.

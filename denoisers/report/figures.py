@@ -19,7 +19,8 @@ from denoisers.evaluate import (
     read_radiance_exr,
     robustness_dir,
 )
-from denoisers.report.collect import Results, TrainedModels
+from denoisers.report.collect import Results
+from denoisers.report.trained import TrainedModels
 from denoisers.report.tables import RANK_SPREAD_LIMIT, summary_lookup, too_wide_to_rank
 
 if TYPE_CHECKING:

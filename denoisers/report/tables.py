@@ -9,7 +9,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from denoisers.evaluate import ALL_METRICS, REFERENCE_METHODS
-from denoisers.report.collect import DERIVED_METRICS, TIMING_COLUMNS, Results, TrainedModels
+from denoisers.report.collect import DERIVED_METRICS, TIMING_COLUMNS, Results
+from denoisers.report.trained import TrainedModels
 from denoisers.report.stats import HIGHER_IS_BETTER, LABELS, fmt, fmt_ci, markdown_table, mean_ci
 from denoisers.training.models import method_model
 from scenegen.config import SCENE_SPLITS, scene_ids

@@ -18,7 +18,8 @@ from denoisers.report.capacity import capacity_section
 from denoisers.report.claims import claims_table
 from denoisers.report.verdicts import (CONTRADICTED, INCONCLUSIVE, MIN_SEEDS, MIN_SPEED_ROUNDS, MIN_UNITS, NOT_RUN,
                                        REPRODUCED)
-from denoisers.report.collect import CROP_GAP_DB, MIN_TRAINING_STEPS, Results, collect
+from denoisers.report.collect import Results, collect
+from denoisers.report.trained import CROP_GAP_DB, MIN_TRAINING_STEPS
 from denoisers.report.color_balance import color_balance_section
 from denoisers.report.outputs import FIGURE_ROWS, report_outputs
 from denoisers.report.own_rows import own_rows_section
