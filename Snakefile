@@ -84,7 +84,7 @@ rule evaluate:
 # denoised and scored on the evaluated scenes, with no training job in the DAG.
 rule baselines:
     input:
-        baseline_metrics_files,
+        baseline_metrics_dirs,
 
 
 rule timing:
@@ -109,7 +109,7 @@ rule stability:
 rule volumes:
     input:
         volume_outputs(),
-        volume_metrics_files,
+        volume_metrics_dirs,
         volume_robustness_dirs,
 
 
@@ -130,5 +130,5 @@ rule all:
         rules.build_report.output,
         rules.stability.input,
         default_volume_outputs(),
-        volume_metrics_files,
+        volume_metrics_dirs,
         volume_robustness_dirs,

@@ -47,9 +47,13 @@ from run_summary import benchmark_jobs  # benchmarks/ is sys.path[0] when run as
 EXCLUSIVE_RULES = ("render_noisy", "render_reference", "train_denoiser", "time_methods", "time_training")
 #: Rules estimated from the config and measured rates rather than from a prior run's per-job median.
 MODELLED_RULES = ("render_noisy", "render_reference", "train_denoiser")
-#: benchmarks/<folder>/... -> rule, where the folder is not the rule's name (workflow/rules/*.smk).
-BENCHMARK_FOLDERS = {"denoise": "denoise_clip", "evaluate": "evaluate_clip", "robustness": "robustness_clip",
-                     "train": "train_denoiser", "tune": "tune_method"}
+#: benchmarks/<folder>/... -> rule, where the folder is not the rule's name (workflow/rules/*.smk). The
+#: evaluation's folders hold one file per row job (denoise/{row}.tsv); a run from before the row jobs has one per
+#: clip there (denoise/{row}/{scene}/spp{spp}.tsv), whose median is a clip's, not a row's.
+BENCHMARK_FOLDERS = {"denoise": "denoise_row", "evaluate": "evaluate_row", "robustness": "robustness_row",
+                     "denoise_scenario": "denoise_scenario_row", "score_scenario": "score_scenario_row",
+                     "denoise_volume": "denoise_volume_row", "evaluate_volume": "evaluate_volume_row",
+                     "robustness_volume": "robustness_volume_row", "train": "train_denoiser", "tune": "tune_method"}
 
 
 #: Sidecar ``integrator`` of reference frames rendered before the key was recorded.

@@ -6,6 +6,9 @@
   denoise     one configured method on one test clip at one spp  -> <out>/denoised/{method}/{scene}/spp{spp}/
   evaluate    per-frame metrics of a denoised clip               -> <out>/metrics/{method}/{scene}/spp{spp}.csv
   robustness  one method on a clip with injected spikes/NaN/Inf  -> <out>/robustness/{method}/{scene}/spp{spp}/
+  denoise-row, evaluate-row, robustness-row, score-scenarios-row  the same for every clip of one row, in one
+              process (the workflow's jobs; --kind: the evaluated scenes, the stability or the volumetric clips)
+                                                                  -> <out>/denoised/{method}/, metrics/{method}/, ...
   time        every row timed on the same frames, interleaved, and the renderer's rate -> <out>/timing/timing.json
   time-training  every learned model's training step per precision / layout, beside sgemm -> <out>/timing/training.json
   report      tables, figures, claims and REPORT.md              -> <out>/tables/, <out>/figures/, <out>/REPORT.md
@@ -46,6 +49,24 @@ def _parser() -> argparse.ArgumentParser:
         cmd.add_argument("--results", type=Path, default=None,
                          help="experiment folder (default: the config's output_dir); trained models are read "
                               "from <results>/models/<id>/, tuning results from <results>/tuning/")
+
+    denoise_row = sub.add_parser("denoise-row", help="run one row on every clip it is evaluated on")
+    robustness_row = sub.add_parser("robustness-row", help="the spike/NaN scenario of one row on every clip")
+    for cmd in (denoise_row, robustness_row):
+        cmd.add_argument("--config", type=Path, required=True, help="resolved config YAML")
+        cmd.add_argument("--method-id", required=True, help="row id (evaluation.methods, or an ablation/seed row)")
+        cmd.add_argument("--render-root", type=Path, required=True, help="results/renders (holds {scene}/)")
+        cmd.add_argument("--out", type=Path, required=True,
+                         help="the row's folder, e.g. results/denoised/{method} (written atomically)")
+        cmd.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+        cmd.add_argument("--results", type=Path, default=None,
+                         help="experiment folder (default: the config's output_dir); trained models are read "
+                              "from <results>/models/<id>/, tuning results from <results>/tuning/")
+    denoise_row.add_argument("--kind", choices=("evaluation", "stability", "volumes"), default="evaluation",
+                             help="which clips: the evaluated scenes, the stability scenarios (with their controls) "
+                                  "or the evaluated volumetric clips")
+    robustness_row.add_argument("--kind", choices=("robustness", "volume_robustness"), default="robustness",
+                                help="the evaluated scenes, or the evaluated volumetric clips")
 
     timing = sub.add_parser("time", help="time every configured row on the same frames (interleaved rounds) and "
                                          "the renderer's samples/s at the same threads")
@@ -110,6 +131,20 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--render-dir", type=Path, required=True, help="results/renders/{scene}")
     evaluate.add_argument("--out", type=Path, required=True, help="CSV file")
 
+    evaluate_row = sub.add_parser("evaluate-row", help="per-frame metrics of every clip of a denoised row")
+    evaluate_row.add_argument("--config", type=Path, required=True)
+    evaluate_row.add_argument("--denoised", type=Path, required=True, help="results/denoised/{method}")
+    evaluate_row.add_argument("--render-root", type=Path, required=True, help="results/renders (holds {scene}/)")
+    evaluate_row.add_argument("--out", type=Path, required=True, help="results/metrics/{method} (written atomically)")
+
+    score_row = sub.add_parser("score-scenarios-row", help="failure metrics of every stability clip of a denoised row")
+    score_row.add_argument("--config", type=Path, required=True)
+    score_row.add_argument("--denoised", type=Path, required=True, help="results/stability/denoised/{method}")
+    score_row.add_argument("--render-root", type=Path, required=True, help="results/renders (holds {scene}/)")
+    score_row.add_argument("--masks-root", type=Path, required=True, help="results/stability (holds {scene}/ masks)")
+    score_row.add_argument("--out", type=Path, required=True,
+                           help="results/stability/scores/{method} (written atomically)")
+
     score = sub.add_parser("score-scenario", help="failure metrics of a denoised stability clip (masks, events)")
     score.add_argument("--config", type=Path, required=True)
     score.add_argument("--denoised", type=Path, required=True,
@@ -146,7 +181,7 @@ def _parser() -> argparse.ArgumentParser:
 
 #: Commands that never build a model: their config check skips the networks' keys (which imports torch, about
 #: 1.7 s of each of several hundred short jobs); the workflow checks the whole config when it parses it.
-TORCH_FREE_COMMANDS = frozenset({"evaluate", "score-scenario"})
+TORCH_FREE_COMMANDS = frozenset({"evaluate", "evaluate-row", "score-scenario", "score-scenarios-row"})
 
 
 def load_evaluation_config(path: Path, build_models: bool = True) -> dict:
@@ -362,6 +397,28 @@ def _run(args: argparse.Namespace) -> int:
         log.info("robustness %s %s: injected %s, %d non-finite outputs, %d out-of-range outputs, mean PSNR "
                  "%.2f dB", args.method_id, args.scene, summary["injected"], summary["nonfinite_outputs"],
                  summary["out_of_range_outputs"], summary["mean_psnr"])
+    elif args.command == "denoise-row":
+        from denoisers.jobs.rows import denoise_row
+
+        records = denoise_row(cfg, args.method_id, args.render_root, args.out, threads=args.threads,
+                              results=args.results, kind=args.kind)
+        log.info("%s: %d clips denoised into %s", args.method_id, len(records), args.out)
+    elif args.command == "evaluate-row":
+        from denoisers.jobs.rows import evaluate_row
+
+        count = evaluate_row(cfg, args.denoised, args.render_root, args.out)
+        log.info("%s: %d clips scored into %s", args.denoised, count, args.out)
+    elif args.command == "robustness-row":
+        from denoisers.jobs.rows import robustness_row
+
+        summaries = robustness_row(cfg, args.method_id, args.render_root, args.out, threads=args.threads,
+                                   results=args.results, kind=args.kind)
+        log.info("robustness %s: %d clips into %s", args.method_id, len(summaries), args.out)
+    elif args.command == "score-scenarios-row":
+        from denoisers.jobs.rows import score_scenarios_row
+
+        count = score_scenarios_row(cfg, args.denoised, args.render_root, args.masks_root, args.out)
+        log.info("%s: %d stability clips scored into %s", args.denoised, count, args.out)
     elif args.command == "score-scenario":
         from denoisers.jobs.stability import score_scenario
 

@@ -7,9 +7,9 @@ on all of them too (its cost is one job per scene and row, like the evaluation's
 
 The jobs behind the evaluation rules live in modules that import this one (never the reverse):
 
-* denoisers.jobs.denoise: rule denoise_clip, one method on one evaluated scene at one spp -> EXR + PNG + timing.json
-* denoisers.jobs.scoring:     rule evaluate_clip, per-frame metrics of a denoised clip against the reference -> CSV
-* denoisers.jobs.robustness:  rule robustness_clip, one method on a clip with injected spikes and NaN/Inf -> CSV
+* denoisers.jobs.denoise: rule denoise_row (per clip), one method on one evaluated scene at one spp -> EXR + PNG + timing.json
+* denoisers.jobs.scoring:     rule evaluate_row (per clip), per-frame metrics of a denoised clip against the reference -> CSV
+* denoisers.jobs.robustness:  rule robustness_row (per clip), one method on a clip with injected spikes and NaN/Inf -> CSV
 
 This module imports nothing heavy: the Snakefile calls the config-level helpers (method list, test
 scenes, which (method, spp) pairs can run) while it is parsed, and importing torch there would slow

@@ -51,18 +51,18 @@ def _row_settings(spec: RowSpec) -> dict[str, Any]:
 
 
 def denoise_digest(cfg: dict, spec: RowSpec) -> str:
-    """Rule denoise_clip: the row's method and parameters, torch threads and the out-of-range factor."""
+    """Rule denoise_row (each clip): the row's method and parameters, torch threads and the out-of-range factor."""
     settings = {key: cfg["evaluation"][key] for key in ("threads", "out_of_range_factor")}
     return config_digest({**_row_settings(spec), **settings})
 
 
 def evaluate_digest(cfg: dict) -> str:
-    """Rule evaluate_clip."""
+    """Rule evaluate_row (each clip)."""
     return config_digest({"warmup_frames": cfg["evaluation"]["warmup_frames"]})
 
 
 def robustness_digest(cfg: dict, spec: RowSpec) -> str:
-    """Rule robustness_clip (the injected corruption depends on the global seed)."""
+    """Rule robustness_row (each clip; the injected corruption depends on the global seed)."""
     settings = {key: cfg["evaluation"][key] for key in ("robustness", "warmup_frames", "threads", "out_of_range_factor")}
     return config_digest({**_row_settings(spec), **settings, "seed": cfg["seed"]})
 

@@ -76,12 +76,12 @@ def test_rates_come_from_the_sidecars_and_benchmark_folders_map_to_rules(tmp_pat
     assert list(rates["path"][0]) == [3.0e6] and list(rates["mcdn_features"][0]) == [2.0e6]
     with pytest.raises(SystemExit, match="--reference-speed"):
         dag_budget.reference_rates(reference, {"path"}, None)
-    for folder, seconds in (("denoise/eaw/test_000", [3.0, 5.0, 4.0]), ("tune", [7.0])):
+    for folder, seconds in (("denoise", [3.0, 5.0, 4.0]), ("tune", [7.0])):
         (tmp_path / "run" / "benchmarks" / folder).mkdir(parents=True)
         for i, value in enumerate(seconds):
             (tmp_path / "run" / "benchmarks" / folder / f"spp{i}.tsv").write_text(f"s\tmax_rss\n{value}\t10\n")
     (tmp_path / "run" / "benchmarks" / "build_report.tsv").write_text("s\tmax_rss\n9.0\t10\n")
-    assert dag_budget.per_job_seconds(tmp_path / "run") == {"denoise_clip": 4.0, "tune_method": 7.0, "build_report": 9.0}
+    assert dag_budget.per_job_seconds(tmp_path / "run") == {"denoise_row": 4.0, "tune_method": 7.0, "build_report": 9.0}
     with pytest.raises(SystemExit, match="no reference or noisy frame sidecars"):
         dag_budget.sidecar_rates(tmp_path / "empty")
 

@@ -93,13 +93,12 @@ def workflow_copy(tmp_path_factory) -> Path:
 
 # ---------------------------------------------------------------------------------- impossible targets
 IMPOSSIBLE = [
-    ("denoised/eaw/train_000/spp1", "denoise_clip", "training scenes are never evaluated"),
-    ("metrics/eaw/test_000/spp4.csv", "evaluate_clip", "row eaw is evaluated at spp: 1, 2"),
     ("renders/test_000/noisy/chunk_005", "render_noisy", "has 2 chunk(s)"),
     ("renders/test_003/reference/chunk_000", "render_reference", "scene test_003 is not in this config"),
     ("scenes/test_007", "generate_scene", "scenes: train_000, train_001, test_000"),
-    ("robustness/rae_inputs_color/test_000/spp2", "robustness_clip", "not in the robustness scenario"),
-    ("denoised/nope/test_000/spp1", "denoise_clip", "no evaluation row nope"),
+    ("robustness/rae_inputs_color", "robustness_row", "not in the robustness scenario"),
+    ("denoised/nope", "denoise_row", "no evaluation row nope"),
+    ("metrics/nope", "evaluate_row", "no evaluation row nope"),
     ("models/nope", "train_denoiser", "no model nope"),
     ("tuning/svgf.json", "tune_method", "tuned methods: eaw, rls, wrls"),
 ]
@@ -118,9 +117,9 @@ def test_impossible_targets_fail_when_the_dag_is_built(workflow_copy: Path, targ
 
 @pytest.mark.slow
 def test_possible_path_targets_still_build(workflow_copy: Path) -> None:
-    counts = dry_run("results/smoke/metrics/eaw/test_000/spp2.csv",
-                     "results/smoke/renders/test_000/noisy/chunk_001", "--configfile", SMOKE, cwd=workflow_copy)
-    assert counts["evaluate_clip"] == 1 and counts["denoise_clip"] == 1 and counts["tune_method"] == 1
+    counts = dry_run("results/smoke/metrics/eaw", "results/smoke/renders/test_000/noisy/chunk_001",
+                     "--configfile", SMOKE, cwd=workflow_copy)
+    assert counts["evaluate_row"] == 1 and counts["denoise_row"] == 1 and counts["tune_method"] == 1
 
 
 # -------------------------------------------------------------------------------------------- digests

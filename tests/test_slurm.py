@@ -21,6 +21,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from denoisers.jobs.rows import row_clips
+from scenegen.config import load_config
 from tests.test_workflow import copy_workflow
 
 pytestmark = pytest.mark.slow
@@ -99,10 +101,6 @@ def test_smoke_scene_and_render_chunk_run_through_sbatch(slurm: list[str], tmp_p
     assert (tmp_path / out / "scenes/test_000").is_dir()
 
 
-# "Job 9 has been submitted with SLURM jobid 12 (log: .../slurm_logs/group_clips/...)" (a group job).
-GROUP_SUBMITTED = re.compile(r"has been submitted with SLURM jobid (\d+) \(log: \S*/slurm_logs/group_(\w+?)/")
-
-
 def _slurm_records(ids: list[int]) -> dict[int, tuple[str, int, int]]:
     """SLURM's record of jobs: id -> (state, CPUs, memory in MB)."""
     queue = _run("squeue", "--states=all", "--noheader", "--format=%i|%T|%C|%m", "--jobs", ",".join(map(str, ids)))
@@ -115,16 +113,16 @@ def _slurm_records(ids: list[int]) -> dict[int, tuple[str, int, int]]:
     return records
 
 
-def test_clip_jobs_go_grouped_and_retries_grow_or_are_refused(slurm: list[str], tmp_path: Path) -> None:
-    """Issue 50 §2 on one node: (1) the denoise and evaluate jobs of one clip go to SLURM as group jobs, fewer sbatch
-    calls than jobs, each group within the profile's cores; (2) a job killed for memory (fault injection:
-    MCDN_FAULT_MIN_MEM_MB) is retried with twice the memory and succeeds; (3) a job failing on a corrupt input is
-    not run again: its retry stops at once, saying so."""
+def test_row_jobs_batch_clips_and_retries_grow_or_are_refused(slurm: list[str], tmp_path: Path) -> None:
+    """Issue 50 §2 on one node: (1) the denoise and evaluate work of a row's clips goes to SLURM as one job per row
+    (denoise_row, evaluate_row: fewer sbatch calls than clips, each job every clip of its row); (2) a job killed for
+    memory (fault injection: MCDN_FAULT_MIN_MEM_MB) is retried with twice the memory and succeeds; (3) a job failing
+    on a corrupt input is not run again: its retry stops at once, saying so."""
     copy_workflow(tmp_path)
     config = yaml.safe_load((tmp_path / "config/smoke.yaml").read_text())
     out = Path(config.get("output_dir", "results"))
-    targets = [(out / f"metrics/{row}/test_000/spp{spp}.csv").as_posix() for row in ("noisy", "path_x2")
-               for spp in (1, 2)]
+    rows = ("noisy", "path_x2")
+    targets = [(out / f"metrics/{row}").as_posix() for row in rows]
     # generate_scene asks for 4000 MB x attempt (the profile): killed at 4000 MB, through at 8000 MB
     env = dict(os.environ, PATH=f"{SNAKEMAKE.parent}{os.pathsep}{os.environ.get('PATH', '')}",
                MCDN_FAULT_MIN_MEM_MB="5000", MCDN_FAULT_COMMANDS="generate")
@@ -135,27 +133,29 @@ def test_clip_jobs_go_grouped_and_retries_grow_or_are_refused(slurm: list[str], 
     assert result.returncode == 0, log[-4000:]
 
     rules = {int(job): rule for job, rule in SUBMITTED.findall(log)}
-    groups = {int(job): group for job, group in GROUP_SUBMITTED.findall(log)}
-    records = _slurm_records(sorted(rules) + sorted(groups))
+    records = _slurm_records(sorted(rules))
     # (2) generate_scene: the first attempt (4000 MB) killed, the retry (8000 MB) completed
     generate = sorted(job for job, rule in rules.items() if rule == "generate_scene")
     assert [records[job][0] for job in generate] == ["FAILED", "COMPLETED"], (generate, records)
     assert [records[job][2] for job in generate] == [4000, 8000], records
-    # (1) 8 clip jobs (4 denoise, 4 evaluate) in group jobs, each asking for at most the profile's cores
-    profile = yaml.safe_load((tmp_path / "workflow/profiles/slurm/config.yaml").read_text())
-    assert groups and all(group.startswith("clips") for group in groups.values()), log[-4000:]
-    assert len(groups) < 8 and not {"denoise_clip", "evaluate_clip"} & set(rules.values()), (groups, rules)
-    assert all(records[job][0] == "COMPLETED" and records[job][1] <= profile["cores"] for job in groups), records
-    for target in targets:
-        assert (tmp_path / target).is_file(), target
+    # (1) one denoise_row and one evaluate_row job per row, each writing every clip of its row
+    smoke = load_config(tmp_path / "config/smoke.yaml")
+    clips = {row: row_clips(smoke, row) for row in rows}
+    assert sorted(rule for rule in rules.values() if rule.endswith("_row")) == ["denoise_row"] * 2 + \
+        ["evaluate_row"] * 2, rules
+    assert sum(map(len, clips.values())) > len(rows), clips
+    assert all(records[job][0] == "COMPLETED" for job, rule in rules.items() if rule.endswith("_row")), records
+    for row, target in zip(rows, targets):
+        written = {p.relative_to(tmp_path / target).as_posix() for p in (tmp_path / target).glob("*/spp*")}
+        assert written == {f"{scene}/spp{spp}.{kind}" for scene, spp in clips[row] for kind in ("csv", "json")}, row
 
     # (3) a truncated noisy frame: the denoise job fails on it, and its retry is refused without redoing the work
     frame = sorted((tmp_path / out / "renders/test_000/noisy/chunk_000").glob("frame_*.exr"))[0]
     frame.write_bytes(frame.read_bytes()[:200])
-    failing = (out / "metrics/svgf/test_000/spp1.csv").as_posix()
+    failing = (out / "metrics/svgf").as_posix()
     result = subprocess.run([*command[:1], failing, *command[len(targets) + 1:]], cwd=tmp_path, env=env,
                             capture_output=True, text=True, timeout=900)
     assert result.returncode != 0
-    denoise_log = (tmp_path / out / "logs/denoise/svgf/test_000/spp1.log").read_text()
+    denoise_log = (tmp_path / out / "logs/denoise/svgf.log").read_text()
     assert "not retried: the previous attempt failed deterministically" in denoise_log, denoise_log
     assert frame.name in denoise_log, denoise_log

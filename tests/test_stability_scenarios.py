@@ -287,17 +287,23 @@ def test_smoke_stability_target_plans_the_expected_jobs(tmp_path: Path) -> None:
     assert cfg["stability"]["denoise_spp"] == [1] and (n, rows) == (2, 3)
     # The smoke config's rows (noisy, svgf, oidn) on its two clips at 1 spp: nothing learned or tuned, so no
     # training, tuning or training-scene renders. Both scenarios are animated: each has a control clip, rendered and
-    # denoised like it (no masks, no scores).
+    # denoised like it (no masks, no scores). One denoise and one score job per row does all its clips.
     clips = 2 * n
     assert counts == expected_jobs(cfg, "stability") == {
         "generate_scene": clips, "render_noisy": clips, "render_reference": clips, "derive_masks": n,
-        "denoise_scenario": clips * rows, "score_scenario": n * rows, "build_atlas": 1, "stability": 1}
+        "denoise_scenario_row": rows, "score_scenario_row": rows, "build_atlas": 1, "stability": 1}
+    from denoisers.jobs.rows import row_clips
+    from scenegen.scenarios import stability_control_ids
+
+    scenes = stability_scene_ids(cfg) + stability_control_ids(cfg)
+    assert len(scenes) == clips and row_clips(cfg, "svgf", "stability") == [(scene, 1) for scene in scenes]
     bad = run_snakemake("-n", f"{cfg['output_dir']}/stability/stab_nope", "--configfile", "config/smoke.yaml",
                         cwd=work, check=False)
     assert bad.returncode != 0 and "stab_nope is not a stability scenario" in bad.stdout + bad.stderr
-    bad = run_snakemake("-n", f"{cfg['output_dir']}/stability/scores/svgf/stab_camera_cut/spp2.csv", "--configfile",
+    bad = run_snakemake("-n", f"{cfg['output_dir']}/stability/scores/path_x2", "--configfile",
                         "config/smoke.yaml", cwd=work, check=False)
-    assert bad.returncode != 0 and "row svgf runs on the stability clips at spp: 1" in bad.stdout + bad.stderr
+    assert bad.returncode != 0 and "no runnable row path_x2 of evaluation.methods on the stability clips; rows: " \
+        "noisy, svgf, oidn" in bad.stdout + bad.stderr
 
 
 def test_stability_rows_must_be_evaluation_rows() -> None:

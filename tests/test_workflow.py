@@ -19,7 +19,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from denoisers.evaluate import ABLATION_ROLE, method_specs, plan_runs, robustness_runs
+from denoisers.evaluate import ABLATION_ROLE, EvaluationError, method_specs, plan_runs, robustness_runs
+from denoisers.jobs.rows import row_clips
 # Aliased: pytest would collect a module-level name starting with `test_` as a test.
 from denoisers.evaluate import evaluated_scene_ids
 from denoisers.device import resolve_config_device
@@ -30,10 +31,10 @@ from scenegen.config import (chunk_count, config_digest, load_config, scene_ids,
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
-JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_clip", "evaluate_clip",
-             "robustness_clip", "build_report", "train_denoiser", "tune_method", "time_methods", "time_training",
-             "derive_masks", "denoise_scenario", "score_scenario", "build_atlas", "denoise_volume", "evaluate_volume",
-             "robustness_volume", "verify_stored_model")
+JOB_RULES = ("generate_scene", "render_noisy", "render_reference", "denoise_row", "evaluate_row",
+             "robustness_row", "build_report", "train_denoiser", "tune_method", "time_methods", "time_training",
+             "derive_masks", "denoise_scenario_row", "score_scenario_row", "build_atlas", "denoise_volume_row",
+             "evaluate_volume_row", "robustness_volume_row", "verify_stored_model")
 STAGE_TARGETS = ("scenes", "renders", "train", "denoise", "evaluate", "baselines", "report", "stability", "volumes",
                  "verify")
 # examples/: the configs' extra_scenes XML (an input of its generate_scene job).
@@ -87,15 +88,18 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     """{rule: job count} of a --forceall dry run of ``target``, derived from the config.
 
     Renders cover every scene; the evaluation only the evaluated scenes (test and custom), with one
-    denoise and one evaluate job per (evaluated scene, runnable (row, spp) pair) and one robustness job
-    per (evaluated scene, runnable row with robustness at evaluation.robustness.spp). The rows are
+    denoise and one evaluate job per row with a runnable (row, spp) pair (each job does the row's clips: every
+    evaluated scene at each of its spp) and one robustness job per runnable row with robustness at
+    evaluation.robustness.spp. The rows are
     evaluation.methods (each at its own spp) plus one per trained ablation variant (at evaluation.ablation_spp). Which pairs are planned and
     runnable (those needing no more sample layers than were rendered) is decided by the workflow's own
     planning, denoisers.evaluate.plan_runs / robustness_runs.
     """
     scenes, test_scenes = scene_ids(cfg), evaluated_scene_ids(cfg)
-    evaluated = len(test_scenes) * sum(run.runnable for run in plan_runs(cfg))
-    robustness = len(test_scenes) * sum(run.runnable for run in robustness_runs(cfg))
+    def rows(runs) -> int:
+        return len({run.spec.id for run in runs if run.runnable}) if test_scenes else 0
+
+    evaluated, robustness = rows(plan_runs(cfg)), rows(robustness_runs(cfg))
     # Training reads every train_* scene (the held-out validation scenes too); the evaluation needs only the
     # models its rows name, the report and the default target every configured model.
     train_scenes = sum(training_split(cfg), [])
@@ -118,7 +122,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
 
     training_inputs = train_scenes if all_models or tuned else []
     baseline_runs = [run for run in plan_runs(cfg) if run.runnable and method_model(run.spec.params) is None]
-    baseline_jobs = len(test_scenes) * len(baseline_runs)
+    baseline_jobs = rows(baseline_runs)
     baseline_tuned = len({run.spec.method for run in baseline_runs if run.spec.params.get("tuned")})
     baseline_inputs = train_scenes if baseline_tuned else []
     used_inputs = train_scenes if used_models or tuned else []
@@ -127,7 +131,7 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     from denoisers.jobs.timing import timed_runs
 
     timed = 1 if test_scenes and timed_runs(cfg) else 0
-    evaluation = {"denoise_clip": evaluated, "evaluate_clip": evaluated, "robustness_clip": robustness,
+    evaluation = {"denoise_row": evaluated, "evaluate_row": evaluated, "robustness_row": robustness,
                   "time_methods": timed}
     # The training-speed job (rule time_training): one, if training.speed times a model; no inputs; the report
     # (and so the default target) reads it, the evaluation does not.
@@ -135,9 +139,9 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
 
     speed = {"time_training": 1 if speed_models(cfg) else 0}
     # The stability scenarios (target `stability`, also part of `report` and `all`): per stab_* scene its scene,
-    # its chunks (one per clip) and one derive_masks job; every runnable (configured row, stability.denoise_spp)
-    # denoises and scores every clip (denoise_scenario, score_scenario), with the models and tuning results those
-    # rows need (and so the training scenes' renders), and one build_atlas job.
+    # its chunks (one per clip) and one derive_masks job; every configured row with a runnable stability.denoise_spp
+    # denoises and scores all its clips in one job each (denoise_scenario_row, score_scenario_row), with the models
+    # and tuning results those rows need (and so the training scenes' renders), and one build_atlas job.
     from denoisers.jobs.stability import stability_runs
 
     from scenegen.scenarios import stability_control_ids
@@ -150,19 +154,21 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
     stab_tuned = {run.spec.method for run in stab_runs if run.spec.params.get("tuned")}
     stab_train = train_scenes if stab_models or stab_tuned else []
     stab_clips = stab + stab_controls
+    stab_rows = len({run.spec.id for run in stab_runs})
     stability = {**renders(stab_clips + stab_train, stab_clips + stab_train), "derive_masks": len(stab),
-                 "denoise_scenario": len(stab_clips) * len(stab_runs), "score_scenario": len(stab) * len(stab_runs),
+                 "denoise_scenario_row": stab_rows, "score_scenario_row": stab_rows,
                  "build_atlas": 1 if stab else 0, "train_denoiser": stab_models, "tune_method": len(stab_tuned)}
     # The volumetric clips (target `volumes`, also part of `report` and `all`): their scenes and chunks (one per
-    # clip), and every runnable (volume row, spp) denoised and scored on every vol_test_* clip.
+    # clip), and every volume row with a runnable spp denoised and scored on every vol_test_* clip, one job per row.
     from denoisers.jobs.volumes import volume_robustness_runs, volume_runs, volume_test_scene_ids
 
     vol, vol_test = volume_scene_ids(cfg), volume_test_scene_ids(cfg)
     runnable_volume = [run for run in volume_runs(cfg) if run.runnable] if vol_test else []
     vol_models = needed({method_model(run.spec.params) for run in runnable_volume})
-    volumes = {**renders(vol, vol), "denoise_volume": len(vol_test) * len(runnable_volume),
-               "evaluate_volume": len(vol_test) * len(runnable_volume), "train_denoiser": vol_models,
-               "robustness_volume": len(vol_test) * len(volume_robustness_runs(cfg))}
+    volume_rows = len({run.spec.id for run in runnable_volume})
+    volume_robustness_rows = len({run.spec.id for run in volume_robustness_runs(cfg)}) if vol_test else 0
+    volumes = {**renders(vol, vol), "denoise_volume_row": volume_rows, "evaluate_volume_row": volume_rows,
+               "train_denoiser": vol_models, "robustness_volume_row": volume_robustness_rows}
     # Models with data.scenes volumes train on the vol_train_* clips (their renders join the `train` target's).
     vol_train = sum(volume_training_split(cfg), []) if any(trains_on_volumes(m) for m in model_specs(cfg)) else []
     jobs = {
@@ -174,14 +180,14 @@ def expected_jobs(cfg: dict, target: str = "all") -> dict[str, int]:
         "renders": renders(scenes, scenes),
         "train": {**renders(trained := (train_scenes if all_models else []) + vol_train, trained),
                   "train_denoiser": all_models},
-        "denoise": {**renders(test_scenes + used_inputs, used_inputs), "denoise_clip": evaluated,
+        "denoise": {**renders(test_scenes + used_inputs, used_inputs), "denoise_row": evaluated,
                     "train_denoiser": used_models, "tune_method": tuned},
         "evaluate": {**renders(test_scenes + used_inputs, test_scenes + used_inputs), **evaluation,
                      "train_denoiser": used_models, "tune_method": tuned},
         # `baselines`: the rows without a trained model, denoised and scored; no training job. The copy has no
         # store, so the tuned rows' tuning jobs (and the training renders they read) are planned.
         "baselines": {**renders(test_scenes + baseline_inputs, test_scenes + baseline_inputs),
-                      "denoise_clip": baseline_jobs, "evaluate_clip": baseline_jobs, "tune_method": baseline_tuned},
+                      "denoise_row": baseline_jobs, "evaluate_row": baseline_jobs, "tune_method": baseline_tuned},
         "report": {**renders(test_scenes + training_inputs, test_scenes + training_inputs), **evaluation, **speed,
                    "build_report": 1, "train_denoiser": all_models, "tune_method": tuned},
         "all": {**renders(scenes, scenes), **evaluation, **speed, "build_report": 1, "train_denoiser": all_models,
@@ -228,8 +234,8 @@ def test_cluster_config_passes_dry_run_and_lint(workflow_copy: Path) -> None:
 
 #: Rules that compute on compute.device (Mitsuba or torch) and so ask for a GPU under cuda.
 GPU_RULES = frozenset({"generate_scene", "render_noisy", "render_reference", "derive_masks", "train_denoiser",
-                       "verify_stored_model", "denoise_clip", "robustness_clip", "denoise_scenario", "denoise_volume",
-                       "robustness_volume", "time_methods"})
+                       "verify_stored_model", "denoise_row", "robustness_row", "denoise_scenario_row",
+                       "denoise_volume_row", "robustness_volume_row", "time_methods"})
 
 
 @pytest.mark.slow
@@ -249,7 +255,7 @@ def test_gpu_cluster_overlay_asks_for_a_gpu_where_the_device_computes(workflow_c
         if resources:
             asks.setdefault(rule, set()).add("gpu=1" in resources.group(1))
     assert asks and all(asks[rule] == {rule in GPU_RULES} for rule in asks), asks
-    assert GPU_RULES & set(asks) >= {"render_noisy", "train_denoiser", "denoise_clip"}, sorted(asks)
+    assert GPU_RULES & set(asks) >= {"render_noisy", "train_denoiser", "denoise_row"}, sorted(asks)
 
 
 @pytest.mark.slow
@@ -329,11 +335,19 @@ def test_runs_needing_more_sample_layers_than_rendered_are_left_out(workflow_cop
     (workflow_copy / "layers.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("--forceall", "--configfile", "layers.yaml", cwd=workflow_copy)
     # Hand count with 4 rendered layers: noisy runs at 1, 2, 4 spp; path_x2 needs 2, 4, 8 layers (runs
-    # at 1, 2); path_x4 needs 4, 8, 16 (runs at 1): 6 pairs x 2 evaluated (test) scenes. Robustness at
-    # 2 spp: noisy and path_x2 (4 layers), not path_x4 (8 layers): 2 x 2 evaluated scenes.
-    assert {rule: counts.get(rule) for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
-        "denoise_clip": 12, "evaluate_clip": 12, "robustness_clip": 4}
-    assert counts == expected_jobs(load_config(workflow_copy / "layers.yaml"))
+    # at 1, 2); path_x4 needs 4, 8, 16 (runs at 1): 3 row jobs, 6 (row, spp) pairs x 2 evaluated (test) scenes
+    # as their clips. Robustness at 2 spp: noisy and path_x2 (4 layers), not path_x4 (8 layers): 2 row jobs.
+    assert {rule: counts.get(rule) for rule in ("denoise_row", "evaluate_row", "robustness_row")} == {
+        "denoise_row": 3, "evaluate_row": 3, "robustness_row": 2}
+    layers = load_config(workflow_copy / "layers.yaml")
+    assert counts == expected_jobs(layers)
+    scenes = ["test_000", "test_001"]
+    assert {row: row_clips(layers, row) for row in ("noisy", "path_x2", "path_x4")} == {
+        "noisy": [(scene, spp) for spp in (1, 2, 4) for scene in scenes],
+        "path_x2": [(scene, spp) for spp in (1, 2) for scene in scenes], "path_x4": [(scene, 1) for scene in scenes]}
+    assert row_clips(layers, "path_x2", "robustness") == [(scene, 2) for scene in scenes]
+    with pytest.raises(EvaluationError, match="not in the robustness scenario"):
+        row_clips(layers, "path_x4", "robustness")
 
 
 def dry_run_jobs(*args: str, cwd: Path) -> list[tuple[str, dict[str, str]]]:
@@ -366,12 +380,11 @@ def test_ablation_variants_are_evaluated_at_ablation_spp_only(workflow_copy: Pat
     jobs = dry_run_jobs("evaluate", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
     test_scenes = evaluated_scene_ids(cfg)
     for variant in variants:
-        denoise = {job["output"]: job["input"].split(", ") for rule, job in jobs if rule == "denoise_clip"
-                   and job["output"].startswith(f"{SMOKE_OUT}/denoised/{variant}/")}
-        assert set(denoise) == {f"{SMOKE_OUT}/denoised/{variant}/{scene}/spp{spp}" for scene in test_scenes
-                                for spp in ablation_spp}
-        assert all(f"{SMOKE_OUT}/models/{variant}" in inputs for inputs in denoise.values())
-        assert not [job for rule, job in jobs if rule == "robustness_clip" and f"/{variant}/" in job["output"]]
+        denoise = {job["output"]: job["input"].split(", ") for rule, job in jobs if rule == "denoise_row"
+                   and job["output"] == f"{SMOKE_OUT}/denoised/{variant}"}
+        assert len(denoise) == 1 and f"{SMOKE_OUT}/models/{variant}" in next(iter(denoise.values()))
+        assert row_clips(cfg, variant) == [(scene, spp) for spp in ablation_spp for scene in test_scenes]
+        assert not [job for rule, job in jobs if rule == "robustness_row" and job["output"].endswith(f"/{variant}")]
     trained = {job["output"] for rule, job in jobs if rule == "train_denoiser"}
     assert {f"{SMOKE_OUT}/models/{variant}" for variant in variants} <= trained
 
@@ -390,13 +403,17 @@ def test_custom_scenes_are_denoised_evaluated_and_reported(workflow_copy: Path) 
     assert custom == ["custom_spheres_room"] and evaluated_scene_ids(cfg) == ["test_000", *custom]
     jobs = dry_run_jobs("report", "--forceall", "--configfile", "smoke-external.yaml", cwd=workflow_copy)
     outputs = {rule: {path for r, job in jobs if r == rule for path in job["output"].split(", ")} for rule in
-               ("denoise_clip", "evaluate_clip", "robustness_clip", "generate_scene")}
+               ("denoise_row", "evaluate_row", "robustness_row", "generate_scene")}
     runs = [run for run in plan_runs(cfg) if run.runnable]
-    assert {f"{SMOKE_OUT}/denoised/{run.spec.id}/{custom[0]}/spp{run.spp}" for run in runs} <= outputs["denoise_clip"]
-    assert {f"{SMOKE_OUT}/metrics/{run.spec.id}/{custom[0]}/spp{run.spp}.csv" for run in runs} <= outputs["evaluate_clip"]
+    assert {f"{SMOKE_OUT}/denoised/{run.spec.id}" for run in runs} == outputs["denoise_row"]
+    assert {f"{SMOKE_OUT}/metrics/{run.spec.id}" for run in runs} == outputs["evaluate_row"]
+    # Every row job reads the external scene's renders and does its clips.
+    custom_noisy = f"{SMOKE_OUT}/renders/{custom[0]}/noisy/chunk_000"
+    assert all(custom_noisy in job["input"].split(", ") for rule, job in jobs if rule == "denoise_row")
+    assert all((custom[0], run.spp) in row_clips(cfg, run.spec.id) for run in runs)
     robust = [run for run in robustness_runs(cfg) if run.runnable]
-    assert robust and {f"{SMOKE_OUT}/robustness/{run.spec.id}/{custom[0]}/spp{run.spp}" for run in robust} <= \
-        outputs["robustness_clip"]
+    assert robust and {f"{SMOKE_OUT}/robustness/{run.spec.id}" for run in robust} == outputs["robustness_row"]
+    assert all((custom[0], run.spp) in row_clips(cfg, run.spec.id, "robustness") for run in robust)
     assert f"{SMOKE_OUT}/scenes/{custom[0]}" in outputs["generate_scene"]
     report = next(job for rule, job in jobs if rule == "build_report")
     assert f"{SMOKE_OUT}/scenes/{custom[0]}" in report["input"].split(", ")
@@ -416,19 +433,24 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
     (workflow_copy / "rows.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
     # Hand count on the one evaluated (test) scene: noisy at 1 and 2 spp, eaw at 2, path_x2 at none, the 7
-    # ablation variants at 2: 10 denoise jobs, which need the 7 variant models and the base model rae (no row
-    # uses it, but rae_loss_combined is its training and reuses its weights).
-    assert counts["denoise_clip"] == 10 and counts["train_denoiser"] == 8
+    # ablation variants at 2: 9 row jobs (path_x2 has none) doing 10 clips, which need the 7 variant models and
+    # the base model rae (no row uses it, but rae_loss_combined is its training and reuses its weights).
+    assert counts["denoise_row"] == 9 and counts["train_denoiser"] == 8
+    rows = load_config(workflow_copy / "rows.yaml")
+    clips = {spec.id: row_clips(rows, spec.id) for spec in method_specs(rows) if spec.id != "path_x2"}
+    assert sum(map(len, clips.values())) == 10 and clips["noisy"] == [("test_000", 1), ("test_000", 2)]
+    with pytest.raises(EvaluationError, match="not evaluated at any spp"):
+        row_clips(rows, "path_x2")
     counts = dry_run("evaluate", "--forceall", "--configfile", "rows.yaml", cwd=workflow_copy)
     # Robustness: noisy and path_x2 (its evaluated spp do not matter), not eaw or the variants.
-    assert {rule: counts[rule] for rule in ("denoise_clip", "evaluate_clip", "robustness_clip")} == {
-        "denoise_clip": 10, "evaluate_clip": 10, "robustness_clip": 2}
-    assert counts == expected_jobs(load_config(workflow_copy / "rows.yaml"), "evaluate")
+    assert {rule: counts[rule] for rule in ("denoise_row", "evaluate_row", "robustness_row")} == {
+        "denoise_row": 9, "evaluate_row": 9, "robustness_row": 2}
+    assert counts == expected_jobs(rows, "evaluate")
 
     cfg["evaluation"]["ablation_spp"] = []
     (workflow_copy / "no_ablation.yaml").write_text(yaml.safe_dump(cfg))
     counts = dry_run("denoise", "--forceall", "--configfile", "no_ablation.yaml", cwd=workflow_copy)
-    assert counts["denoise_clip"] == 3 and "train_denoiser" not in counts
+    assert counts["denoise_row"] == 2 and "train_denoiser" not in counts
 
 
 @pytest.mark.slow
@@ -503,8 +525,8 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     assert len(scenegen) == (jobs["generate_scene"] + jobs["render_noisy"] + jobs["render_reference"]
                              + jobs["derive_masks"])
     assert len(denoisers) == sum(jobs.get(rule, 0) for rule in JOB_RULES[3:] if rule != "derive_masks")
-    scenario = [line for line in denoisers if "python -m denoisers denoise " in line and "/stability/denoised/" in line]
-    assert len(scenario) == jobs["denoise_scenario"]
+    scenario = [line for line in denoisers if "python -m denoisers denoise-row --kind stability " in line]
+    assert len(scenario) == jobs["denoise_scenario_row"]
     config_files = {re.search(r"--config (\S+)", command).group(1) for command in scenegen + denoisers}
     assert len(config_files) == 1
     # A dry run does not write the resolved config; its name is the digest of the validated config with its
@@ -514,16 +536,16 @@ def test_dry_run_passes_the_resolved_config_to_the_cli(workflow_copy: Path) -> N
     assert resolved_path.name == f"{config_digest(resolve_config_device(cfg))[:16]}.yaml"
     assert any("render-noisy" in command and "--chunk 1 " in command for command in scenegen)
 
-    volume = [line for line in denoisers if "python -m denoisers denoise " in line and "/volumes/denoised/" in line]
-    assert len(volume) == jobs["denoise_volume"]
-    assert all(re.search(r"--scene vol_test_[a-z_]+_\d{3} ", command) for command in volume)
-    denoise = [line for line in denoisers if "python -m denoisers denoise " in line and "/stability/" not in line
-               and "/volumes/" not in line]
-    planned = {(run.spec.id, run.spp) for run in plan_runs(cfg) if run.runnable}
-    ran = {(re.search(r"--method-id (\S+)", c).group(1), int(re.search(r"--spp (\d+)", c).group(1))) for c in denoise}
-    assert ran == planned
+    volume = [line for line in denoisers if "python -m denoisers denoise-row --kind volumes " in line]
+    assert len(volume) == jobs["denoise_volume_row"]
+    assert all(re.search(r"--out \S+/volumes/denoised/[a-z0-9_]+ ", command) for command in volume)
+    denoise = [line for line in denoisers if "python -m denoisers denoise-row " in line and "--kind" not in line]
+    planned = {run.spec.id for run in plan_runs(cfg) if run.runnable}
+    ran = {re.search(r"--method-id (\S+)", c).group(1) for c in denoise}
+    assert ran == planned and len(denoise) == len(planned)
     assert all(f"--threads {cfg['evaluation']['threads']} " in command for command in denoise)
-    assert all(re.search(r"--scene (test_\d{3}|custom_[a-z0-9_]+) ", command) for command in denoise), \
+    # The row jobs denoise the evaluated scenes of the config (denoisers.jobs.rows.row_clips), never a training scene.
+    assert all(not scene.startswith("train_") for row in planned for scene, _ in row_clips(cfg, row)), \
         "a training scene is evaluated"
 
 
@@ -739,19 +761,25 @@ def test_training_runtime_follows_the_budget() -> None:
     assert training_runtime_minutes(cfg, "rae") == DEFAULT_TRAINING_RUNTIME_MIN
 
 
+#: The evaluation's rules, one job per row (denoisers.jobs.rows): their wall-time limit grows with the row's clips
+#: and the attempt (the rules set it).
+ROW_RULES = ("denoise_row", "evaluate_row", "robustness_row", "denoise_scenario_row", "score_scenario_row",
+             "denoise_volume_row", "evaluate_volume_row", "robustness_volume_row")
+
+
 def test_slurm_profile_sets_resources_for_every_rule() -> None:
     profile = yaml.safe_load((REPO_ROOT / "workflow/profiles/slurm/config.yaml").read_text())
     assert profile["executor"] == "slurm"
     assert {"slurm_partition", "slurm_account"} <= set(profile["default-resources"])
     assert set(profile["set-resources"]) == rule_names() == set(JOB_RULES)
     config_threads = config_threaded_rules()
-    assert config_threads == {"denoise_clip", "denoise_scenario", "denoise_volume", "robustness_clip",
-                              "robustness_volume", "train_denoiser", "tune_method", "verify_stored_model"}
+    assert config_threads == {"denoise_row", "denoise_scenario_row", "denoise_volume_row", "robustness_row",
+                              "robustness_volume_row", "train_denoiser", "tune_method", "verify_stored_model"}
     for rule, resources in profile["set-resources"].items():
         assert "mem_mb" in resources, rule
-        # train_denoiser's (and verify_stored_model's) runtime comes from the model's budget (the rule), every other
-        # rule's from here.
-        assert ("runtime" in resources) == (rule not in ("train_denoiser", "verify_stored_model")), rule
+        # train_denoiser's (and verify_stored_model's) runtime comes from the model's budget (the rule), a row job's
+        # from its clip count (the rule), every other rule's from here.
+        assert ("runtime" in resources) == (rule not in ("train_denoiser", "verify_stored_model", *ROW_RULES)), rule
         # Rules threaded by a config key get as many CPUs as their threads (the executor's fallback);
         # a fixed cpus_per_task would oversubscribe them when a config raises the key.
         assert ("cpus_per_task" in resources) == (rule not in config_threads), rule
@@ -760,16 +788,15 @@ def test_slurm_profile_sets_resources_for_every_rule() -> None:
     for rule, threads in profile.get("set-threads", {}).items():
         assert rule in rule_names() and threads <= profile["set-resources"][rule]["cpus_per_task"], rule
     # Issue 50 §2: a retry gets more memory and time; failures do not stop the run; the short per-clip jobs go in
-    # batches; the timing jobs have their node to themselves.
+    # batches (the evaluated scenes' clips are batched per row by the rules themselves); the timing jobs have their
+    # node to themselves.
     assert profile["keep-going"] is True and profile["retries"] >= 1
     for rule, resources in profile["set-resources"].items():
         for key in ("mem_mb", "runtime"):
             assert key not in resources or "* attempt" in str(resources[key]), (rule, key)
-    grouped = dict(entry.split("=") for entry in profile["groups"])
-    assert set(grouped) == {"denoise_clip", "evaluate_clip", "robustness_clip", "denoise_scenario", "score_scenario",
-                            "denoise_volume", "evaluate_volume", "robustness_volume"}
-    components = dict(entry.split("=") for entry in profile["group-components"])
-    assert set(components) == set(grouped.values()) and all(int(n) > 1 for n in components.values())
+    # No group jobs: every evaluation rule is one job per row already.
+    assert "groups" not in profile and "group-components" not in profile
+    assert set(ROW_RULES) <= rule_names()
     assert all("--exclusive" in profile["set-resources"][rule]["slurm_extra"] for rule in ("time_methods",
                                                                                           "time_training"))
 

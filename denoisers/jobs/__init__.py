@@ -1,10 +1,13 @@
-"""The evaluation's jobs: one module per workflow rule family, each reading renders and writing one output folder.
+"""The evaluation's jobs: the modules behind the workflow's rules, each reading renders and writing output folders.
 
-* :mod:`denoisers.jobs.denoise`: one row on one clip (rule ``denoise_clip``);
-* :mod:`denoisers.jobs.scoring`: per-frame metrics of a denoised clip (``evaluate_clip``);
-* :mod:`denoisers.jobs.robustness`: spikes and NaN/Inf injected into the samples (``robustness_clip``);
-* :mod:`denoisers.jobs.stability`: the stability suite's rows and scores (``denoise_scenario``, ``score_scenario``);
-* :mod:`denoisers.jobs.volumes`: the volumetric clips' rows (``denoise_volume``, ``evaluate_volume``);
+* :mod:`denoisers.jobs.rows`: every clip of one row in one job (rules ``denoise_row``, ``evaluate_row``,
+  ``robustness_row`` and their stability and volume counterparts ``*_scenario_row``, ``*_volume_row``), each clip
+  by the modules below;
+* :mod:`denoisers.jobs.denoise`: one row on one clip;
+* :mod:`denoisers.jobs.scoring`: per-frame metrics of a denoised clip;
+* :mod:`denoisers.jobs.robustness`: spikes and NaN/Inf injected into the samples;
+* :mod:`denoisers.jobs.stability`: the stability suite's rows and the failure metrics of one clip;
+* :mod:`denoisers.jobs.volumes`: the volumetric clips' rows;
 * :mod:`denoisers.jobs.timing`: every row timed on the same frames (``time_methods``);
 * :mod:`denoisers.jobs.tuning`: the hand-set baselines' grid search on training scenes (``tune_method``).
 

@@ -1,6 +1,6 @@
-"""Running one evaluation row on one clip: the job behind rule denoise_clip.
+"""Running one evaluation row on one clip: what rule denoise_row does for each clip of a row (denoisers.jobs.rows).
 
-* ``denoise_clip`` (rule denoise_clip): one method on one evaluated scene at one spp -> EXR + PNG + timing.json
+* ``denoise_clip`` (each clip of rule denoise_row): one method on one evaluated scene at one spp -> EXR + PNG + timing.json
   (+ sample_maps.npz for an adaptive method: its per-frame sample maps; the evaluated spp is its average
   budget, checked per frame with denoisers.adaptive.budget_problems, realised spp in timing.json; + maps.npz
   for a method with per-pixel diagnostics, Denoiser.diagnostics: e.g. AFN's temporal weight lambda)

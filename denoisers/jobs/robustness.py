@@ -1,10 +1,10 @@
-"""The robustness scenario, spikes and NaN/Inf injected into the noisy samples: the job behind rule
-robustness_clip.
+"""The robustness scenario, spikes and NaN/Inf injected into the noisy samples: what rule robustness_row does
+for each clip of a row (denoisers.jobs.rows).
 
-* ``robustness_clip`` (rule robustness_clip): one method on a clip with injected spikes and NaN/Inf -> CSV
+* ``robustness_clip``: one method on a clip with injected spikes and NaN/Inf -> CSV
 
-The method runs through the same loop as rule denoise_clip (denoisers.jobs.denoise.run_method) and is
-scored like rule evaluate_clip (denoisers.jobs.scoring.score_sequence), from the outputs in memory.
+The method runs through the same loop as the denoised clips (denoisers.jobs.denoise.run_method) and is
+scored like them (denoisers.jobs.scoring.score_sequence), from the outputs in memory.
 """
 from __future__ import annotations
 

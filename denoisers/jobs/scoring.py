@@ -1,6 +1,6 @@
-"""Scoring a denoised clip against its reference: the job behind rule evaluate_clip.
+"""Scoring a denoised clip against its reference: what rule evaluate_row does for each clip of a row.
 
-* ``evaluate_clip`` (rule evaluate_clip): per-frame metrics of a denoised clip against the reference -> CSV
+* ``evaluate_clip`` (each clip of rule evaluate_row): per-frame metrics of a denoised clip against the reference -> CSV
 
 ``score_sequence`` (per-frame and temporal metrics of a (T, 3, H, W) sequence) is shared with the
 robustness job (denoisers.jobs.robustness). The metrics and pandas are imported by the functions that use them.

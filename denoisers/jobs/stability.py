@@ -60,21 +60,6 @@ def stability_runs(cfg: dict) -> list[Run]:
     return _plan(clip_cfg, stability_rows(cfg), lambda spec: spps)
 
 
-def scenario_target_problem(scenes: list[str], runs: list[Run], scene: str, method: str, spp: int) -> str:
-    """'' if (scene, row, spp) is a job of the suite, else what is allowed (for the workflow's target check)."""
-    listing = lambda values: ", ".join(map(str, values)) or "none"  # noqa: E731
-    if scene not in scenes:
-        return f"scene {scene} is not a stability scenario of this config; stability scenes: {listing(scenes)}"
-    rows = sorted({run.spec.id for run in runs})
-    if method not in rows:
-        return f"no runnable row {method} of evaluation.methods on the stability clips; rows: {listing(rows)}"
-    allowed = sorted(run.spp for run in runs if run.spec.id == method)
-    if spp not in allowed:
-        return (f"row {method} runs on the stability clips at spp: {listing(allowed)} (stability.denoise_spp within "
-                "the clips' sample layers)")
-    return ""
-
-
 def atlas_digest(cfg: dict) -> str:
     """Rule build_atlas's settings: the stability section and the configured rows."""
     return config_digest({"stability": cfg.get("stability"), "methods": cfg["evaluation"]["methods"]})

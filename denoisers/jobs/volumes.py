@@ -107,19 +107,6 @@ def volume_robustness_runs(cfg: dict) -> list[Run]:
             if run.runnable and run.spec.id in wanted and run.spp == int(robustness["spp"])]
 
 
-def volume_target_problem(scenes: list[str], runs: list[Run], scene: str, method: str, spp: int) -> str:
-    """Why {method}/{scene}/spp{spp} is not a job of the volume evaluation ('' when it is)."""
-    if scene not in scenes:
-        return (f"scene {scene} is not an evaluated volumetric clip of this config; evaluated clips: "
-                f"{', '.join(scenes) or 'none'}")
-    allowed = sorted(run.spp for run in runs if run.spec.id == method and run.runnable)
-    if spp not in allowed:
-        rows = sorted({run.spec.id for run in runs if run.runnable})
-        return (f"row {method} runs on the volumetric clips at spp: {', '.join(map(str, allowed)) or 'none'} "
-                f"(volume rows that run: {', '.join(rows) or 'none'})")
-    return ""
-
-
 def volume_denoised_dir(results: Path | str, method_id: str, scene: str, spp: int) -> Path:
     return Path(results) / "volumes" / "denoised" / method_id / scene / f"spp{spp}"
 

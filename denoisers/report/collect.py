@@ -1,5 +1,5 @@
 """Collecting what the report is computed from: per-frame metric CSVs, timing.json, the robustness
-scenario (rules evaluate_clip, denoise_clip, robustness_clip), the timing job (time_methods: every speed
+scenario (rules evaluate_row, denoise_row, robustness_row), the timing job (time_methods: every speed
 number of the report), the training-speed job (time_training), the trained models (train_denoiser, read by
 denoisers.report.trained) and the manifests of the external scenes (generate_scene: what was rendered and what
 was substituted).

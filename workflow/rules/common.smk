@@ -255,34 +255,6 @@ def check_tuning_target(wildcards) -> list:
     return []
 
 
-def check_evaluation_target(job_rule: str, pattern: str, kind: str = "evaluation"):
-    """Input function of the evaluation rules: an evaluated scene, an evaluation row and an spp it runs at
-    (kind 'robustness': a row of the spike/NaN scenario at evaluation.robustness.spp)."""
-
-    def check(wildcards) -> list:
-        scene, method = wildcards.scene, wildcards.method
-        if scene not in EVALUATED_SCENES:
-            why = "training scenes are never evaluated" if scene.startswith("train_") else "not in this config"
-            raise impossible_target(job_rule, pattern, wildcards, f"scene {scene}: {why}; evaluated scenes: "
-                                    f"{_listing(EVALUATED_SCENES)}")
-        if method not in METHOD_SPECS:
-            raise impossible_target(job_rule, pattern, wildcards, f"no evaluation row {method}; rows: "
-                                    f"{_listing(METHOD_SPECS)}")
-        allowed = sorted(run.spp for run in planned_runs(kind) if run.spec.id == method)
-        if int(wildcards.spp) not in allowed:
-            if kind == "robustness" and not allowed:
-                problem = (f"row {method} is not in the robustness scenario (robustness disabled, robustness: "
-                           "false, an ablation row, or more sample layers needed than rendered)")
-            else:
-                where = "in the robustness scenario" if kind == "robustness" else "evaluated"
-                problem = (f"row {method} is {where} at spp: {_listing(allowed)} (its spp, within the rendered "
-                           "sample layers)")
-            raise impossible_target(job_rule, pattern, wildcards, problem)
-        return []
-
-    return check
-
-
 # ---------------------------------------------------------------------------------------------
 # Passing the config to the CLI and rerunning jobs when it changes.
 #

@@ -41,35 +41,73 @@ def planned_runs(kind: str = "evaluation") -> list:
     return _planned_runs[kind]
 
 
+def planned_rows(kind: str = "evaluation") -> list[str]:
+    """Row ids with at least one runnable (row, spp) of the evaluation or the spike scenario, in table order
+    (none without evaluated scenes)."""
+    return list(dict.fromkeys(run.spec.id for run in planned_runs(kind))) if EVALUATED_SCENES else []
+
+
 def denoised_dirs(wildcards=None) -> list[str]:
-    """Every denoised output directory (stage target `denoise`)."""
-    return [results_path(f"denoised/{run.spec.id}/{scene}/spp{run.spp}")
-            for run in planned_runs() for scene in EVALUATED_SCENES]
+    """Every row's denoised folder (stage target `denoise`): denoised/{row}/{scene}/spp{spp}/ inside."""
+    return [results_path(f"denoised/{row}") for row in planned_rows()]
 
 
-def metrics_files(wildcards=None) -> list[str]:
-    """Every per-frame metrics CSV."""
-    return [results_path(f"metrics/{run.spec.id}/{scene}/spp{run.spp}.csv")
-            for run in planned_runs() for scene in EVALUATED_SCENES]
+def metrics_dirs(wildcards=None) -> list[str]:
+    """Every row's metrics folder: metrics/{row}/{scene}/spp{spp}.csv inside."""
+    return [results_path(f"metrics/{row}") for row in planned_rows()]
 
 
-def baseline_metrics_files(wildcards=None) -> list[str]:
-    """Stage target `baselines`: the per-frame metrics of every row that uses no trained model (tuned rows read
+def baseline_metrics_dirs(wildcards=None) -> list[str]:
+    """Stage target `baselines`: the metrics of every row that uses no trained model (tuned rows read
     their tuning result, from the store when it is there), so no training job and, with stored tuning, no
     training render is planned."""
-    return [results_path(f"metrics/{run.spec.id}/{scene}/spp{run.spp}.csv")
-            for run in planned_runs() if method_model(run.spec.params) is None for scene in EVALUATED_SCENES]
+    return [results_path(f"metrics/{row}") for row in planned_rows()
+            if method_model(method_spec(row).params) is None]
 
 
 def robustness_dirs(wildcards=None) -> list[str]:
-    """Every output directory of the spike/NaN scenario."""
-    return [robustness_dir(OUT, run.spec.id, scene, run.spp).as_posix()
-            for run in planned_runs("robustness") for scene in EVALUATED_SCENES]
+    """Every row's folder of the spike/NaN scenario: robustness/{row}/{scene}/spp{spp}/ inside."""
+    return [results_path(f"robustness/{row}") for row in planned_rows("robustness")]
 
 
 def evaluate_targets(wildcards=None) -> list[str]:
-    """Stage target `evaluate`: metrics CSVs, the robustness scenario and the timing job."""
-    return metrics_files() + robustness_dirs() + timing_outputs()
+    """Stage target `evaluate`: metrics, the robustness scenario and the timing job."""
+    return metrics_dirs() + robustness_dirs() + timing_outputs()
+
+
+def check_row_target(job_rule: str, pattern: str, kind: str = "evaluation"):
+    """Input function of the row rules: {method} is a row that runs at some spp (kind 'robustness': a row of
+    the spike/NaN scenario)."""
+
+    def check(wildcards) -> list:
+        method = wildcards.method
+        if method not in METHOD_SPECS:
+            raise impossible_target(job_rule, pattern, wildcards, f"no evaluation row {method}; rows: "
+                                    f"{_listing(METHOD_SPECS)}")
+        if method not in planned_rows(kind):
+            problem = (f"row {method} is not in the robustness scenario (robustness disabled, robustness: false, an "
+                       "ablation row, or more sample layers needed than rendered)" if kind == "robustness" else
+                       f"row {method} runs at no spp within the rendered sample layers")
+            raise impossible_target(job_rule, pattern, wildcards, problem)
+        return []
+
+    return check
+
+
+def evaluated_chunk_dirs(kind: str):
+    """Input function: the noisy or reference chunk directories of every evaluated scene."""
+
+    def chunk_dirs_of_evaluated_scenes(wildcards) -> list[str]:
+        return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for scene in EVALUATED_SCENES
+                for chunk in range(chunk_count(config, scene))]
+
+    return chunk_dirs_of_evaluated_scenes
+
+
+def row_runtime_minutes(wildcards, attempt: int) -> int:
+    """Resource: a row job's wall-time limit (SLURM), 10 minutes plus one per clip, grown with the attempt."""
+    clips = sum(1 for run in planned_runs() if run.spec.id == wildcards.method) * len(EVALUATED_SCENES)
+    return (10 + clips) * attempt
 
 
 def method_model_dir(wildcards) -> list[str]:
@@ -103,11 +141,11 @@ def report_input(wildcards) -> dict[str, list[str]]:
     external = [results_path(f"scenes/{scene}") for scene in EVALUATED_SCENES if scene.startswith("custom_")]
     tuning = sorted({results_path(f"tuning/{run.spec.method}.json") for run in planned_runs()
                      if run.spec.params.get("tuned")})
-    return {"metrics": metrics_files(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
+    return {"metrics": metrics_dirs(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
             "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning,
             "timing": timing_outputs(), "training_speed": training_speed_outputs(),
             "atlas": ATLAS_OUTPUTS["markdown"],
-            "volumes": volume_metrics_files() + volume_denoised_dirs() + volume_robustness_dirs(),
+            "volumes": volume_metrics_dirs() + volume_denoised_dirs() + volume_robustness_dirs(),
             "volume_references": [results_path(f"renders/{scene}/reference/chunk_000") for scene in VOLUME_TEST_SCENES]}
 
 

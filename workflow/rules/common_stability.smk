@@ -3,8 +3,8 @@
 # ---------------------------------------------------------------------------------------------
 # The stability suite's evaluation (workflow/rules/stability.smk, denoisers.jobs.stability): every configured
 # row of evaluation.methods (not the ablation variants) denoises every stab_* clip at stability.denoise_spp
-# (rule denoise_scenario), is scored against the reference, masks and events (score_scenario), and build_atlas
-# writes the failure atlas. Planned (importing torch) only when one of these jobs is part of the DAG.
+# (rule denoise_scenario_row, one job per row), is scored against the reference, masks and events
+# (score_scenario_row), and build_atlas writes the failure atlas. Planned (importing torch) only when one of these jobs is part of the DAG.
 # ---------------------------------------------------------------------------------------------
 ATLAS_OUTPUTS = atlas_outputs(config, root=OUT)
 _stability_runs = []
@@ -19,53 +19,50 @@ def stability_run_list() -> list:
     return _stability_runs[0] if _stability_runs else []
 
 
+def stability_run_rows() -> list[str]:
+    """The rows with a runnable stability run, in table order."""
+    return list(dict.fromkeys(run.spec.id for run in stability_run_list()))
+
+
 def scenario_outputs(kind: str):
-    """Input function of build_atlas: every scores CSV ('scores') or denoised directory ('denoised') of the suite."""
-    pattern = "stability/scores/{}/{}/spp{}.csv" if kind == "scores" else "stability/denoised/{}/{}/spp{}"
-    return lambda wildcards: [results_path(pattern.format(run.spec.id, scene, run.spp))
-                              for run in stability_run_list() for scene in STABILITY_SCENES]
+    """Input function of build_atlas: every row's scores folder ('scores') or denoised folder ('denoised')."""
+    return lambda wildcards: [results_path(f"stability/{kind}/{row}") for row in stability_run_rows()]
 
 
-def check_scenario_target(job_rule: str, pattern: str, controls: bool = False):
-    """Input function of denoise_scenario (``controls``: the control clips too) / score_scenario: a stability
-    scene, and a row and spp the suite runs."""
-    from denoisers.jobs.stability import scenario_target_problem
-
-    scenes = STABILITY_SCENES + (STABILITY_CONTROLS if controls else [])
+def check_scenario_row_target(job_rule: str, pattern: str):
+    """Input function of denoise_scenario_row / score_scenario_row: a row the suite runs."""
 
     def check(wildcards) -> list:
-        problem = scenario_target_problem(scenes, stability_run_list(), wildcards.scene, wildcards.method,
-                                          int(wildcards.spp))
-        if problem:
-            raise impossible_target(job_rule, pattern, wildcards, problem)
+        rows = stability_run_rows()
+        if wildcards.method not in rows:
+            raise impossible_target(job_rule, pattern, wildcards,
+                                    f"no runnable row {wildcards.method} of evaluation.methods on the stability "
+                                    f"clips; rows: {_listing(rows)}")
         return []
 
     return check
 
 
-def _scenario_control(scene: str) -> str | None:
-    from scenegen.scenarios import scenario_control
+def stability_chunk_dirs(kind: str):
+    """Input function: the noisy or reference chunks of every stability clip, the controls' included."""
 
-    return scenario_control(config, scene)
+    def chunk_dirs_of_scenarios(wildcards) -> list[str]:
+        return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}")
+                for scene in STABILITY_SCENES + STABILITY_CONTROLS for chunk in range(chunk_count(config, scene))]
 
-
-def scenario_control_inputs(wildcards) -> list[str]:
-    """Input function of score_scenario: the failure-free control clip's denoised output (same row and spp) and
-    reference chunks, whose error is the lag metric's steady state; none for a scenario that is not animated."""
-    control = _scenario_control(wildcards.scene)
-    if control is None:
-        return []
-    return [results_path(f"stability/denoised/{wildcards.method}/{control}/spp{wildcards.spp}")] + [
-        results_path(f"renders/{control}/reference/chunk_{chunk:03d}") for chunk in range(chunk_count(config, control))]
+    return chunk_dirs_of_scenarios
 
 
-def scenario_control_args(wildcards) -> str:
-    """Param of score_scenario: the control clip's --control-denoised / --control-render-dir ('' without one)."""
-    control = _scenario_control(wildcards.scene)
-    if control is None:
-        return ""
-    return (f"--control-denoised {results_path(f'stability/denoised/{wildcards.method}/{control}/spp{wildcards.spp}')}"
-            f" --control-render-dir {results_path(f'renders/{control}')}")
+def scenario_row_runtime_minutes(wildcards, attempt: int) -> int:
+    """Resource: a stability row job's wall-time limit (SLURM), 10 minutes plus one per clip, grown with the
+    attempt."""
+    spps = sum(1 for run in stability_run_list() if run.spec.id == wildcards.method)
+    return (10 + spps * len(STABILITY_SCENES + STABILITY_CONTROLS)) * attempt
+
+
+def masks_root(wildcards) -> str:
+    """Param of score_scenario_row: the folder of the scenarios' mask folders (stability/{scene}/)."""
+    return results_path("stability")
 
 
 def scenario_score_digest(wildcards) -> str:

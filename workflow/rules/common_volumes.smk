@@ -2,8 +2,8 @@
 # imports and helpers they use.
 # ---------------------------------------------------------------------------------------------
 # The volumetric clips' evaluation (denoisers.jobs.volumes): every runnable row of volumes.rows denoises every
-# vol_test_* clip at volumes.denoise_spp (rule denoise_volume) and is scored against the volpath reference
-# (evaluate_volume). Planned (importing torch) only when one of these jobs is part of the DAG.
+# vol_test_* clip at volumes.denoise_spp (rule denoise_volume_row, one job per row) and is scored against the
+# volpath reference (evaluate_volume_row). Planned (importing torch) only when one of these jobs is part of the DAG.
 # ---------------------------------------------------------------------------------------------
 from denoisers.jobs.volumes import volume_test_scene_ids
 
@@ -33,33 +33,48 @@ def volume_robustness_run_list() -> list:
     return _volume_robustness_runs[0] if _volume_robustness_runs else []
 
 
+def volume_rows(kind: str = "evaluation") -> list[str]:
+    """The volume rows with a runnable run (kind 'robustness': of the spike scenario), in table order."""
+    runs = volume_run_list() if kind == "evaluation" else volume_robustness_run_list()
+    return list(dict.fromkeys(run.spec.id for run in runs if run.runnable))
+
+
 def volume_robustness_dirs(wildcards=None) -> list[str]:
-    return [results_path(f"volumes/robustness/{run.spec.id}/{scene}/spp{run.spp}")
-            for run in volume_robustness_run_list() for scene in VOLUME_TEST_SCENES]
+    return [results_path(f"volumes/robustness/{row}") for row in volume_rows("robustness")]
 
 
-def volume_metrics_files(wildcards=None) -> list[str]:
-    """Every metrics CSV of the volume evaluation (stage target `volumes`, build_report)."""
-    return [results_path(f"volumes/metrics/{run.spec.id}/{scene}/spp{run.spp}.csv")
-            for run in volume_run_list() if run.runnable for scene in VOLUME_TEST_SCENES]
+def volume_metrics_dirs(wildcards=None) -> list[str]:
+    """Every row's metrics folder of the volume evaluation (stage target `volumes`, build_report)."""
+    return [results_path(f"volumes/metrics/{row}") for row in volume_rows()]
 
 
 def volume_denoised_dirs(wildcards=None) -> list[str]:
-    return [results_path(f"volumes/denoised/{run.spec.id}/{scene}/spp{run.spp}")
-            for run in volume_run_list() if run.runnable for scene in VOLUME_TEST_SCENES]
+    return [results_path(f"volumes/denoised/{row}") for row in volume_rows()]
 
 
-def check_volume_target(job_rule: str, pattern: str, kind: str = "evaluation"):
-    """Input function of denoise_volume / evaluate_volume (robustness_volume: kind 'robustness'): an evaluated clip,
-    and a row and spp that run on it."""
-    from denoisers.jobs.volumes import volume_target_problem
+def check_volume_row_target(job_rule: str, pattern: str, kind: str = "evaluation"):
+    """Input function of the volume row rules: a row that runs on the evaluated volumetric clips (kind
+    'robustness': in their spike scenario)."""
 
     def check(wildcards) -> list:
-        runs = volume_run_list() if kind == "evaluation" else volume_robustness_run_list()
-        problem = volume_target_problem(VOLUME_TEST_SCENES, runs, wildcards.scene, wildcards.method,
-                                        int(wildcards.spp))
-        if problem:
-            raise impossible_target(job_rule, pattern, wildcards, problem)
+        rows = volume_rows(kind)
+        if wildcards.method not in rows:
+            where = "in the volumetric clips' robustness scenario" if kind == "robustness" else \
+                "run on the volumetric clips"
+            raise impossible_target(job_rule, pattern, wildcards,
+                                    f"row {wildcards.method} is not {where}; rows: {_listing(rows)} (evaluated "
+                                    f"clips: {_listing(VOLUME_TEST_SCENES)})")
         return []
 
     return check
+
+
+def volume_chunk_dirs(kind: str):
+    """Input function: the noisy or reference chunk of every evaluated volumetric clip."""
+    return lambda wildcards: [results_path(f"renders/{scene}/{kind}/chunk_000") for scene in VOLUME_TEST_SCENES]
+
+
+def volume_row_runtime_minutes(wildcards, attempt: int) -> int:
+    """Resource: a volume row job's wall-time limit (SLURM), 10 minutes plus one per clip, grown with the attempt."""
+    spps = sum(1 for run in volume_run_list() if run.spec.id == wildcards.method and run.runnable)
+    return (10 + max(spps, 1) * len(VOLUME_TEST_SCENES)) * attempt

@@ -1,34 +1,37 @@
 # Stage 3: denoising and evaluation of the test scenes and the external (custom_*) scenes, and the generated report.
 # All paths are below the config's output_dir (<out>). A row with params {model: <id>} reads <out>/models/<id>/
 # (rule train_denoiser) and depends on it.
-#   denoise_clip:    <out>/denoised/{method}/{scene}/spp{spp}/frame_{t:04d}.exr + .png, timing.json
-#   evaluate_clip:   <out>/metrics/{method}/{scene}/spp{spp}.csv (per-frame metrics) + .json (its settings digest)
-#   robustness_clip: <out>/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected)
+#   denoise_row:     <out>/denoised/{method}/{scene}/spp{spp}/frame_{t:04d}.exr + .png, timing.json
+#   evaluate_row:    <out>/metrics/{method}/{scene}/spp{spp}.csv (per-frame metrics) + .json (its settings digest)
+#   robustness_row:  <out>/robustness/{method}/{scene}/spp{spp}/ (spikes and NaN/Inf injected)
 #   build_report:    <out>/tables/, <out>/figures/, <out>/REPORT.md
+# One job per row does every clip of the row (each evaluated scene at each of its spp, denoisers.jobs.rows): a
+# clip is about a second of work and a process start (torch's import) costs two, so per-clip jobs spent most of
+# the evaluation starting processes. The row's folder appears when all its clips are written.
 # Each output records the digest of the settings it came from (denoisers.experiment); the report refuses
 # to combine outputs whose digests disagree with its config.
 # {method} is a row id: of evaluation.methods, or a trained ablation variant's model id (evaluated at
-# evaluation.ablation_spp, not in the robustness scenario); the targets request the test_* and custom_* scenes
-# (denoisers.evaluate.evaluated_scene_ids), never train_*; other targets are rejected when the DAG is built.
+# evaluation.ablation_spp, not in the robustness scenario); the rows run on the test_* and custom_* scenes
+# (denoisers.evaluate.evaluated_scene_ids), never on train_*.
 
 
-rule denoise_clip:
+rule denoise_row:
     input:
-        valid=check_evaluation_target("denoise_clip", "denoised/{method}/{scene}/spp{spp}"),
-        noisy=scene_chunk_dirs("noisy"),
+        valid=check_row_target("denoise_row", "denoised/{method}"),
+        noisy=evaluated_chunk_dirs("noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
     output:
-        out_dir=directory(results_path("denoised/{method}/{scene}/spp{spp}")),
+        out_dir=directory(results_path("denoised/{method}")),
     params:
         config_file=resolved_config_file,
         config_digest=denoise_digest,
-        render_dir=render_dir,
+        render_root=results_path("renders"),
         results=results_root,
     log:
-        results_path("logs/denoise/{method}/{scene}/spp{spp}.log"),
+        results_path("logs/denoise/{method}.log"),
     benchmark:
-        results_path("benchmarks/denoise/{method}/{scene}/spp{spp}.tsv")
+        results_path("benchmarks/denoise/{method}.tsv")
     conda:
         "../envs/harness.yaml"
     # Timings are recorded in-process with this many torch threads; with 2 on a 2-core machine the
@@ -36,70 +39,69 @@ rule denoise_clip:
     threads: config["evaluation"]["threads"]
     resources:
         mem_mb=4000,
-        runtime=60,
+        runtime=row_runtime_minutes,
         **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
-        "python -m denoisers denoise --config {params.config_file} --method-id {wildcards.method}"
-        " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
-        " --results {params.results} --out {output.out_dir} --threads {threads} > {log} 2>&1"
+        "python -m denoisers denoise-row --config {params.config_file} --method-id {wildcards.method}"
+        " --render-root {params.render_root} --results {params.results} --out {output.out_dir}"
+        " --threads {threads} > {log} 2>&1"
 
 
-rule evaluate_clip:
+rule evaluate_row:
     input:
-        valid=check_evaluation_target("evaluate_clip", "metrics/{method}/{scene}/spp{spp}.csv"),
-        denoised=results_path("denoised/{method}/{scene}/spp{spp}"),
-        reference=scene_chunk_dirs("reference"),
+        valid=check_row_target("evaluate_row", "metrics/{method}"),
+        denoised=results_path("denoised/{method}"),
+        reference=evaluated_chunk_dirs("reference"),
     output:
-        csv=results_path("metrics/{method}/{scene}/spp{spp}.csv"),
-        sidecar=results_path("metrics/{method}/{scene}/spp{spp}.json"),
+        out_dir=directory(results_path("metrics/{method}")),
     params:
         config_file=resolved_config_file,
         config_digest=evaluate_digest,
-        render_dir=render_dir,
+        render_root=results_path("renders"),
     log:
-        results_path("logs/evaluate/{method}/{scene}/spp{spp}.log"),
+        results_path("logs/evaluate/{method}.log"),
     benchmark:
-        results_path("benchmarks/evaluate/{method}/{scene}/spp{spp}.tsv")
+        results_path("benchmarks/evaluate/{method}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: 1
     resources:
         mem_mb=2000,
-        runtime=30,
+        runtime=row_runtime_minutes,
     shell:
-        "OMP_NUM_THREADS={threads} python -m denoisers evaluate --config {params.config_file}"
-        " --denoised {input.denoised} --render-dir {params.render_dir} --out {output.csv} > {log} 2>&1"
+        "OMP_NUM_THREADS={threads} python -m denoisers evaluate-row --config {params.config_file}"
+        " --denoised {input.denoised} --render-root {params.render_root} --out {output.out_dir} > {log} 2>&1"
 
 
-rule robustness_clip:
+rule robustness_row:
     input:
-        valid=check_evaluation_target("robustness_clip", "robustness/{method}/{scene}/spp{spp}", "robustness"),
-        noisy=scene_chunk_dirs("noisy"),
+        valid=check_row_target("robustness_row", "robustness/{method}", "robustness"),
+        noisy=evaluated_chunk_dirs("noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
-        reference=scene_chunk_dirs("reference"),
+        reference=evaluated_chunk_dirs("reference"),
     output:
-        out_dir=directory(results_path("robustness/{method}/{scene}/spp{spp}")),
+        out_dir=directory(results_path("robustness/{method}")),
     params:
         config_file=resolved_config_file,
         config_digest=robustness_digest,
-        render_dir=render_dir,
+        render_root=results_path("renders"),
         results=results_root,
     log:
-        results_path("logs/robustness/{method}/{scene}/spp{spp}.log"),
+        results_path("logs/robustness/{method}.log"),
     benchmark:
-        results_path("benchmarks/robustness/{method}/{scene}/spp{spp}.tsv")
+        results_path("benchmarks/robustness/{method}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: config["evaluation"]["threads"]
     resources:
         mem_mb=4000,
-        runtime=60,
+        runtime=row_runtime_minutes,
         **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
-        "python -m denoisers robustness --config {params.config_file} --method-id {wildcards.method}"
-        " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
-        " --results {params.results} --out {output.out_dir} --threads {threads} > {log} 2>&1"
+        "python -m denoisers robustness-row --config {params.config_file} --method-id {wildcards.method}"
+        " --render-root {params.render_root} --results {params.results} --out {output.out_dir}"
+        " --threads {threads} > {log} 2>&1"
 
 
 rule build_report:

@@ -4,12 +4,13 @@
 # derives where and when each scenario's difficulty happens from those renders.
 #   derive_masks:     <output_dir>/stability/{scene}/masks/frame_{t:04d}.exr + events.json
 # Every configured row of evaluation.methods (not the ablation variants) then runs on every clip at
-# stability.denoise_spp (denoisers.jobs.stability), and the failure atlas is built from the scores:
-#   denoise_scenario: <output_dir>/stability/denoised/{method}/{scene}/spp{spp}/ (as denoise_clip's outputs)
-#   score_scenario:   <output_dir>/stability/scores/{method}/{scene}/spp{spp}.csv + .json (failure metrics; the
-#                     lag metric's steady state from the scenario's failure-free control stab_{name}__still,
-#                     denoised by the same row)
-#   build_atlas:      <output_dir>/stability/ATLAS.md, stability/tables/, stability/figures/ (build_report links it)
+# stability.denoise_spp (denoisers.jobs.stability), one job per row for all its clips (denoisers.jobs.rows), and
+# the failure atlas is built from the scores:
+#   denoise_scenario_row: <output_dir>/stability/denoised/{method}/{scene}/spp{spp}/ (as denoise_row's outputs)
+#   score_scenario_row:   <output_dir>/stability/scores/{method}/{scene}/spp{spp}.csv + .json (failure metrics; the
+#                         lag metric's steady state from the scenario's failure-free control stab_{name}__still,
+#                         denoised by the same row)
+#   build_atlas:          <output_dir>/stability/ATLAS.md, stability/tables/, stability/figures/ (build_report links it)
 
 rule derive_masks:
     input:
@@ -40,65 +41,63 @@ rule derive_masks:
         " --threads {threads} > {log} 2>&1"
 
 
-rule denoise_scenario:
+rule denoise_scenario_row:
     input:
-        valid=check_scenario_target("denoise_scenario", "stability/denoised/{method}/{scene}/spp{spp}", controls=True),
-        noisy=scene_chunk_dirs("noisy"),
+        valid=check_scenario_row_target("denoise_scenario_row", "stability/denoised/{method}"),
+        noisy=stability_chunk_dirs("noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
     output:
-        out_dir=directory(results_path("stability/denoised/{method}/{scene}/spp{spp}")),
+        out_dir=directory(results_path("stability/denoised/{method}")),
     params:
         config_file=resolved_config_file,
         config_digest=denoise_digest,
-        render_dir=render_dir,
+        render_root=results_path("renders"),
         results=results_root,
     log:
-        results_path("logs/denoise_scenario/{method}/{scene}/spp{spp}.log"),
+        results_path("logs/denoise_scenario/{method}.log"),
     benchmark:
-        results_path("benchmarks/denoise_scenario/{method}/{scene}/spp{spp}.tsv")
+        results_path("benchmarks/denoise_scenario/{method}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: config["evaluation"]["threads"]
     resources:
         mem_mb=4000,
-        runtime=30,
+        runtime=scenario_row_runtime_minutes,
         **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
-        "python -m denoisers denoise --config {params.config_file} --method-id {wildcards.method}"
-        " --scene {wildcards.scene} --spp {wildcards.spp} --render-dir {params.render_dir}"
-        " --results {params.results} --out {output.out_dir} --threads {threads} > {log} 2>&1"
+        "python -m denoisers denoise-row --kind stability --config {params.config_file}"
+        " --method-id {wildcards.method} --render-root {params.render_root} --results {params.results}"
+        " --out {output.out_dir} --threads {threads} > {log} 2>&1"
 
 
-rule score_scenario:
+rule score_scenario_row:
     input:
-        valid=check_scenario_target("score_scenario", "stability/scores/{method}/{scene}/spp{spp}.csv"),
-        denoised=results_path("stability/denoised/{method}/{scene}/spp{spp}"),
-        reference=scene_chunk_dirs("reference"),
-        masks=results_path("stability/{scene}"),
-        control=scenario_control_inputs,
+        valid=check_scenario_row_target("score_scenario_row", "stability/scores/{method}"),
+        denoised=results_path("stability/denoised/{method}"),
+        reference=stability_chunk_dirs("reference"),
+        masks=stability_mask_dirs,
     output:
-        csv=results_path("stability/scores/{method}/{scene}/spp{spp}.csv"),
-        summary=results_path("stability/scores/{method}/{scene}/spp{spp}.json"),
+        out_dir=directory(results_path("stability/scores/{method}")),
     params:
         config_file=resolved_config_file,
         config_digest=scenario_score_digest,
-        render_dir=render_dir,
-        control=scenario_control_args,
+        render_root=results_path("renders"),
+        masks_root=masks_root,
     log:
-        results_path("logs/score_scenario/{method}/{scene}/spp{spp}.log"),
+        results_path("logs/score_scenario/{method}.log"),
     benchmark:
-        results_path("benchmarks/score_scenario/{method}/{scene}/spp{spp}.tsv")
+        results_path("benchmarks/score_scenario/{method}.tsv")
     conda:
         "../envs/harness.yaml"
     threads: 1
     resources:
         mem_mb=2000,
-        runtime=20,
+        runtime=scenario_row_runtime_minutes,
     shell:
-        "OMP_NUM_THREADS={threads} python -m denoisers score-scenario --config {params.config_file}"
-        " --denoised {input.denoised} --render-dir {params.render_dir} --masks {input.masks}"
-        " --out {output.csv} {params.control} > {log} 2>&1"
+        "OMP_NUM_THREADS={threads} python -m denoisers score-scenarios-row --config {params.config_file}"
+        " --denoised {input.denoised} --render-root {params.render_root} --masks-root {params.masks_root}"
+        " --out {output.out_dir} > {log} 2>&1"
 
 
 rule build_atlas:
