@@ -314,8 +314,12 @@ def test_a_published_checkpoint_continues_in_a_fresh_process_and_folder(tmp_path
     timing = {"elapsed_s", "steps_per_s"}
     a_rows, b_rows = ([{k: v for k, v in row.items() if k not in timing} for row in c["history"]] for c in (a, b))
     assert json.dumps(a_rows, sort_keys=True) == json.dumps(b_rows, sort_keys=True)      # NaN equals NaN here
-    # Publishing the finished model removes the checkpoint it supersedes.
+    # Publishing the finished model removes the checkpoint it supersedes, and a checkpoint of it is refused: nothing
+    # would continue it.
     ModelStore.of(cfg).publish_model(cfg, resumed / "rae")
+    assert ModelStore.of(cfg).checkpoint_entry(cfg, "rae") is None
+    with pytest.raises(StoreError, match="holds it finished"):
+        ModelStore.of(cfg).publish_checkpoint(cfg, work_dir_for(resumed, cfg, spec))
     assert ModelStore.of(cfg).checkpoint_entry(cfg, "rae") is None
 
 

@@ -229,7 +229,8 @@ class ModelStore:
 
     def publish_checkpoint(self, cfg: dict, work_dir: Path) -> Entry:
         """Copy the trainer's resumable state in ``work_dir`` (``models/.work/<id>-<digest>``) into the store,
-        replacing an earlier checkpoint of the same run (StoreError if it holds fewer steps than the stored one)."""
+        replacing an earlier checkpoint of the same run (StoreError if it holds fewer steps than the stored one, or if
+        the store holds the finished model of this config: nothing would continue the checkpoint)."""
         from denoisers.device import configured_device, device_info
         from denoisers.provenance import provenance
         from denoisers.training.checkpoints import load_checkpoint
@@ -237,6 +238,10 @@ class ModelStore:
         work_dir = Path(work_dir)
         model_id = work_dir.name.rsplit("-", 1)[0]
         spec = model_spec(cfg, model_id)
+        finished = self.model_entry(cfg, model_id)
+        if finished is not None:
+            raise StoreError(f"not checkpointing {model_id!r}: the store holds it finished ({finished.path}), so "
+                             "nothing would continue the checkpoint (e.g. the run its half-budget twin trained in)")
         try:
             data = load_checkpoint(work_dir / "checkpoint.pt")
         except CheckpointError as error:
