@@ -59,8 +59,7 @@ rule scenes:
 
 rule renders:
     input:
-        chunk_dirs("noisy"),
-        chunk_dirs("reference"),
+        render_chunk_dirs(SCENES),
 
 
 rule train:

@@ -453,6 +453,30 @@ def test_row_spp_robustness_and_ablation_spp_select_the_jobs(workflow_copy: Path
     assert counts["denoise_row"] == 2 and "train_denoiser" not in counts
 
 
+#: Which clips each row rule's job does (denoisers.jobs.rows.CLIP_KINDS).
+ROW_RULE_KINDS = {"denoise_row": "evaluation", "evaluate_row": "evaluation", "robustness_row": "robustness",
+                  "denoise_scenario_row": "stability", "score_scenario_row": "stability",
+                  "denoise_volume_row": "volumes", "evaluate_volume_row": "volumes",
+                  "robustness_volume_row": "volume_robustness"}
+
+
+@pytest.mark.slow
+def test_row_jobs_wall_time_counts_their_own_clips(workflow_copy: Path) -> None:
+    """A row job's wall-time limit (SLURM) is 10 minutes plus one per clip it does (row_clips of its kind): the
+    spike scenario's rows count their spike clips, not the row's evaluated clips."""
+    cfg = load_config(workflow_copy / "config/smoke.yaml")
+    jobs = dry_run_jobs("all", "--forceall", "--configfile", "config/smoke.yaml", cwd=workflow_copy)
+    seen = set()
+    for rule, job in jobs:
+        if rule not in ROW_RULE_KINDS:
+            continue
+        row = job["wildcards"].removeprefix("method=")
+        resources = dict(item.split("=", 1) for item in job["resources"].split(", "))
+        assert int(resources["runtime"]) == 10 + len(row_clips(cfg, row, ROW_RULE_KINDS[rule])), (rule, row)
+        seen.add(rule)
+    assert seen == set(ROW_RULE_KINDS) == set(ROW_RULES)
+
+
 @pytest.mark.slow
 def test_timing_target_runs_one_training_speed_job(workflow_copy: Path) -> None:
     """Stage target `timing`: the timing job and one time_training job writing <out>/timing/training.json with

@@ -135,13 +135,28 @@ def scene_dirs() -> list[str]:
     return [results_path(f"scenes/{scene}") for scene in SCENES]
 
 
-def chunk_dirs(kind: str) -> list[str]:
-    """Output directories of all render chunks of one kind ('noisy' or 'reference')."""
-    return [
-        results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}")
-        for scene in SCENES
-        for chunk in range(chunk_count(config, scene))
-    ]
+def render_chunk_dirs(scenes: list[str], kinds: str | tuple[str, ...] = ("noisy", "reference")) -> list[str]:
+    """Every render chunk folder of ``scenes`` (renders/{scene}/{kind}/chunk_NNN), kind by kind; ``kinds``: one
+    kind ('noisy' or 'reference') or several."""
+    kinds = (kinds,) if isinstance(kinds, str) else kinds
+    return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for kind in kinds for scene in scenes
+            for chunk in range(chunk_count(config, scene))]
+
+
+def chunk_dirs_of(scenes: list[str], kind: str):
+    """Input function: the ``kind`` render chunks of a fixed list of scenes (e.g. every evaluated scene)."""
+    return lambda wildcards: render_chunk_dirs(scenes, kind)
+
+
+def row_runtime(run_list, scenes: list[str]):
+    """Resource function of a row job: its wall-time limit (SLURM) in minutes, 10 plus one per clip (the row's
+    runnable runs in ``run_list()`` times ``scenes``), grown with the attempt."""
+
+    def runtime(wildcards, attempt: int) -> int:
+        spps = sum(1 for run in run_list() if run.spec.id == wildcards.method and run.runnable)
+        return (10 + max(spps, 1) * len(scenes)) * attempt
+
+    return runtime
 
 
 # ---------------------------------------------------------------------------------------------
@@ -187,8 +202,7 @@ def stability_outputs(wildcards=None) -> list[str]:
 
 def volume_outputs(wildcards=None) -> list[str]:
     """Stage target `volumes`: every volumetric clip's noisy and reference renders (one chunk each)."""
-    return [results_path(f"renders/{scene}/{kind}/chunk_000") for scene in VOLUME_SCENES
-            for kind in ("noisy", "reference")]
+    return render_chunk_dirs(VOLUME_SCENES)
 
 
 def default_volume_outputs(wildcards=None) -> list[str]:
@@ -196,7 +210,7 @@ def default_volume_outputs(wildcards=None) -> list[str]:
     training = {scene for spec in trained_model_specs(config) if model_source(spec.id) == "train"
                 for scene in sum(training_split(config, spec), [])}
     scenes = [scene for scene in VOLUME_SCENES if not scene.startswith("vol_train_") or scene in training]
-    return [results_path(f"renders/{scene}/{kind}/chunk_000") for scene in scenes for kind in ("noisy", "reference")]
+    return render_chunk_dirs(scenes)
 
 
 def masks_digest(wildcards) -> str:

@@ -94,22 +94,6 @@ def check_row_target(job_rule: str, pattern: str, kind: str = "evaluation"):
     return check
 
 
-def evaluated_chunk_dirs(kind: str):
-    """Input function: the noisy or reference chunk directories of every evaluated scene."""
-
-    def chunk_dirs_of_evaluated_scenes(wildcards) -> list[str]:
-        return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for scene in EVALUATED_SCENES
-                for chunk in range(chunk_count(config, scene))]
-
-    return chunk_dirs_of_evaluated_scenes
-
-
-def row_runtime_minutes(wildcards, attempt: int) -> int:
-    """Resource: a row job's wall-time limit (SLURM), 10 minutes plus one per clip, grown with the attempt."""
-    clips = sum(1 for run in planned_runs() if run.spec.id == wildcards.method) * len(EVALUATED_SCENES)
-    return (10 + clips) * attempt
-
-
 def method_model_dir(wildcards) -> list[str]:
     """Input function: the trained model an evaluation row uses (params.model), or nothing."""
     model = method_model(method_spec(wildcards.method).params)
@@ -118,12 +102,7 @@ def method_model_dir(wildcards) -> list[str]:
 
 def scene_chunk_dirs(kind: str):
     """Input function: the noisy or reference chunk directories of the job's scene."""
-
-    def chunk_dirs_of_scene(wildcards) -> list[str]:
-        count = chunk_count(config, wildcards.scene)
-        return [results_path(f"renders/{wildcards.scene}/{kind}/chunk_{chunk:03d}") for chunk in range(count)]
-
-    return chunk_dirs_of_scene
+    return lambda wildcards: render_chunk_dirs([wildcards.scene], kind)
 
 
 def render_dir(wildcards) -> str:
@@ -136,17 +115,16 @@ def report_input(wildcards) -> dict[str, list[str]]:
     robustness output, the evaluated scenes' references (grids), the external scenes' manifests
     (their substitutions), the records of the timing and training-speed jobs, and the volume rows' metrics,
     denoised clips and references (the Iglesias-Guitian section)."""
-    reference = [results_path(f"renders/{scene}/reference/chunk_{c:03d}") for scene in EVALUATED_SCENES
-                 for c in range(chunk_count(config, scene))]
     external = [results_path(f"scenes/{scene}") for scene in EVALUATED_SCENES if scene.startswith("custom_")]
     tuning = sorted({results_path(f"tuning/{run.spec.method}.json") for run in planned_runs()
                      if run.spec.params.get("tuned")})
     return {"metrics": metrics_dirs(), "denoised": denoised_dirs(), "robustness": robustness_dirs(),
-            "reference": reference, "models": model_dirs(), "scenes": external, "tuning": tuning,
+            "reference": render_chunk_dirs(EVALUATED_SCENES, "reference"), "models": model_dirs(),
+            "scenes": external, "tuning": tuning,
             "timing": timing_outputs(), "training_speed": training_speed_outputs(),
             "atlas": ATLAS_OUTPUTS["markdown"],
             "volumes": volume_metrics_dirs() + volume_denoised_dirs() + volume_robustness_dirs(),
-            "volume_references": [results_path(f"renders/{scene}/reference/chunk_000") for scene in VOLUME_TEST_SCENES]}
+            "volume_references": render_chunk_dirs(VOLUME_TEST_SCENES, "reference")}
 
 
 def denoise_digest(wildcards) -> str:

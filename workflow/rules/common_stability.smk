@@ -43,23 +43,6 @@ def check_scenario_row_target(job_rule: str, pattern: str):
     return check
 
 
-def stability_chunk_dirs(kind: str):
-    """Input function: the noisy or reference chunks of every stability clip, the controls' included."""
-
-    def chunk_dirs_of_scenarios(wildcards) -> list[str]:
-        return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}")
-                for scene in STABILITY_SCENES + STABILITY_CONTROLS for chunk in range(chunk_count(config, scene))]
-
-    return chunk_dirs_of_scenarios
-
-
-def scenario_row_runtime_minutes(wildcards, attempt: int) -> int:
-    """Resource: a stability row job's wall-time limit (SLURM), 10 minutes plus one per clip, grown with the
-    attempt."""
-    spps = sum(1 for run in stability_run_list() if run.spec.id == wildcards.method)
-    return (10 + spps * len(STABILITY_SCENES + STABILITY_CONTROLS)) * attempt
-
-
 def masks_root(wildcards) -> str:
     """Param of score_scenario_row: the folder of the scenarios' mask folders (stability/{scene}/)."""
     return results_path("stability")

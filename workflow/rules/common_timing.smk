@@ -25,8 +25,7 @@ def timing_scene_dirs(wildcards=None) -> list[str]:
 
 
 def timing_chunk_dirs(wildcards=None) -> list[str]:
-    return [results_path(f"renders/{TIMING_SCENE}/noisy/chunk_{chunk:03d}")
-            for chunk in range(chunk_count(config, TIMING_SCENE))]
+    return render_chunk_dirs([TIMING_SCENE], "noisy")
 
 
 def timing_model_dirs(wildcards=None) -> list[str]:

@@ -27,8 +27,7 @@ def training_chunk_dirs(kind: str, for_training: bool = False):
             if not for_training and model_source(wildcards.model) != "train":
                 return []  # installed from the store, or the weights of its same-training base
             scenes = sum(training_split(config, model_spec(config, wildcards.model)), [])
-        return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for scene in scenes
-                for chunk in range(chunk_count(config, scene))]
+        return render_chunk_dirs(scenes, kind)
 
     return chunk_dirs_of_training
 
@@ -70,8 +69,7 @@ def default_scene_dirs() -> list[str]:
 def default_chunk_dirs() -> list[str]:
     """Render chunks of the default target (as default_scene_dirs)."""
     skip = set() if needs_training_renders() else set(TRAIN_SCENES + VALIDATION_SCENES)
-    return [results_path(f"renders/{scene}/{kind}/chunk_{chunk:03d}") for kind in ("noisy", "reference")
-            for scene in SCENES if scene not in skip for chunk in range(chunk_count(config, scene))]
+    return render_chunk_dirs([scene for scene in SCENES if scene not in skip])
 
 
 def train_digest(wildcards) -> str:

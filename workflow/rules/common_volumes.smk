@@ -67,14 +67,3 @@ def check_volume_row_target(job_rule: str, pattern: str, kind: str = "evaluation
         return []
 
     return check
-
-
-def volume_chunk_dirs(kind: str):
-    """Input function: the noisy or reference chunk of every evaluated volumetric clip."""
-    return lambda wildcards: [results_path(f"renders/{scene}/{kind}/chunk_000") for scene in VOLUME_TEST_SCENES]
-
-
-def volume_row_runtime_minutes(wildcards, attempt: int) -> int:
-    """Resource: a volume row job's wall-time limit (SLURM), 10 minutes plus one per clip, grown with the attempt."""
-    spps = sum(1 for run in volume_run_list() if run.spec.id == wildcards.method and run.runnable)
-    return (10 + max(spps, 1) * len(VOLUME_TEST_SCENES)) * attempt

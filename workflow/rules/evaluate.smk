@@ -18,7 +18,7 @@
 rule denoise_row:
     input:
         valid=check_row_target("denoise_row", "denoised/{method}"),
-        noisy=evaluated_chunk_dirs("noisy"),
+        noisy=chunk_dirs_of(EVALUATED_SCENES, "noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
     output:
@@ -39,7 +39,7 @@ rule denoise_row:
     threads: config["evaluation"]["threads"]
     resources:
         mem_mb=4000,
-        runtime=row_runtime_minutes,
+        runtime=row_runtime(planned_runs, EVALUATED_SCENES),
         **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers denoise-row --config {params.config_file} --method-id {wildcards.method}"
@@ -51,7 +51,7 @@ rule evaluate_row:
     input:
         valid=check_row_target("evaluate_row", "metrics/{method}"),
         denoised=results_path("denoised/{method}"),
-        reference=evaluated_chunk_dirs("reference"),
+        reference=chunk_dirs_of(EVALUATED_SCENES, "reference"),
     output:
         out_dir=directory(results_path("metrics/{method}")),
     params:
@@ -67,7 +67,7 @@ rule evaluate_row:
     threads: 1
     resources:
         mem_mb=2000,
-        runtime=row_runtime_minutes,
+        runtime=row_runtime(planned_runs, EVALUATED_SCENES),
     shell:
         "OMP_NUM_THREADS={threads} python -m denoisers evaluate-row --config {params.config_file}"
         " --denoised {input.denoised} --render-root {params.render_root} --out {output.out_dir} > {log} 2>&1"
@@ -76,10 +76,10 @@ rule evaluate_row:
 rule robustness_row:
     input:
         valid=check_row_target("robustness_row", "robustness/{method}", "robustness"),
-        noisy=evaluated_chunk_dirs("noisy"),
+        noisy=chunk_dirs_of(EVALUATED_SCENES, "noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
-        reference=evaluated_chunk_dirs("reference"),
+        reference=chunk_dirs_of(EVALUATED_SCENES, "reference"),
     output:
         out_dir=directory(results_path("robustness/{method}")),
     params:
@@ -96,7 +96,7 @@ rule robustness_row:
     threads: config["evaluation"]["threads"]
     resources:
         mem_mb=4000,
-        runtime=row_runtime_minutes,
+        runtime=row_runtime(lambda: planned_runs("robustness"), EVALUATED_SCENES),
         **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers robustness-row --config {params.config_file} --method-id {wildcards.method}"

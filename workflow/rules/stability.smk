@@ -44,7 +44,7 @@ rule derive_masks:
 rule denoise_scenario_row:
     input:
         valid=check_scenario_row_target("denoise_scenario_row", "stability/denoised/{method}"),
-        noisy=stability_chunk_dirs("noisy"),
+        noisy=chunk_dirs_of(STABILITY_SCENES + STABILITY_CONTROLS, "noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
     output:
@@ -63,7 +63,7 @@ rule denoise_scenario_row:
     threads: config["evaluation"]["threads"]
     resources:
         mem_mb=4000,
-        runtime=scenario_row_runtime_minutes,
+        runtime=row_runtime(stability_run_list, STABILITY_SCENES + STABILITY_CONTROLS),
         **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers denoise-row --kind stability --config {params.config_file}"
@@ -75,7 +75,7 @@ rule score_scenario_row:
     input:
         valid=check_scenario_row_target("score_scenario_row", "stability/scores/{method}"),
         denoised=results_path("stability/denoised/{method}"),
-        reference=stability_chunk_dirs("reference"),
+        reference=chunk_dirs_of(STABILITY_SCENES + STABILITY_CONTROLS, "reference"),
         masks=stability_mask_dirs,
     output:
         out_dir=directory(results_path("stability/scores/{method}")),
@@ -93,7 +93,7 @@ rule score_scenario_row:
     threads: 1
     resources:
         mem_mb=2000,
-        runtime=scenario_row_runtime_minutes,
+        runtime=row_runtime(stability_run_list, STABILITY_SCENES + STABILITY_CONTROLS),
     shell:
         "OMP_NUM_THREADS={threads} python -m denoisers score-scenarios-row --config {params.config_file}"
         " --denoised {input.denoised} --render-root {params.render_root} --masks-root {params.masks_root}"

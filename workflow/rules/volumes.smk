@@ -12,7 +12,7 @@
 rule denoise_volume_row:
     input:
         valid=check_volume_row_target("denoise_volume_row", "volumes/denoised/{method}"),
-        noisy=volume_chunk_dirs("noisy"),
+        noisy=chunk_dirs_of(VOLUME_TEST_SCENES, "noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
     output:
@@ -31,7 +31,7 @@ rule denoise_volume_row:
     threads: config["evaluation"]["threads"]
     resources:
         mem_mb=4000,
-        runtime=volume_row_runtime_minutes,
+        runtime=row_runtime(volume_run_list, VOLUME_TEST_SCENES),
         **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers denoise-row --kind volumes --config {params.config_file}"
@@ -43,7 +43,7 @@ rule evaluate_volume_row:
     input:
         valid=check_volume_row_target("evaluate_volume_row", "volumes/metrics/{method}"),
         denoised=results_path("volumes/denoised/{method}"),
-        reference=volume_chunk_dirs("reference"),
+        reference=chunk_dirs_of(VOLUME_TEST_SCENES, "reference"),
     output:
         out_dir=directory(results_path("volumes/metrics/{method}")),
     params:
@@ -59,7 +59,7 @@ rule evaluate_volume_row:
     threads: 1
     resources:
         mem_mb=2000,
-        runtime=volume_row_runtime_minutes,
+        runtime=row_runtime(volume_run_list, VOLUME_TEST_SCENES),
     shell:
         "OMP_NUM_THREADS={threads} python -m denoisers evaluate-row --config {params.config_file}"
         " --denoised {input.denoised} --render-root {params.render_root} --out {output.out_dir} > {log} 2>&1"
@@ -68,10 +68,10 @@ rule evaluate_volume_row:
 rule robustness_volume_row:
     input:
         valid=check_volume_row_target("robustness_volume_row", "volumes/robustness/{method}", "robustness"),
-        noisy=volume_chunk_dirs("noisy"),
+        noisy=chunk_dirs_of(VOLUME_TEST_SCENES, "noisy"),
         model=method_model_dir,
         tuning=method_tuning_file,
-        reference=volume_chunk_dirs("reference"),
+        reference=chunk_dirs_of(VOLUME_TEST_SCENES, "reference"),
     output:
         out_dir=directory(results_path("volumes/robustness/{method}")),
     params:
@@ -88,7 +88,7 @@ rule robustness_volume_row:
     threads: config["evaluation"]["threads"]
     resources:
         mem_mb=4000,
-        runtime=volume_row_runtime_minutes,
+        runtime=row_runtime(volume_robustness_run_list, VOLUME_TEST_SCENES),
         **gpu_resources(),   # compute.device cuda: a GPU (and MCDN_SLURM_GPU_PARTITION)
     shell:
         "python -m denoisers robustness-row --kind volume_robustness --config {params.config_file}"
