@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from denoisers.store.session import keep, resolved_config, run_until
+from denoisers.store.session import keep, resolved_config, run_until, store_command
 
 
 def test_a_run_past_its_deadline_is_stopped_and_one_before_it_is_not(tmp_path: Path) -> None:
@@ -86,3 +86,24 @@ def test_without_model_ids_a_session_keeps_every_training_of_the_config(tmp_path
     assert configured_trainings(out / ".config" / "abc.yaml") == [m for m in every if m not in reused]
     assert result.untouched == [m for m in every if m not in reused]
     assert result.published == [] and result.checkpointed == []
+
+
+def test_a_refused_store_command_does_not_refuse_the_next_ones(tmp_path: Path, capsys) -> None:
+    """The session's store commands write to the session's log through a pipe: a failed one leaves no retry-gate
+    marker beside that log (scenegen.retry_gate), so the next store command still runs (2026-12-06: one refused
+    checkpoint made the session publish nothing)."""
+    from scenegen.retry_gate import EXIT_NOT_RETRIED, marker_for
+
+    log = tmp_path / "session.out"
+    args = ["checkpoint", "--config", str(tmp_path / "missing.yaml"), "--model-id", "rae"]
+    saved = os.dup(2)
+    try:
+        with log.open("w") as stream:
+            os.dup2(stream.fileno(), 2)
+            codes = [store_command(args), store_command(args)]
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+    assert codes[0] != 0 and codes[1] == codes[0] != EXIT_NOT_RETRIED, codes
+    assert not marker_for(log).exists()
+    assert "missing.yaml" in capsys.readouterr().err      # its message is passed on (to the session's log)

@@ -108,6 +108,16 @@ def keep(output_dir: Path, model_ids: Sequence[str], since: float,
     return published, checkpointed, untouched
 
 
+def store_command(args: list[str]) -> int:
+    """Run ``python -m denoisers store <args>``; its exit status. Its stderr is passed on through a pipe: with the
+    session's own stderr (a log file), the retry gate (scenegen.retry_gate) would take that file for a job log, and one
+    refused store command (e.g. a checkpoint the store refuses) would mark it and refuse every later one."""
+    result = subprocess.run([sys.executable, "-m", "denoisers", "store", *args], cwd=REPO_ROOT,
+                            stderr=subprocess.PIPE, text=True)
+    sys.stderr.write(result.stderr)
+    return result.returncode
+
+
 def configured_trainings(config_file: Path) -> list[str]:
     """Ids of every training of a resolved config (``trained_model_specs``: seed replicas and half-budget twins
     included), without the variants that publish another model's weights (``same_training_as``)."""
@@ -138,11 +148,8 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
         ["bash", str(REPO_ROOT / "scripts" / "run-main.sh"), *targets, *snakemake_args]
     since = time.time() - 1.0
 
-    def store(args: list[str]) -> int:
-        return subprocess.run([sys.executable, "-m", "denoisers", "store", *args], cwd=REPO_ROOT).returncode
-
     returncode, stopped = run_until(command, minutes * 60.0, log=log)
     if not model_ids:
         model_ids = configured_trainings(resolved_config(output_dir, since))
-    published, checkpointed, untouched = keep(output_dir, model_ids, since, store)
+    published, checkpointed, untouched = keep(output_dir, model_ids, since, store_command)
     return SessionResult(returncode, stopped, published, checkpointed, untouched)
