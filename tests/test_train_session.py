@@ -46,6 +46,8 @@ def test_finished_models_are_published_and_moved_runs_checkpointed(tmp_path: Pat
     _touch(out / "models" / ".work" / "idle-0123" / "checkpoint.pt", age_s=1000)       # from an earlier session
     _touch(out / "models" / ".work" / "full-0123" / "checkpoint.pt")                   # the twin's run, going on
     _touch(out / "models" / "full_half" / "summary.json")                              # ...whose twin finished
+    # A twin that trained in the run of a full model the store holds: no checkpoint of that run is attempted.
+    _touch(out / "models" / ".work" / "stored-0123" / "checkpoint.pt")
     calls: list[list[str]] = []
 
     def store(args: list[str]) -> int:
@@ -53,10 +55,11 @@ def test_finished_models_are_published_and_moved_runs_checkpointed(tmp_path: Pat
         return 0
 
     assert resolved_config(out, since) == config
-    published, checkpointed, untouched = keep(out, ["done", "installed", "partway", "idle", "full_half", "full"],
-                                              since, store)
+    published, checkpointed, untouched = keep(out, ["done", "installed", "partway", "idle", "full_half", "full",
+                                                    "stored_half"], since, store, is_stored={"stored"}.__contains__)
     assert published == ["done", "full_half"] and checkpointed == ["partway", "full"]
-    assert untouched == ["installed", "idle"]
+    assert untouched == ["installed", "idle", "stored_half"]
+    assert not any("stored" in call for call in calls)
     assert calls[0] == ["publish", "--config", str(config), "--model-id", "done"]
     assert ["checkpoint", "--config", str(config), "--model-id", "partway"] in calls
 
@@ -107,3 +110,19 @@ def test_a_refused_store_command_does_not_refuse_the_next_ones(tmp_path: Path, c
     assert codes[0] != 0 and codes[1] == codes[0] != EXIT_NOT_RETRIED, codes
     assert not marker_for(log).exists()
     assert "missing.yaml" in capsys.readouterr().err      # its message is passed on (to the session's log)
+
+
+def test_stored_finished_asks_the_configs_store(tmp_path: Path) -> None:
+    """The default of keep()'s ``is_stored``: the store named by the resolved config, under its key."""
+    import yaml
+
+    from denoisers.store.session import stored_finished
+    from scenegen.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "config.yaml")
+    config = tmp_path / "resolved.yaml"
+    config.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    assert stored_finished(config)("rae")                     # committed in store/ (docs/model-store.md)
+    cfg["store"]["path"] = str(tmp_path / "empty_store")
+    config.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    assert not stored_finished(config)("rae")

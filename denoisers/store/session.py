@@ -80,14 +80,29 @@ def resolved_config(output_dir: Path, since: float) -> Path:
     return (recent or files)[-1]
 
 
-def keep(output_dir: Path, model_ids: Sequence[str], since: float,
-         store_command: Callable[[list[str]], int]) -> tuple[list[str], list[str], list[str]]:
+def stored_finished(config_file: Path) -> Callable[[str], bool]:
+    """``is_stored(model_id)``: whether the store holds ``model_id`` finished under the resolved config's key."""
+    import yaml
+
+    from denoisers.store.entries import ModelStore
+
+    cfg = yaml.safe_load(Path(config_file).read_text())
+    store = ModelStore.of(cfg)
+    return lambda model_id: store.model_entry(cfg, model_id) is not None
+
+
+def keep(output_dir: Path, model_ids: Sequence[str], since: float, store_command: Callable[[list[str]], int],
+         is_stored: Callable[[str], bool] | None = None) -> tuple[list[str], list[str], list[str]]:
     """Publish the models of ``model_ids`` that finished since ``since`` and checkpoint the runs that moved since then
     but did not finish; ``store_command(args)`` runs ``python -m denoisers store <args>``. Returns (published,
-    checkpointed, untouched) ids. A half-budget twin's run is its full model's (``{id}_half`` -> ``{id}``)."""
+    checkpointed, untouched) ids. A half-budget twin's run is its full model's (``{id}_half`` -> ``{id}``); a run
+    whose full model the store holds (``is_stored``, default :func:`stored_finished`) is not checkpointed: the
+    store refuses it, since nothing would continue it (the twin then counts as untouched)."""
     from denoisers.training.models import HALF_SUFFIX
 
     config = resolved_config(output_dir, since)
+    if is_stored is None:
+        is_stored = stored_finished(config)
     models = output_dir / "models"
     published, checkpointed, untouched = [], [], []
     for model_id in model_ids:
@@ -98,7 +113,7 @@ def keep(output_dir: Path, model_ids: Sequence[str], since: float,
                 continue
         run_id = model_id[:-len(HALF_SUFFIX)] if model_id.endswith(HALF_SUFFIX) else model_id
         moved = [p for p in models.glob(f".work/{run_id}-*/checkpoint.pt") if p.stat().st_mtime >= since]
-        finished = (models / run_id / "summary.json").is_file()
+        finished = (models / run_id / "summary.json").is_file() or (bool(moved) and is_stored(run_id))
         if moved and not finished and run_id not in checkpointed:
             if store_command(["checkpoint", "--config", str(config), "--model-id", run_id]) == 0:
                 checkpointed.append(run_id)
