@@ -124,6 +124,11 @@ def test_step_minutes_leave_out_pauses_and_validations() -> None:
     row = training_table(models, cfg).iloc[0]
     assert row["step_minutes"] == pytest.approx(1000 * 0.5 / 60)
     assert row["train_minutes"] == pytest.approx(float(elapsed[-1]) / 60) and row["train_minutes"] > 20
+    assert row["precision"] == "" and row["cpu"] == ""          # a summary without compute / provenance records
+    recorded = TrainedModel(spec, {"steps": 1000, "compute": {"precision": "bf16", "configured": "auto"},
+                                   "provenance": {"cpu_model": "Intel(R) Xeon(R) Processor"}}, frame, pd.DataFrame())
+    row = training_table(TrainedModels([spec], {"rae": recorded}), cfg).iloc[0]
+    assert (row["precision"], row["cpu"]) == ("bf16", "Intel(R) Xeon(R) Processor")
     no_times = TrainedModel(spec, {"steps": 1000}, frame.drop(columns=["elapsed_s"]), pd.DataFrame())
     assert math.isnan(no_times.median_step_seconds())
 

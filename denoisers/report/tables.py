@@ -371,6 +371,9 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
                         "val_psnr_gain_if_doubled": _doubling_gain(model.curves),
                         "converged": _converged(model.undertrained(cfg or {})),
                         "whole_frame_gap_db": (s.get("crop_check") or {}).get("gap_db", math.nan),
+                        # Seeds may mix step arithmetic (bf16 autocast on CPUs that have it, else fp32): shown per model.
+                        "precision": (s.get("compute") or {}).get("precision", ""),
+                        "cpu": s.get("provenance", {}).get("cpu_model", ""),
                         "commit": (s.get("provenance", {}).get("commit") or "")[:12],
                         "dirty": s.get("provenance", {}).get("dirty"),
                         **{f"val_{k}": float(validation[k].mean()) for k in ("loss", "ssim", "psnr", "rmse")

@@ -226,7 +226,9 @@ def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
              "the frames, scored on whole validation frames minus on crop-sized windows of them (lowest scene, "
              f"dB; denoisers/crop_check.py); below -{CROP_GAP_DB:g} dB it learned the crops' borders and counts as "
              "not converged; – where it was not checked (trained on whole frames, an adaptive method, or a model "
-             "trained before the check existed: summary.json `crop_check`).", "", markdown,
+             "trained before the check existed: summary.json `crop_check`). `precision` and `cpu`: the step "
+             "arithmetic the run resolved (bf16 autocast where the CPU has it, else fp32) and the CPU it ran on; a "
+             "model's seed replicas may differ in both, so a row's seed spread includes them.", "", markdown,
              "![Training curves](figures/training_curves.png)", ""]
     if res.models.missing:
         lines += [f"Not trained (no complete model directory): {', '.join(res.models.missing)}", ""]
