@@ -28,9 +28,10 @@ from tests.test_training_job import synthetic_renders, tiny_training_config  # n
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
-def default_config(seeds: int) -> dict:
+def default_config(seeds: int, half_budget: bool = False) -> dict:
+    """The default config with ``seeds`` replicas and, unless asked for, no half-budget twins."""
     cfg = yaml.safe_load((REPO_ROOT / "config" / "config.yaml").read_text())
-    cfg["training"]["seeds"] = seeds
+    cfg["training"].update(seeds=seeds, half_budget=half_budget)
     return validate_config(cfg)
 
 
