@@ -151,3 +151,28 @@ def test_republishing_writes_what_moved_and_keeps_the_previous_tally(tmp_path: P
     assert ("The run it replaced (code abcdef1, published " in body
             and "): 1 reproduced, 0 contradicted, 2 inconclusive, 0 not run; [what moved](runs/smoke/CHANGES.md)."
             in body)
+
+
+def test_the_block_shows_a_trained_rows_seed_mean_and_leaves_replicas_and_twins_to_the_report(tmp_path: Path) -> None:
+    cfg = load_config(REPO_ROOT / "config" / "smoke.yaml")
+    results = fake_results(tmp_path / "results")
+    summary = pd.read_csv(results / "tables" / "summary.csv")
+    rows = [{"method_id": "rae", "method": "rae", "role": "method", "spp": 1, "metric": "psnr",
+             "higher_is_better": True, "mean": 26.0, "ci_low": 25.0, "ci_high": 27.0, "n_scenes": 5, "n_seeds": 3,
+             "seed_sd": 0.284},
+            {"method_id": "rae_seed1", "method": "rae", "role": "seed", "spp": 1, "metric": "psnr",
+             "higher_is_better": True, "mean": 26.3, "ci_low": 25.3, "ci_high": 27.3, "n_scenes": 5, "n_seeds": 1},
+            {"method_id": "rae_half", "method": "rae", "role": "budget", "spp": 1, "metric": "psnr",
+             "higher_is_better": True, "mean": 25.5, "ci_low": 24.5, "ci_high": 26.5, "n_scenes": 5, "n_seeds": 3,
+             "seed_sd": 0.1}]
+    pd.concat([summary.assign(n_seeds=1), pd.DataFrame(rows)]).to_csv(results / "tables" / "summary.csv", index=False)
+    repo = tmp_path / "repo"
+    (repo / "config").mkdir(parents=True)
+    (repo / "config" / "smoke.yaml").write_text((REPO_ROOT / "config" / "smoke.yaml").read_text())
+    publish_run(cfg, "config/smoke.yaml", results, repo / "runs" / "smoke")
+    body = readme_block(repo, "runs/smoke", "config/smoke.yaml")
+    assert "| method | 1 spp | 4 spp | seeds |" in body
+    assert "| rae | 26.00 [25.00, 27.00] |  | 3 (sd 0.28) |" in body
+    assert "| eaw | 22.23 [21.23, 23.23] | 25.23 [24.23, 26.23] |  |" in body
+    assert "rae_seed1" not in body and "rae_half" not in body
+    assert "2 seed replicas and half-budget twins are rows of the [report](runs/smoke/REPORT.md)" in body

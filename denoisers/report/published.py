@@ -142,6 +142,10 @@ def _fmt(value: float, digits: int = 2) -> str:
     return "–" if value != value else f"{value:.{digits}f}"
 
 
+#: summary.csv roles that the README table leaves to the report: seed replicas and half-budget twins.
+HIDDEN_ROLES = ("seed", "budget")
+
+
 def readme_block(repo: Path, run: str, config: str, link_prefix: str = "") -> str:
     """The generated body of a README block for published run folder ``run`` of config file ``config``; links are
     written as ``link_prefix + run`` (``../`` in docs/)."""
@@ -163,18 +167,31 @@ def readme_block(repo: Path, run: str, config: str, link_prefix: str = "") -> st
              + ("Its settings and model keys equal HEAD's." if not changes else
                 "**It differs from HEAD in " + "; ".join(changes) + "**: rerun and republish it."), ""]
     psnr = summary[summary["metric"] == "psnr"]
+    # A model's seed replicas and half-budget twins are in the report; the row shows their seed mean and spread.
+    hidden = psnr["role"].isin(HIDDEN_ROLES) if "role" in psnr else pd.Series(False, index=psnr.index)
+    n_hidden = psnr.loc[hidden, "method_id"].nunique()
+    psnr = psnr[~hidden]
     spps = sorted(psnr["spp"].unique())
     n = int(psnr["n_scenes"].max()) if len(psnr) else 0
-    lines += [f"Mean PSNR (dB) over {n} evaluated scenes, with the 95 % interval:", "",
-              "| method | " + " | ".join(f"{s} spp" for s in spps) + " |",
-              "|---|" + "---|" * len(spps)]
+    with_seeds = "n_seeds" in psnr and int(psnr["n_seeds"].max()) > 1
+    lines += [f"Mean PSNR (dB) over {n} evaluated scenes, with the 95 % interval"
+              + (" (a trained row: the mean over its seeds; `seeds` gives their number and the standard deviation "
+                 "of their PSNR at the row's first spp)" if with_seeds else "") + ":", "",
+              "| method | " + " | ".join(f"{s} spp" for s in spps) + (" | seeds |" if with_seeds else " |"),
+              "|---|" + "---|" * (len(spps) + with_seeds)]
     for method in dict.fromkeys(psnr["method_id"]):
         cells = []
         for spp in spps:
             row = psnr[(psnr["method_id"] == method) & (psnr["spp"] == spp)]
             cells.append("" if row.empty else f"{_fmt(row['mean'].iloc[0])} [{_fmt(row['ci_low'].iloc[0])}, "
                                                f"{_fmt(row['ci_high'].iloc[0])}]")
+        if with_seeds:
+            first = psnr[psnr["method_id"] == method].iloc[0]
+            cells.append(f"{int(first['n_seeds'])} (sd {_fmt(first['seed_sd'])})" if first["n_seeds"] > 1 else "")
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    if n_hidden:
+        lines += ["", f"{n_hidden} seed replicas and half-budget twins are rows of the "
+                      f"[report]({link_prefix}{run}/REPORT.md), not of this table."]
     counts = claims["verdict"].value_counts()
     lines += ["", "Claims: " + ", ".join(f"{int(count)} {verdict}" for verdict, count in counts.items())
               + f" (of {len(claims)}; [claims table]({link_prefix}{run}/tables/claims.md))."]
