@@ -214,8 +214,9 @@ def claim_row(res: Results, claim: Claim, decision: Decision) -> dict[str, objec
 
 
 UNDERTRAINED = "under-trained"
-UNDERTRAINED_NOTE = ("involves an under-trained model (see flags): the verdict tests the training budget, not the "
-                     "method; ")
+# Issue 46 §2: the flag is shown, the decision is guarded by budget stability (the `budget_stable` column).
+UNDERTRAINED_NOTE = ("involves a model flagged under-trained (still learning at its budget; see flags): "
+                     "`budget_stable` says whether the decision holds at half the budget; ")
 CLAIM_COLUMNS = ("claim", "paper", "statement", "verdict", "n", "seeds", "seed_robust", "budget_stable", "budget",
                  "mean_diff_ci_95", "scenes_needed", "parts",
                  "measured", "facts", "flags", "note", "rule")
