@@ -173,7 +173,7 @@ def readme_block(repo: Path, run: str, config: str, link_prefix: str = "") -> st
     psnr = psnr[~hidden]
     spps = sorted(psnr["spp"].unique())
     n = int(psnr["n_scenes"].max()) if len(psnr) else 0
-    with_seeds = "n_seeds" in psnr and int(psnr["n_seeds"].max()) > 1
+    with_seeds = "n_seeds" in psnr and psnr["n_seeds"].fillna(1).max() > 1
     lines += [f"Mean PSNR (dB) over {n} evaluated scenes, with the 95 % interval"
               + (" (a trained row: the mean over its seeds; `seeds` gives their number and the standard deviation "
                  "of their PSNR at the row's first spp)" if with_seeds else "") + ":", "",
