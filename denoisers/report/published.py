@@ -23,6 +23,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from denoisers.evaluate import BUDGET_ROLE, SEED_ROLE
 from denoisers.report.verdict_changes import CHANGES_FILE, tally_text
 
 RUN_FILE = "run.json"
@@ -143,7 +144,7 @@ def _fmt(value: float, digits: int = 2) -> str:
 
 
 #: summary.csv roles that the README table leaves to the report: seed replicas and half-budget twins.
-HIDDEN_ROLES = ("seed", "budget")
+HIDDEN_ROLES = (SEED_ROLE, BUDGET_ROLE)
 
 
 def readme_block(repo: Path, run: str, config: str, link_prefix: str = "") -> str:
