@@ -443,7 +443,8 @@ def training_scene_split(cfg: dict[str, Any]) -> tuple[list[str], list[str]]:
 
 def scene_reference_spp(cfg: dict[str, Any], scene_id: str) -> int:
     """Reference spp of a scene: ``render.train_reference_spp`` for the train_* scenes that train and
-    ``render.test_reference_spp`` for the evaluated test_* and custom_* scenes, each when set (not null), else
+    ``render.test_reference_spp_per_scene[scene]``, else ``render.test_reference_spp``, for the evaluated test_*
+    and custom_* scenes, each when set (not null), else
     ``render.reference_spp`` (always for the held-out validation scenes, whose references select every model)."""
     if scene_id.startswith((STABILITY_PREFIX, VOLUME_PREFIX)):
         return int(scene_render_config(cfg, scene_id)["reference_spp"])
@@ -452,7 +453,8 @@ def scene_reference_spp(cfg: dict[str, Any], scene_id: str) -> int:
     if train_spp is not None and scene_id in training_scene_split(cfg)[0]:
         return int(train_spp)
     if scene_id.startswith(EVALUATED_PREFIXES):
-        return evaluated_reference_spp(cfg)
+        per_scene = render.get("test_reference_spp_per_scene") or {}
+        return int(per_scene[scene_id]) if scene_id in per_scene else evaluated_reference_spp(cfg)
     return int(render["reference_spp"])
 
 
@@ -461,6 +463,23 @@ def evaluated_reference_spp(cfg: dict[str, Any]) -> int:
     ``render.reference_spp``."""
     test_spp = cfg["render"].get("test_reference_spp")
     return int(test_spp if test_spp is not None else cfg["render"]["reference_spp"])
+
+
+def reference_spp_exceptions(cfg: dict[str, Any]) -> dict[str, int]:
+    """The evaluated scenes of ``cfg`` whose references have their own spp (render.test_reference_spp_per_scene,
+    names the config has no scene of left out): {scene id: spp}, sorted by id."""
+    per_scene = cfg["render"].get("test_reference_spp_per_scene") or {}
+    if not per_scene:
+        return {}
+    present = set(scene_ids(cfg))
+    return {scene: int(spp) for scene, spp in sorted(per_scene.items()) if scene in present}
+
+
+def evaluated_reference_text(cfg: dict[str, Any]) -> str:
+    """'3072 spp' or '3072 spp (test_001: 6144)': the evaluated scenes' reference spp for reports."""
+    exceptions = reference_spp_exceptions(cfg)
+    extra = ", ".join(f"{scene}: {spp}" for scene, spp in exceptions.items())
+    return f"{evaluated_reference_spp(cfg)} spp" + (f" ({extra})" if extra else "")
 
 
 def scene_frame_count(cfg: dict[str, Any], scene_id: str) -> int:

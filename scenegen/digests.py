@@ -23,10 +23,11 @@ NOISY_ONLY_KEYS = frozenset({"spp", "extra_radiance_spp"})
 #: Version of the noisy frames' channel layout (docs/data-format.md), part of every noisy render's digest so that
 #: renders of an older layout are redone rather than read: 2 added gbuffer.albedo and gbuffer.roughness.
 NOISY_FORMAT_VERSION = 2
-#: render.* keys only the references depend on; train_reference_spp and test_reference_spp enter a reference
+#: render.* keys only the references depend on; train_reference_spp, test_reference_spp and
+#: test_reference_spp_per_scene enter a reference
 #: digest as the scene's effective reference_spp (scenegen.config.scene_reference_spp), so null or absent changes no digest.
 REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp", "train_reference_spp",
-                                 "test_reference_spp", "reference_integrator"})
+                                 "test_reference_spp", "test_reference_spp_per_scene", "reference_integrator"})
 #: render.* keys only the noisy renders depend on, with the value that enters no digest (so configs written before
 #: the key existed keep their renders): gbuffer_albedo_spp > 1 averages the G-buffer albedo over jittered rays.
 NOISY_OPTIONAL_KEYS: dict[str, Any] = {"gbuffer_albedo_spp": 1}

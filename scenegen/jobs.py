@@ -133,12 +133,18 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
 
 def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
     """Render the high-spp references (two independent halves) of one chunk, at the scene's reference spp
-    (render.train_reference_spp for train_* scenes when set, else render.reference_spp); the sidecars record it.
+    (scenegen.config.scene_reference_spp); the sidecars record it. An evaluated scene's chunk stored under its render
+    digest is copied from the store instead (scenegen.reference_store; store.references).
     ``render.reference_integrator``: "path" renders radiance with Mitsuba's ``path`` integrator (the buffers the
     evaluation and training use); "features" renders with the feature integrator and adds the feature means."""
     from scenegen.channels import reference_channels
     from scenegen.dataset import write_frame
+    from scenegen.reference_store import install_reference_chunk
 
+    stored = install_reference_chunk(cfg, scene_id, chunk, out_dir)
+    if stored is not None:
+        log.info("reference %s chunk %d: installed from the store (%s); not rendered", scene_id, chunk, stored)
+        return
     settings = dataclasses.replace(RenderSettings.from_config(scene_render_config(cfg, scene_id)),
                                    reference_spp=scene_reference_spp(cfg, scene_id))
     if scene_id.startswith(VOLUME_PREFIX):

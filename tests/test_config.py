@@ -110,16 +110,17 @@ def test_filled_defaults_are_not_shared_between_configs() -> None:
 
 def test_default_config_agrees_with_schema_defaults() -> None:
     """Optional keys in config/config.yaml hold the schema's defaults, so the two cannot drift apart -- except
-    the default run's measured data choices, whose schema default (null: like every other scene) is what a
-    config without them means."""
+    the default run's measured data choices, whose schema default (null: like every other scene; {}: no scene
+    of its own) is what a config without them means."""
     schema = load_schema()
     cfg = load_config(DEFAULT_CONFIG)
-    choices = {("scenes", "train_frames"), ("render", "train_reference_spp"), ("render", "test_reference_spp")}
+    choices = {("scenes", "train_frames"), ("render", "train_reference_spp"), ("render", "test_reference_spp"),
+               ("render", "test_reference_spp_per_scene")}
     for section in ("scenes", "render"):
         for key, subschema in schema["properties"][section]["properties"].items():
             if "default" in subschema and (section, key) not in choices:
                 assert cfg[section][key] == subschema["default"], f"{section}.{key}"
-    assert all(schema["properties"][section]["properties"][key]["default"] is None for section, key in choices)
+    assert all(schema["properties"][section]["properties"][key]["default"] in (None, {}) for section, key in choices)
 
 
 def test_misspelled_key_is_named_with_the_allowed_keys() -> None:

@@ -361,7 +361,9 @@ def test_verify_retrains_and_matches_the_stored_run(tmp_path: Path, synthetic_re
 def test_the_store_stays_within_its_budget_and_every_entry_is_intact() -> None:
     store = ModelStore(REPO_ROOT / "store")
     budget = store.budget_bytes()
-    assert 0 < budget <= 200e6
+    # The ceiling of the budget itself: models, tuning and (since 2026-12-06) the evaluated scenes' references
+    # (about 54 MB for the default config's 12), which every clone carries in its history.
+    assert 0 < budget <= 250e6
     assert store.size_bytes() <= budget, f"store/ holds {store.size_bytes() / 1e6:.1f} MB, budget {budget / 1e6} MB"
     from denoisers.store.entries import _check_files
 
@@ -370,6 +372,9 @@ def test_the_store_stays_within_its_budget_and_every_entry_is_intact() -> None:
             record = entry.summary()
             _check_files(entry.path, (record.get("store") or record)["files"])
             assert entry.path.name == entry.key[:16]
+    from scenegen.reference_store import reference_problems
+
+    assert reference_problems(store.root) == []
 
 
 # ---------------------------------------------------------------------------------------------- the DAG

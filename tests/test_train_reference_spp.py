@@ -29,11 +29,13 @@ KINDS = ("noisy", "reference")
 
 
 def _config(name: str, **render: Any) -> dict:
-    """A shipped config with render.train_reference_spp and test_reference_spp null unless given, other
+    """A shipped config with render.train_reference_spp and test_reference_spp null (and no per-scene spp) unless
+    given, other
     ``render`` keys set and scenes.train_frames null (validated, defaults filled): the keys under test start
     from their schema defaults."""
     cfg = load_config(CONFIGS[name])
-    cfg["render"].update({"train_reference_spp": None, "test_reference_spp": None, **render})
+    cfg["render"].update({"train_reference_spp": None, "test_reference_spp": None, "test_reference_spp_per_scene": {},
+                          **render})
     cfg["scenes"]["train_frames"] = None   # every clip scenes.frames long, as before either key existed
     return validate_config(cfg)
 
@@ -44,6 +46,7 @@ def _without_key(cfg: dict) -> dict:
     old = copy.deepcopy(cfg)
     del old["render"]["train_reference_spp"]
     del old["render"]["test_reference_spp"]
+    old["render"].pop("test_reference_spp_per_scene", None)
     return old
 
 
@@ -114,6 +117,10 @@ def test_report_states_every_reference_spp() -> None:
     assert text(reference_spp=1024, train_reference_spp=256, test_reference_spp=3072).startswith(
         "3072 spp for the evaluated scenes; the validation scenes 1024 spp")
     assert "Mitsuba's path" in text(reference_spp=64, reference_integrator="path")
+    cfg = _config("default", reference_spp=1024, train_reference_spp=256, test_reference_spp=3072,
+                  test_reference_spp_per_scene={"test_001": 6144, "test_099": 8192})
+    assert _reference_spp_text(cfg).startswith(
+        "3072 spp (Mitsuba's path integrator) for the evaluated scenes (test_001: 6144 spp); the validation")
 
 
 # --------------------------------------------------------------------------------------------- digests

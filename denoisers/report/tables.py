@@ -294,10 +294,10 @@ def _resolved_use(cfg: dict, row: dict[str, str]) -> str:
     if row["what"] == "resolution":
         return f"{render['width']}x{render['height']} (render.width x render.height)"
     if row["what"] == "sampler":     # external scenes are evaluated scenes (render.test_reference_spp)
-        from scenegen.config import evaluated_reference_spp
+        from scenegen.config import evaluated_reference_text
 
         return (f"independent: {render['spp']} 1-spp layers (+{render['extra_radiance_spp']} radiance-only); "
-                f"references of {evaluated_reference_spp(cfg)} spp in two halves")
+                f"references of {evaluated_reference_text(cfg)} in two halves")
     return row["used"]
 
 

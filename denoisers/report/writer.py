@@ -65,8 +65,9 @@ def _setup_lines(res: Results) -> list[str]:
 
 def _reference_spp_text(cfg: dict) -> str:
     """The references' spp and integrator, per kind of scene where they differ: evaluated (test_*, custom_*;
-    render.test_reference_spp), validation (render.reference_spp) and training (render.train_reference_spp)."""
-    from scenegen.config import evaluated_reference_spp
+    render.test_reference_spp and test_reference_spp_per_scene), validation (render.reference_spp) and training
+    (render.train_reference_spp)."""
+    from scenegen.config import evaluated_reference_spp, reference_spp_exceptions
 
     render = cfg["render"]
     integrator = {"path": " (Mitsuba's path integrator)", "features": " (the feature integrator)"}.get(
@@ -74,9 +75,11 @@ def _reference_spp_text(cfg: dict) -> str:
     evaluated, validation = evaluated_reference_spp(cfg), int(render["reference_spp"])
     train = render.get("train_reference_spp")
     train = validation if train is None else int(train)
-    if evaluated == validation == train:
+    own = ", ".join(f"{scene}: {spp}" for scene, spp in reference_spp_exceptions(cfg).items())
+    if evaluated == validation == train and not own:
         return f"{evaluated} spp{integrator}"
-    return (f"{evaluated} spp{integrator} for the evaluated scenes; the validation scenes {validation} spp "
+    return (f"{evaluated} spp{integrator} for the evaluated scenes{f' ({own} spp)' if own else ''}; "
+            f"the validation scenes {validation} spp "
             f"(render.reference_spp), the training scenes {train} spp (render.train_reference_spp)")
 
 

@@ -21,7 +21,7 @@ from denoisers.report.verdicts import Decision, not_run
 from denoisers.report.claims import row_at as claims_row_at
 from denoisers.report.stats import fmt, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction
-from scenegen.config import evaluated_reference_spp
+from scenegen.config import evaluated_reference_text
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -313,7 +313,7 @@ def _deviations(res: Results) -> list[str]:
                 f"paper adds for direct prediction (Sec. 2.2)" if recoloured else "") + ".") if specs
             else "- Networks: no NTASD or DASR model is configured.",
             f"- Scenes: our procedurally generated test scenes at {render['width']}×{render['height']} with "
-            f"{evaluated_reference_spp(res.cfg)}-spp references, not SUNTEMPLE / CLASSROOM / BATHROOM at 1080p with 4k-spp "
+            f"references of {evaluated_reference_text(res.cfg)}, not SUNTEMPLE / CLASSROOM / BATHROOM at 1080p with 4k-spp "
             "references: the paper's numbers are context, never paired with ours.",
             "- DASR uses the same sample-map U-Net and kernel-predicting denoiser as NTASD, as Hasselgren et al. "
             "altered it, per frame, after a 1-spp initial pass that counts toward the 4-spp budget.",

@@ -5,6 +5,8 @@
   checkpoint  copy a training run's resumable state (<out>/models/.work/<id>-*/) into the store, part-way
   verify      retrain a stored model and compare it with the stored run (rule verify_stored_model)
   check       every entry's files against their recorded digests, and the store's size against its budget
+  publish-references  copy the evaluated scenes' rendered references (<results>/renders/<scene>/reference) into
+              the store (scenegen.reference_store), so that a run from the store does not render them
 """
 from __future__ import annotations
 
@@ -16,14 +18,18 @@ log = logging.getLogger("denoisers.store")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    store = sub.add_parser("store", help="the model store: list, publish, checkpoint, verify, check",
+    store = sub.add_parser("store", help="the model store: list, publish, checkpoint, verify, check, "
+                                         "publish-references",
                            description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    store.add_argument("action", choices=["list", "publish", "checkpoint", "verify", "check"])
+    store.add_argument("action", choices=["list", "publish", "checkpoint", "verify", "check", "publish-references"])
     store.add_argument("--config", type=Path, required=True, help="config YAML (its store.path is the store)")
     store.add_argument("--model-id", nargs="*", default=None,
                        help="models (default for publish / checkpoint: every configured model found in the results)")
     store.add_argument("--results", type=Path, default=None, help="the experiment folder (default: output_dir)")
-    store.add_argument("--render-root", type=Path, default=None, help="verify: results/renders")
+    store.add_argument("--render-root", type=Path, default=None,
+                       help="verify, publish-references: the renders folder (default <results>/renders)")
+    store.add_argument("--scene", nargs="*", default=None,
+                       help="publish-references: scenes (default: every evaluated scene of the config)")
     store.add_argument("--out", type=Path, default=None, help="verify: the comparison record (JSON)")
     store.add_argument("--steps", type=int, default=None,
                        help="verify: retrain only the first steps (default: store.verify.steps, else the whole budget)")
@@ -35,6 +41,8 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
     from denoisers.training.job import work_dir_for
     from denoisers.training.models import same_training_as, trained_model_specs
     from scenegen.config import output_root
+    from scenegen.digests import render_digest
+    from scenegen.reference_store import evaluated_scenes, reference_problems, stored_references
 
     store = ModelStore.of(cfg)
     results = args.results or output_root(cfg)
@@ -54,6 +62,21 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
                 print(f"{kind[:-1]:10s} {entry.model_id:24s} {short(entry.key)}  step {record.get('steps', record.get('step'))}"
                       f"  {record.get('elapsed_seconds', 0) / 60:6.1f} min  {compute.get('precision', '?')}  {cpu}"
                       f"  {state}")
+        current_keys = {scene: render_digest(cfg, scene, "reference") for scene in evaluated_scenes(cfg)}
+        for scene, folder, meta in stored_references(store.root):
+            state = "this config" if current_keys.get(scene) == meta.get("key") else "other key"
+            print(f"reference  {scene:24s} {folder.name}  {meta.get('spp')} spp  {len(meta.get('files', {})) // 2} "
+                  f"frames  {state}")
+        print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")
+        return 0
+    if args.action == "publish-references":
+        from denoisers.device import resolve_config_device
+        from scenegen.reference_store import publish_reference
+
+        resolve_config_device(cfg)   # the variant the workflow's render jobs resolve, hence their digests
+        for scene in args.scene or evaluated_scenes(cfg):
+            folder, what = publish_reference(cfg, scene, Path(args.render_root or Path(results) / "renders"))
+            print(f"{what}: reference {scene} -> {folder}")
         print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")
         return 0
     if args.action == "publish":
@@ -115,6 +138,7 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
                 _check_files(entry.path, files)
             except StoreError as error:
                 problems.append(str(error))
+    problems += reference_problems(store.root)
     size, budget = store.size_bytes(), store.budget_bytes()
     if size > budget:
         problems.append(f"store {store.root}: {size / 1e6:.1f} MB, over its budget of {budget / 1e6:.0f} MB")

@@ -2,6 +2,8 @@
 #   noisy:     <output_dir>/renders/{scene}/noisy/chunk_{chunk}/frame_{t:04d}.exr + .json
 #   reference: <output_dir>/renders/{scene}/reference/chunk_{chunk}/frame_{t:04d}.exr + .json
 # {chunk} is the zero-padded chunk index (000, 001, ...); the CLI gets it as an integer.
+# An evaluated scene's reference chunk stored under its render digest (store.references; scenegen.reference_store)
+# is copied from the store by the render_reference job instead of rendered.
 
 
 rule render_noisy:
