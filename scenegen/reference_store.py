@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import json
+import math
 import shutil
 from pathlib import Path
 from typing import Any, Iterator
@@ -26,6 +27,7 @@ from scenegen.atomic import atomic_directory, write_text_atomic
 from scenegen.config import (EVALUATED_PREFIXES, chunk_count, chunk_frames, scene_ids, scene_reference_spp,
                              scene_render_config)
 from scenegen.digests import render_digest
+from scenegen.render import reference_batch_seeds
 
 REFERENCES_DIR = "references"
 META_FILE = "meta.json"
@@ -127,7 +129,8 @@ def install_reference_chunk(cfg: dict, scene: str, chunk: int, out_dir: Path) ->
 
 def rendered_chunk_problems(cfg: dict, scene: str, chunk: int, chunk_dir: Path) -> list[str]:
     """Why ``chunk_dir`` is not chunk ``chunk`` of ``scene``'s references as ``cfg`` renders them (empty: it is):
-    every frame's EXR and sidecar present, and the sidecars' scene, spp, variant, size and integrator."""
+    every frame's EXR and sidecar present, and the sidecars' scene, spp, sample seeds (global seed, pass size),
+    variant, size and integrator."""
     render = scene_render_config(cfg, scene)
     want = {"scene": scene, "spp": scene_reference_spp(cfg, scene), "width": render["width"],
             "height": render["height"], "integrator": "path" if render["reference_integrator"] == "path"
@@ -142,6 +145,10 @@ def rendered_chunk_problems(cfg: dict, scene: str, chunk: int, chunk_dir: Path) 
         for key, value in want.items():
             if meta.get(key) != value:
                 problems.append(f"{sidecar}: {key} {meta.get(key)!r}, the config renders {value!r}")
+        n_batches = math.ceil(want["spp"] // 2 / render["reference_batch_spp"])   # the global seed and pass size
+        seeds = {f"half{half}": reference_batch_seeds(cfg["seed"], scene, frame, half, n_batches) for half in (0, 1)}
+        if meta.get("seeds") != seeds:
+            problems.append(f"{sidecar}: sample seeds of another seed or pass size than the config's")
         if meta.get("variant") != render["variant"]:   # e.g. a scalar_rgb fallback, or cuda_ad_rgb
             problems.append(f"{sidecar}: variant {meta.get('variant')!r}, the config renders {render['variant']!r}")
     return problems

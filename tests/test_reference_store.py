@@ -110,6 +110,11 @@ def test_publish_refuses_a_chunk_of_other_settings(tiny_cfg, rendered, tmp_path)
     sidecar.write_text(json.dumps({**json.loads(sidecar.read_text()), "spp": 4}))
     with pytest.raises(ReferenceStoreError, match=r"frame_0001.json: spp 4, the config renders 8"):
         publish_reference(cfg, SCENE, tmp_path / "renders")
+    sidecar.write_text(json.dumps({**json.loads(sidecar.read_text()), "spp": 8}))
+    seeded = copy.deepcopy(cfg)
+    seeded["seed"] += 1
+    with pytest.raises(ReferenceStoreError, match=r"frame_0001.json: sample seeds of another seed"):
+        publish_reference(seeded, SCENE, tmp_path / "renders")
     (other / "frame_0000.exr").unlink()
     with pytest.raises(ReferenceStoreError, match="frame_0000.exr: missing"):
         publish_reference(cfg, SCENE, tmp_path / "renders")
