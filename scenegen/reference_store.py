@@ -2,9 +2,9 @@
 
 ``<store>/references/<scene>/<key16>/`` holds one evaluated scene's (test_*, custom_*) reference render bit for
 bit as the render_reference jobs wrote it, ``chunk_NNN/frame_TTTT.exr`` + ``.json`` per chunk, and
-``meta.json`` (the full key, the spp, each file's SHA-256). The key is the scene's reference render digest
-(:func:`scenegen.digests.render_digest`: the scene's content, frames, chunking, spp, batch size, integrator and
-Mitsuba variant), known before anything is rendered. A render_reference job whose chunk is stored under its
+``meta.json`` (the full key, the spp, each file's SHA-256). The key digests the scene's id and its reference
+render digest (:func:`scenegen.digests.render_digest`: the scene's content, frames, chunking, spp, pass size,
+integrator and Mitsuba variant), known before anything is rendered. A render_reference job whose chunk is stored under its
 digest copies it (after checking every file's SHA-256) instead of rendering: in the default run of 2026-12-06
 these renders were 60 of the 107 minutes (docs/default-run.md).
 
@@ -63,6 +63,13 @@ def evaluated_scenes(cfg: dict) -> list[str]:
     return [scene for scene in scene_ids(cfg) if scene.startswith(EVALUATED_PREFIXES)]
 
 
+def reference_key(cfg: dict, scene: str) -> str:
+    """SHA-256 key of ``scene``'s references: its id (a render digest holds the settings a scene depends on, not
+    which scene it is) and its reference render digest."""
+    payload = {"format": REFERENCE_FORMAT, "scene": scene, "render": render_digest(cfg, scene, "reference")}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
 def entry_folder(root: Path, scene: str, key: str) -> Path:
     return Path(root) / REFERENCES_DIR / scene / key[:16]
 
@@ -71,7 +78,7 @@ def reference_entry(cfg: dict, scene: str) -> Path | None:
     """The stored reference folder of ``scene`` under ``cfg``'s reference render digest, or None."""
     if not scene.startswith(EVALUATED_PREFIXES):
         return None
-    key = render_digest(cfg, scene, "reference")
+    key = reference_key(cfg, scene)
     folder = entry_folder(store_root(cfg), scene, key)
     if not (folder / META_FILE).is_file():
         return None
@@ -159,7 +166,7 @@ def publish_reference(cfg: dict, scene: str, render_root: Path) -> tuple[Path, s
     refuses chunks rendered with other settings and a key that holds other files."""
     if not scene.startswith(EVALUATED_PREFIXES):
         raise ReferenceStoreError(f"{scene}: only the evaluated scenes' references (test_*, custom_*) are stored")
-    key = render_digest(cfg, scene, "reference")
+    key = reference_key(cfg, scene)
     folder = entry_folder(store_root(cfg), scene, key)
     source = Path(render_root) / scene / "reference"
     names = [f"{chunk_name(chunk)}/frame_{frame:04d}.{ext}" for chunk in range(chunk_count(cfg, scene))

@@ -17,7 +17,7 @@ from scenegen import jobs
 from scenegen.config import ConfigError, load_config, scene_reference_spp, validate_config
 from scenegen.digests import render_digest
 from scenegen.reference_store import (ReferenceStoreError, install_reference_chunk, publish_reference,
-                                      reference_entry, reference_problems)
+                                      reference_entry, reference_key, reference_problems)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCENE = "test_000"
@@ -69,6 +69,7 @@ def test_another_reference_spp_is_another_key_and_renders(tiny_cfg, published, t
     cfg = copy.deepcopy(tiny_cfg)
     cfg["render"]["test_reference_spp_per_scene"] = {SCENE: 16}
     assert render_digest(cfg, SCENE, "reference") != render_digest(tiny_cfg, SCENE, "reference")
+    assert reference_key(cfg, SCENE) != reference_key(tiny_cfg, SCENE)
     assert reference_entry(cfg, SCENE) is None
     monkeypatch.setattr(scenegen.jobs, "render_reference_frame", _no_render)
     with pytest.raises(Exception, match="rendered although|manifest"):   # the job goes on to render
@@ -79,6 +80,12 @@ def test_store_references_false_renders(tiny_cfg, published, tmp_path):
     cfg = copy.deepcopy(tiny_cfg)
     cfg["store"]["references"] = False
     assert install_reference_chunk(cfg, SCENE, 0, tmp_path / "out") is None and not (tmp_path / "out").exists()
+
+
+def test_the_key_tells_scenes_apart(tiny_cfg):
+    """Two test scenes have equal render digests (the settings a scene depends on); their keys differ."""
+    assert render_digest(tiny_cfg, "test_000", "reference") == render_digest(tiny_cfg, "test_001", "reference")
+    assert reference_key(tiny_cfg, "test_000") != reference_key(tiny_cfg, "test_001")
 
 
 def test_only_evaluated_scenes_are_stored(tiny_cfg, rendered):

@@ -41,8 +41,7 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
     from denoisers.training.job import work_dir_for
     from denoisers.training.models import same_training_as, trained_model_specs
     from scenegen.config import output_root
-    from scenegen.digests import render_digest
-    from scenegen.reference_store import evaluated_scenes, reference_problems, stored_references
+    from scenegen.reference_store import evaluated_scenes, reference_key, reference_problems, stored_references
 
     store = ModelStore.of(cfg)
     results = args.results or output_root(cfg)
@@ -62,7 +61,7 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
                 print(f"{kind[:-1]:10s} {entry.model_id:24s} {short(entry.key)}  step {record.get('steps', record.get('step'))}"
                       f"  {record.get('elapsed_seconds', 0) / 60:6.1f} min  {compute.get('precision', '?')}  {cpu}"
                       f"  {state}")
-        current_keys = {scene: render_digest(cfg, scene, "reference") for scene in evaluated_scenes(cfg)}
+        current_keys = {scene: reference_key(cfg, scene) for scene in evaluated_scenes(cfg)}
         for scene, folder, meta in stored_references(store.root):
             state = "this config" if current_keys.get(scene) == meta.get("key") else "other key"
             print(f"reference  {scene:24s} {folder.name}  {meta.get('spp')} spp  {len(meta.get('files', {})) // 2} "
