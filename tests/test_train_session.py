@@ -91,6 +91,17 @@ def test_without_model_ids_a_session_keeps_every_training_of_the_config(tmp_path
     assert result.published == [] and result.checkpointed == []
 
 
+def test_given_ids_are_kept_with_their_half_budget_twins() -> None:
+    """A model's target trains its twin too (the 2026-12-06 Isik sessions trained twins they did not publish)."""
+    from denoisers.store.session import kept_ids
+
+    configured = ["rae", "rae_half", "rae_seed1", "rae_seed1_half", "kpcn"]
+    assert kept_ids([], configured) == configured
+    assert kept_ids(["rae_seed1"], configured) == ["rae_seed1", "rae_seed1_half"]
+    assert kept_ids(["rae_seed1", "rae_seed1_half", "kpcn"], configured) == ["rae_seed1", "rae_seed1_half", "kpcn"]
+    assert kept_ids(["kpcn", "other"], configured) == ["kpcn", "other"]
+
+
 def test_a_refused_store_command_does_not_refuse_the_next_ones(tmp_path: Path, capsys) -> None:
     """The session's store commands write to the session's log through a pipe: a failed one leaves no retry-gate
     marker beside that log (scenegen.retry_gate), so the next store command still runs (2026-12-06: one refused

@@ -144,6 +144,17 @@ def configured_trainings(config_file: Path) -> list[str]:
     return [spec.id for spec in trained_model_specs(cfg) if same_training_as(cfg, spec.id) is None]
 
 
+def kept_ids(model_ids: Sequence[str], configured: Sequence[str]) -> list[str]:
+    """What a session keeps: every training of the config (``configured``) when no ids were given, else the ids
+    with the half-budget twin of each that the config trains (a model's target trains its twin too)."""
+    from denoisers.training.models import HALF_SUFFIX
+
+    if not model_ids:
+        return list(configured)
+    twins = [f"{m}{HALF_SUFFIX}" for m in model_ids if f"{m}{HALF_SUFFIX}" in configured]
+    return list(dict.fromkeys([*model_ids, *twins]))
+
+
 def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequence[str] = (),
                   output_dir: Path | None = None, log: Path | None = None,
                   run_command: Sequence[str] | None = None) -> SessionResult:
@@ -164,7 +175,6 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
     since = time.time() - 1.0
 
     returncode, stopped = run_until(command, minutes * 60.0, log=log)
-    if not model_ids:
-        model_ids = configured_trainings(resolved_config(output_dir, since))
+    model_ids = kept_ids(model_ids, configured_trainings(resolved_config(output_dir, since)))
     published, checkpointed, untouched = keep(output_dir, model_ids, since, store_command)
     return SessionResult(returncode, stopped, published, checkpointed, untouched)
