@@ -15,7 +15,13 @@ from snakemake.utils import min_version
 min_version("9.0")
 
 
-configfile: "config/config.yaml"
+# The default config only when no --configfile is given: Snakemake merges a workflow's configfile under every
+# command-line one, so keys that config/config.yaml sets and another config leaves out (e.g.
+# render.test_reference_spp_per_scene, which names the default run's test scenes) leaked into smoke, isik2021 and
+# cluster runs, while `load_config(<file>)` (the Python side) saw the file alone. Every shipped config is complete.
+if not workflow.overwrite_configfiles:
+
+    configfile: "config/config.yaml"
 
 
 report: "workflow/report/workflow.rst"
