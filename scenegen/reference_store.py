@@ -39,7 +39,8 @@ class ReferenceStoreError(RuntimeError):
     """A stored reference is corrupt, incomplete, or does not match what it is filed as."""
 
 
-def _sha256(path: Path) -> str:
+def file_digest(path: Path) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 1 MiB blocks (the model store's digests too)."""
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):
@@ -101,7 +102,7 @@ def _check(folder: Path, files: dict[str, str]) -> None:
         path = folder / name
         if not path.is_file():
             raise ReferenceStoreError(f"{path}: missing from the stored reference")
-        actual = _sha256(path)
+        actual = file_digest(path)
         if actual != digest:
             raise ReferenceStoreError(f"{path}: corrupt or truncated (SHA-256 {actual[:12]}…, published "
                                       f"{digest[:12]}…); restore it from git (git checkout -- {path}) or render "
@@ -175,7 +176,7 @@ def publish_reference(cfg: dict, scene: str, render_root: Path) -> tuple[Path, s
                 for problem in rendered_chunk_problems(cfg, scene, chunk, source / chunk_name(chunk))]
     if problems:
         raise ReferenceStoreError(f"{source}: not this config's reference of {scene}:\n  " + "\n  ".join(problems))
-    files = {name: _sha256(source / name) for name in names}
+    files = {name: file_digest(source / name) for name in names}
     if (folder / META_FILE).is_file():
         if _read_meta(folder).get("files") != files:
             raise ReferenceStoreError(f"{folder}: key {key[:16]} already holds other files; refusing (the renderer "

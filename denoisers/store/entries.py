@@ -35,6 +35,7 @@ from denoisers.errors import CheckpointError
 from denoisers.store.keys import STORE_FORMAT, checkpoint_key, key_inputs, model_key, short
 from denoisers.training.models import model_spec, same_training_as
 from scenegen.atomic import atomic_directory, write_text_atomic
+from scenegen.reference_store import file_digest  # noqa: F401 -- re-exported (denoisers.store)
 
 log = logging.getLogger(__name__)
 
@@ -52,13 +53,6 @@ class StoreError(RuntimeError):
 class StoreCollisionError(StoreError):
     """Publishing would put different weights under a key that already holds a model."""
 
-
-def file_digest(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _now() -> str:
