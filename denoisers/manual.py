@@ -14,6 +14,9 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SCHEMA = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
 #: Pages of docs/ that exist only in the built site (mkdocs_hooks.py adds them).
 CONFIG_REFERENCE_PAGE = "configuration-reference.md"
+#: The generated page of the Isik run's trainings, read from the committed store (denoisers.store.progress).
+ISIK_TRAINING_PAGE = "isik2021-training.md"
+ISIK_CONFIG = "config/isik2021.yaml"
 
 
 def _resolve(node: dict[str, Any], schema: dict[str, Any]) -> dict[str, Any]:
@@ -123,3 +126,28 @@ def paper_pages(run_dir: Path | None = None) -> dict[str, str | bytes]:
             f"{status} The rules behind each verdict: [Claims and verdicts](../claims.md#claims-and-verdicts).", "",
             "## Claims", "", claims, "", "## Tables and figures", "", section, ""])
     return pages
+
+
+def training_progress_page(config_path: str = ISIK_CONFIG) -> str:
+    """The page of every training of ``config_path`` (repository-relative) as the committed store holds it: stored,
+    part-way or not started, wall time so far, the median logged seconds per step and an estimate of what is left
+    (``python -m denoisers store progress --config <config> --markdown``)."""
+    from denoisers.store import ModelStore
+    from denoisers.store.progress import progress_table, training_progress
+    from scenegen.config import load_config
+
+    cfg = load_config(REPO_ROOT / config_path)
+    store = ModelStore.of(cfg)
+    if not store.root.is_absolute():
+        store = ModelStore(REPO_ROOT / store.root)
+    return "\n".join([
+        f"# Training progress of `{config_path}`", "",
+        "Generated from the committed [model store](model-store.md) when the manual is built; nothing here is typed. "
+        "The run trains across machines that live about 3 hours ([Isik et al. 2021](isik2021.md)): each "
+        "session continues the part-way checkpoints and publishes what finished. *wall so far* is the training "
+        "jobs' wall time over every session (a trainer paused with `kill -STOP` keeps its clock); *s/step* is the "
+        "median of the trainer's logged step rates (validation and pauses excluded); *left* is that rate times "
+        "the steps left, borrowed from the run a half-budget twin shares or from a seed replica where a row has not "
+        "trained. Rates depend on the host: bf16 on AVX-512 bf16 CPUs, fp32 elsewhere.", "",
+        f"Same table: `python -m denoisers store progress --config {config_path} --markdown`.", "",
+        progress_table(cfg, training_progress(cfg, store), markdown=True)])

@@ -1,6 +1,8 @@
 """``python -m denoisers store <action>``: list, publish, checkpoint, verify and check the model store.
 
   list        every stored model and checkpoint, and whether this config's key finds it
+  progress    every training of this config: stored, part-way or not started, its time so far and an estimate of
+              what is left (--markdown: a table for the manual)
   publish     copy finished models from <out>/models/ into the store (refuses stale models and key collisions)
   checkpoint  copy a training run's resumable state (<out>/models/.work/<id>-*/) into the store, part-way
   verify      retrain a stored model and compare it with the stored run (rule verify_stored_model)
@@ -18,10 +20,11 @@ log = logging.getLogger("denoisers.store")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    store = sub.add_parser("store", help="the model store: list, publish, checkpoint, verify, check, "
-                                         "publish-references",
+    store = sub.add_parser("store", help="the model store: list, progress, publish, checkpoint, verify, "
+                                         "check, publish-references",
                            description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    store.add_argument("action", choices=["list", "publish", "checkpoint", "verify", "check", "publish-references"])
+    store.add_argument("action", choices=["list", "progress", "publish", "checkpoint", "verify", "check",
+                                                 "publish-references"])
     store.add_argument("--config", type=Path, required=True, help="config YAML (its store.path is the store)")
     store.add_argument("--model-id", nargs="*", default=None,
                        help="models (default for publish / checkpoint: every configured model found in the results)")
@@ -31,6 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     store.add_argument("--scene", nargs="*", default=None,
                        help="publish-references: scenes (default: every evaluated scene of the config)")
     store.add_argument("--out", type=Path, default=None, help="verify: the comparison record (JSON)")
+    store.add_argument("--markdown", action="store_true", help="progress: a Markdown table")
     store.add_argument("--steps", type=int, default=None,
                        help="verify: retrain only the first steps (default: store.verify.steps, else the whole budget)")
 
@@ -67,6 +71,11 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
             print(f"reference  {scene:24s} {folder.name}  {meta.get('spp')} spp  {len(meta.get('files', {})) // 2} "
                   f"frames  {state}")
         print(f"store {store.root}: {store.size_bytes() / 1e6:.1f} MB of {store.budget_bytes() / 1e6:.0f} MB")
+        return 0
+    if args.action == "progress":
+        from denoisers.store.progress import progress_table, training_progress
+
+        print(progress_table(cfg, training_progress(cfg, store), markdown=args.markdown), end="")
         return 0
     if args.action == "publish-references":
         from denoisers.device import resolve_config_device

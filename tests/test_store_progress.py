@@ -1,0 +1,99 @@
+"""Tests of ``store progress`` (denoisers/store/progress.py): what a config's trainings have reached in the store,
+the logged step rate, the estimate of what is left, and totals that count a half-budget twin with its run."""
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from denoisers.store import ModelStore
+from denoisers.store.progress import NOT_STARTED, PART_WAY, STORED, TrainingProgress, estimate, progress_table, \
+    runs, training_progress
+from denoisers.training.job import work_dir_for
+from denoisers.training.loop import load_checkpoint
+from denoisers.training.models import model_spec
+from tests.test_store import store_config, train
+from tests.test_training_job import synthetic_renders  # noqa: F401 (fixture)
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def seeded_config(tmp_path: Path) -> dict:
+    """The tiny store config trained with 2 seeds and half-budget twins: rae, rae_seed1, rae_half, rae_seed1_half."""
+    cfg = store_config(tmp_path, steps=4)
+    cfg["training"]["models"] = cfg["training"]["models"][:1]
+    cfg["training"]["seeds"] = 2
+    cfg["training"]["half_budget"] = True
+    return cfg
+
+
+def median_seconds_per_step(rates: list[float]) -> float:
+    return float(1.0 / np.median(np.asarray(rates, dtype=np.float64)))
+
+
+def test_progress_follows_a_training_from_nothing_to_part_way_to_stored(tmp_path: Path, synthetic_renders) -> None:
+    cfg = seeded_config(tmp_path)
+    store = ModelStore.of(cfg)
+    rows = {row.model_id: row for row in training_progress(cfg, store)}
+    assert set(rows) == {"rae", "rae_seed1", "rae_half", "rae_seed1_half"}
+    assert all(row.state == NOT_STARTED and row.step == 0 and row.seconds_per_step is None for row in rows.values())
+    assert rows["rae_half"].half_of == "rae" and rows["rae"].max_steps == 4 and rows["rae_half"].max_steps == 2
+
+    train(cfg, tmp_path / "first", stop_at_step=2)
+    work = work_dir_for(tmp_path / "first" / "models", cfg, model_spec(cfg, "rae"))
+    store.publish_checkpoint(cfg, work)
+    history = load_checkpoint(work / "checkpoint.pt")["history"]
+    rows = {row.model_id: row for row in training_progress(cfg, store)}
+    assert rows["rae"].state == PART_WAY and rows["rae"].step == 2
+    assert rows["rae"].elapsed_s > 0 and rows["rae"].precision
+    expected = median_seconds_per_step([row["steps_per_s"] for row in history if row.get("steps_per_s")])
+    assert abs(rows["rae"].seconds_per_step - expected) <= 1e-9 * expected
+    left = estimate(cfg, list(rows.values()), rows["rae"])
+    assert left.remaining_steps == 2 and left.rate_from == "rae" and abs(left.remaining_s - 2 * expected) < 1e-9
+    # Another seed of the same model has not trained: its estimate borrows the measured rate.
+    other = estimate(cfg, list(rows.values()), rows["rae_seed1"])
+    assert other.remaining_steps == 4 and other.rate_from == "rae" and abs(other.remaining_s - 4 * expected) < 1e-9
+    assert rows["rae_seed1"].state == NOT_STARTED
+
+    train(cfg, tmp_path / "first")                       # continues the run to its budget
+    store.publish_model(cfg, tmp_path / "first" / "models" / "rae")
+    rows = {row.model_id: row for row in training_progress(cfg, store)}
+    assert rows["rae"].state == STORED and rows["rae"].step == 4
+    with (store.model_entry(cfg, "rae").path / "curves.csv").open(newline="") as handle:
+        logged = [float(row["steps_per_s"]) for row in csv.DictReader(handle) if row["steps_per_s"]]
+    assert abs(rows["rae"].seconds_per_step - median_seconds_per_step(logged)) <= 1e-6 * rows["rae"].seconds_per_step
+    assert estimate(cfg, list(rows.values()), rows["rae"]).remaining_steps == 0
+
+
+def test_totals_count_a_half_budget_twin_with_its_full_run(tmp_path: Path) -> None:
+    cfg = seeded_config(tmp_path)
+    rows = [TrainingProgress("rae", STORED, 4, 4, 3600.0, "fp32", "cpu", seconds_per_step=2.0),
+            TrainingProgress("rae_seed1", PART_WAY, 1, 4, 1800.0, "fp32", "cpu", seconds_per_step=3000.0),
+            TrainingProgress("rae_half", STORED, 2, 2, 1700.0, "fp32", "cpu", half_of="rae", seconds_per_step=2.0),
+            TrainingProgress("rae_seed1_half", NOT_STARTED, 0, 2, 0.0, half_of="rae_seed1")]
+    assert [row.model_id for row in runs(rows)] == ["rae", "rae_seed1"]
+    # The twin of the part-way seed takes that run's rate, not the other seed's.
+    twin = estimate(cfg, rows, rows[3])
+    assert twin.rate_from == "rae_seed1" and twin.remaining_s == 2 * 3000.0
+    text = progress_table(cfg, rows)
+    # 1.5 h of the two runs (the twin's 1700 s are inside rae's hour); 3 steps left of rae_seed1 at 3000 s/step.
+    assert "over 2 runs" in text and "so far 1.50 h" in text and "left about 2.50 h" in text
+    assert "2 stored, 1 part-way, 1 not started" in text
+    markdown = progress_table(cfg, rows, markdown=True)
+    assert markdown.splitlines()[0].startswith("| model | state |") and "| `rae_seed1_half` | not started |" in markdown
+
+
+def test_the_cli_lists_every_training_of_the_isik_config() -> None:
+    done = subprocess.run([sys.executable, "-m", "denoisers", "store", "progress", "--config",
+                           str(REPO_ROOT / "config" / "isik2021.yaml")], cwd=REPO_ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.splitlines()
+    from denoisers.training.models import trained_model_specs
+    from scenegen.config import load_config
+
+    ids = [spec.id for spec in trained_model_specs(load_config(REPO_ROOT / "config" / "isik2021.yaml"))]
+    assert [line.split()[0] for line in lines[1:1 + len(ids)]] == ids
+    assert lines[-1].startswith(f"{len(ids)} trainings: ")
