@@ -116,6 +116,11 @@ def _parser() -> argparse.ArgumentParser:
     session.add_argument("--snakemake", default="", help="more Snakemake arguments, one string, e.g. "
                                                          "\"--configfile config/isik2021.yaml --config 'training={seeds: 3}'\"")
     session.add_argument("--log", type=Path, help="append the run's output here (default: the terminal)")
+    session.add_argument("--keep-every", type=float, default=None, metavar="MINUTES",
+                         help="pause the run this often and keep what it reached (publish / checkpoint), so a machine "
+                              "lost before the deadline loses at most this much")
+    session.add_argument("--commit", action="store_true",
+                         help="commit the store after every keep (git commit -- store; nothing else is committed)")
 
     tune = sub.add_parser("tune", help="grid-search a baseline's parameters on the training scenes (tuning.methods)")
     tune.add_argument("--config", type=Path, required=True, help="resolved config YAML")
@@ -262,11 +267,13 @@ def _run(args: argparse.Namespace) -> int:
 
         from denoisers.store.session import train_session
 
-        result = train_session(args.models, args.minutes, shlex.split(args.snakemake), log=args.log)
+        result = train_session(args.models, args.minutes, shlex.split(args.snakemake), log=args.log,
+                               keep_every_minutes=args.keep_every, commit=args.commit)
         state = "stopped at the deadline" if result.stopped_at_deadline else f"finished (exit {result.returncode})"
         print(f"run {state}; published: {', '.join(result.published) or 'none'}; checkpointed: "
               f"{', '.join(result.checkpointed) or 'none'}; untouched: {', '.join(result.untouched) or 'none'}")
-        print("commit store/ now: only what is committed survives the machine")
+        if not args.commit:
+            print("commit store/ now: only what is committed survives the machine")
         return 0 if result.stopped_at_deadline or result.returncode == 0 else 1
 
     if args.command == "job-counts":

@@ -137,3 +137,103 @@ def test_stored_finished_asks_the_configs_store(tmp_path: Path) -> None:
     cfg["store"]["path"] = str(tmp_path / "empty_store")
     config.write_text(yaml.safe_dump(cfg, sort_keys=False))
     assert not stored_finished(config)("rae")
+
+
+def _state(pid: int) -> str:
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+
+
+def test_a_paused_group_goes_on_and_a_process_paused_by_hand_stays_paused(tmp_path: Path) -> None:
+    """The interval keep stops the run's group while it copies checkpoints, then continues only what it stopped: a
+    trainer paused with ``kill -STOP`` for the test suite is not woken by it."""
+    import signal
+    import subprocess
+
+    from denoisers.store.session import group_pids, paused_group
+
+    marker = tmp_path / "children"
+    script = (f"import subprocess, sys, time; ps = [subprocess.Popen([sys.executable, '-c', 'import time; "
+              f"time.sleep(60)']) for _ in range(2)]; open({str(marker)!r}, 'w').write(' '.join(str(p.pid) for p in ps));"
+              f" time.sleep(60)")
+    run = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
+    try:
+        for _ in range(100):
+            if marker.exists() and marker.read_text():
+                break
+            time.sleep(0.1)
+        awake, by_hand = (int(pid) for pid in marker.read_text().split())
+        assert set(group_pids(run.pid)) == {run.pid, awake, by_hand}
+        os.kill(by_hand, signal.SIGSTOP)
+        time.sleep(0.2)
+        seen: dict[int, str] = {}
+        paused_group(run.pid, lambda: seen.update({pid: _state(pid) for pid in (run.pid, awake, by_hand)}))
+        assert seen == {run.pid: "T", awake: "T", by_hand: "T"}
+        time.sleep(0.2)
+        assert _state(run.pid) != "T" and _state(awake) != "T" and _state(by_hand) == "T"
+    finally:
+        os.killpg(run.pid, signal.SIGKILL)
+        run.wait()
+
+
+def test_commit_store_commits_the_store_and_nothing_else(tmp_path: Path, monkeypatch) -> None:
+    import subprocess
+
+    from denoisers.store.session import commit_store
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout
+
+    git("init", "-q")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty", "-m", "start")
+    _touch(tmp_path / "code.py", "staged, not the store's")
+    git("add", "code.py")
+    _touch(tmp_path / "store" / "models" / "rae" / "summary.json")
+    _touch(tmp_path / "store" / "checkpoints" / "afn" / "meta.json")
+    for role in ("AUTHOR", "COMMITTER"):
+        monkeypatch.setenv(f"GIT_{role}_NAME", "t")
+        monkeypatch.setenv(f"GIT_{role}_EMAIL", "t@t")
+    assert commit_store(tmp_path / "store", "keep: rae", cwd=tmp_path)
+    assert git("show", "--name-only", "--format=%s", "HEAD").split() == \
+        ["keep:", "rae", "store/checkpoints/afn/meta.json", "store/models/rae/summary.json"]
+    assert git("diff", "--cached", "--name-only").split() == ["code.py"]        # still staged, not committed
+    assert not commit_store(tmp_path / "store", "nothing new", cwd=tmp_path)
+    # A checkpoint replaced by the finished model: the removal is committed too.
+    import shutil
+
+    shutil.rmtree(tmp_path / "store" / "checkpoints")
+    assert commit_store(tmp_path / "store", "keep: afn finished", cwd=tmp_path)
+    assert "store/checkpoints/afn/meta.json" not in git("ls-files")
+
+
+def test_interval_keeps_run_while_the_run_goes_on_and_each_is_committed(tmp_path: Path, monkeypatch) -> None:
+    """``--keep-every``: the session keeps (publishes / checkpoints) during the run, not only at its end, commits
+    each keep with ``--commit``, and publishes a model once."""
+    import yaml
+
+    import denoisers.store.session as session
+    from scenegen.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "smoke.yaml")
+    out = tmp_path / "results"
+    config_text = yaml.safe_dump(cfg, sort_keys=False)
+    script = (f"import pathlib, time; p = pathlib.Path({str(out / '.config' / 'abc.yaml')!r}); "
+              f"p.parent.mkdir(parents=True); p.write_text({config_text!r}); time.sleep(4)")
+    keeps: list[tuple[float, list[str]]] = []
+    commits: list[str] = []
+
+    def fake_keep(output_dir, model_ids, since, store_command):
+        keeps.append((time.monotonic(), list(model_ids)))
+        return (["rae"] if "rae" in model_ids else []), ["afn"], []
+
+    monkeypatch.setattr(session, "POLL_SECONDS", 0.1)
+    monkeypatch.setattr(session, "keep", fake_keep)
+    monkeypatch.setattr(session, "commit_store", lambda root, message, cwd=None: commits.append(message) or True)
+    started = time.monotonic()
+    result = session.train_session(["rae", "afn"], 1.0, output_dir=out, keep_every_minutes=1.0 / 60,
+                                   commit=True, run_command=[sys.executable, "-c", script])
+    assert result.returncode == 0 and not result.stopped_at_deadline
+    assert len(keeps) >= 3 and keeps[0][0] - started < 3.5           # at least one keep while the run went on
+    assert keeps[0][1] == ["rae", "afn"] and all(ids == ["afn"] for _, ids in keeps[1:])
+    assert result.published == ["rae"] and result.checkpointed == ["afn"]
+    assert len(commits) == len(keeps) and "published rae" in commits[0] and "(end keep)" in commits[-1]
+    assert all("interval keep" in message for message in commits[:-1])

@@ -14,6 +14,11 @@ them:
    that did not (``store checkpoint``: the next machine continues from it), using the resolved config the run wrote.
 
 Commit ``store/`` afterwards; the next session runs the same command and goes on.
+
+A machine can also go before the deadline (2026-12-06: one was shut down an hour into its session and took the
+session's training with it). ``--keep-every MINUTES`` pauses the run that often (SIGSTOP to its group), keeps what it
+has reached as in step 3 and lets it go on; with ``--commit`` each keep is committed (``git commit -- store``, nothing
+else), so a lost machine loses at most that interval.
 """
 from __future__ import annotations
 
@@ -45,17 +50,62 @@ class SessionResult:
     untouched: list[str] = field(default_factory=list)
 
 
-def run_until(command: Sequence[str], deadline_s: float, cwd: Path = REPO_ROOT,
-              log: Path | None = None) -> tuple[int | None, bool]:
+def group_pids(pgid: int) -> list[int]:
+    """Pids of the live processes of process group ``pgid`` (read from /proc)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue                       # the process went meanwhile
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+def paused_group(pgid: int, call: Callable[[], object]) -> None:
+    """Stop process group ``pgid`` (SIGSTOP), run ``call`` and continue the processes this stopped; one that was
+    stopped already (a trainer paused by hand with ``kill -STOP`` while the tests run) stays stopped."""
+    already = {pid for pid in group_pids(pgid) if _state(pid) == "T"}
+    os.killpg(pgid, signal.SIGSTOP)
+    try:
+        call()
+    finally:
+        for pid in group_pids(pgid):
+            if pid not in already:
+                try:
+                    os.kill(pid, signal.SIGCONT)
+                except ProcessLookupError:
+                    pass
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return "?"
+
+
+def run_until(command: Sequence[str], deadline_s: float, cwd: Path = REPO_ROOT, log: Path | None = None,
+              every_s: float | None = None, on_interval: Callable[[], object] | None = None) -> tuple[int | None, bool]:
     """Run ``command`` in a new process group until it exits or ``deadline_s`` seconds have passed; then SIGTERM
-    the group (SIGKILL after :data:`STOP_GRACE_SECONDS`). Returns (exit status or None, stopped at the deadline)."""
+    the group (SIGKILL after :data:`STOP_GRACE_SECONDS`). Every ``every_s`` seconds the group is paused while
+    ``on_interval()`` runs (:func:`paused_group`; the pause counts towards the deadline). Returns (exit status or
+    None, stopped at the deadline)."""
     stream = open(log, "ab") if log is not None else None  # noqa: SIM115 -- closed below
     try:
         process = subprocess.Popen(list(command), cwd=cwd, stdout=stream, stderr=subprocess.STDOUT if stream else None,
                                    start_new_session=True)
         end = time.monotonic() + deadline_s
+        next_keep = time.monotonic() + every_s if every_s and on_interval is not None else float("inf")
         while process.poll() is None and time.monotonic() < end:
-            time.sleep(min(POLL_SECONDS, max(0.0, end - time.monotonic())))
+            time.sleep(min(POLL_SECONDS, max(0.0, min(end, next_keep) - time.monotonic())))
+            if process.poll() is None and end > time.monotonic() >= next_keep:
+                try:
+                    paused_group(process.pid, on_interval)
+                except Exception as error:   # noqa: BLE001 -- the run must still be stopped at its deadline
+                    print(f"train-session: the interval keep failed ({error!r}); the run goes on", file=sys.stderr)
+                next_keep = time.monotonic() + every_s
         if process.poll() is not None:
             return process.returncode, False
         os.killpg(process.pid, signal.SIGTERM)
@@ -155,12 +205,41 @@ def kept_ids(model_ids: Sequence[str], configured: Sequence[str]) -> list[str]:
     return list(dict.fromkeys([*model_ids, *twins]))
 
 
+def commit_store(store_root: Path, message: str, cwd: Path = REPO_ROOT) -> bool:
+    """Commit the store directory as it is on disk, and nothing else (``git add -A <store>``, ``git commit --
+    <store>``: what else is staged stays staged). Returns whether a commit was made (False: nothing changed, or git
+    refused, e.g. another git command holds the index; the next keep tries again)."""
+    store_root = Path(store_root)
+    relative = store_root.relative_to(cwd).as_posix() if store_root.is_absolute() else store_root.as_posix()
+    if subprocess.run(["git", "add", "-A", "--", relative], cwd=cwd, capture_output=True).returncode != 0:
+        return False
+    if subprocess.run(["git", "diff", "--cached", "--quiet", "--", relative], cwd=cwd).returncode == 0:
+        return False
+    result = subprocess.run(["git", "commit", "-q", "-m", message, "--", relative], cwd=cwd, capture_output=True,
+                            text=True)
+    if result.returncode != 0:
+        print(f"train-session: git commit of {relative} failed: {result.stderr.strip()}", file=sys.stderr)
+    return result.returncode == 0
+
+
+def store_root_of(config_file: Path) -> Path:
+    """The store directory a resolved config names (absolute)."""
+    import yaml
+
+    from denoisers.store.entries import ModelStore
+
+    root = ModelStore.of(yaml.safe_load(Path(config_file).read_text())).root
+    return root if root.is_absolute() else REPO_ROOT / root
+
+
 def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequence[str] = (),
                   output_dir: Path | None = None, log: Path | None = None,
-                  run_command: Sequence[str] | None = None) -> SessionResult:
+                  run_command: Sequence[str] | None = None, keep_every_minutes: float | None = None,
+                  commit: bool = False) -> SessionResult:
     """One session (module docstring); no ``model_ids``: every training of the config (:func:`configured_trainings`
-    of the resolved config the run wrote). ``run_command`` replaces ``scripts/run-main.sh <targets> <args>``
-    (tests)."""
+    of the resolved config the run wrote). Every ``keep_every_minutes`` the run is paused and what it reached is
+    kept; ``commit``: each keep, and the last, is committed (:func:`commit_store`). ``run_command`` replaces
+    ``scripts/run-main.sh <targets> <args>`` (tests)."""
     from scenegen.config import load_config, output_root
 
     if output_dir is None:
@@ -169,12 +248,33 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
     output_dir = Path(output_dir)
     if not output_dir.is_absolute():
         output_dir = REPO_ROOT / output_dir
-    targets = [f"{output_dir.relative_to(REPO_ROOT).as_posix()}/models/{m}" for m in model_ids] or ["train"]
-    command = list(run_command) if run_command is not None else \
-        ["bash", str(REPO_ROOT / "scripts" / "run-main.sh"), *targets, *snakemake_args]
+    if run_command is None:
+        targets = [f"{output_dir.relative_to(REPO_ROOT).as_posix()}/models/{m}" for m in model_ids] or ["train"]
+        run_command = ["bash", str(REPO_ROOT / "scripts" / "run-main.sh"), *targets, *snakemake_args]
+    command = list(run_command)
     since = time.time() - 1.0
 
-    returncode, stopped = run_until(command, minutes * 60.0, log=log)
-    model_ids = kept_ids(model_ids, configured_trainings(resolved_config(output_dir, since)))
-    published, checkpointed, untouched = keep(output_dir, model_ids, since, store_command)
-    return SessionResult(returncode, stopped, published, checkpointed, untouched)
+    done: list[str] = []           # published by an interval keep: not published again
+
+    def keep_now(final: bool) -> tuple[list[str], list[str], list[str]]:
+        try:
+            config = resolved_config(output_dir, since)
+        except FileNotFoundError:
+            if final:
+                raise
+            return [], [], []      # the run has not started its workflow yet
+        ids = [m for m in kept_ids(model_ids, configured_trainings(config)) if m not in done]
+        published, checkpointed, untouched = keep(output_dir, ids, since, store_command)
+        done.extend(published)
+        if commit and (published or checkpointed):
+            what = "; ".join(part for part in (f"published {', '.join(published)}" if published else "",
+                                                f"checkpoints of {', '.join(checkpointed)}" if checkpointed else "")
+                             if part)
+            commit_store(store_root_of(config), f"train-session ({'end' if final else 'interval'} keep): {what}")
+        return published, checkpointed, untouched
+
+    every_s = keep_every_minutes * 60.0 if keep_every_minutes else None
+    returncode, stopped = run_until(command, minutes * 60.0, log=log, every_s=every_s,
+                                    on_interval=lambda: keep_now(final=False))
+    _, checkpointed, untouched = keep_now(final=True)
+    return SessionResult(returncode, stopped, list(done), checkpointed, untouched)
