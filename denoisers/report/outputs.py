@@ -9,7 +9,7 @@ from scenegen.config import CUSTOM_PREFIX
 
 #: Cross-paper tables, written as tables/{name}.csv and tables/{name}.md.
 CORE_TABLES: tuple[str, ...] = ("summary", "per_scene", "timing", "equal_time", "noise_floor", "robustness",
-                                "claims", "targets", "runs", "split", "color_balance")
+                                "claims", "targets", "runs", "split", "color_balance", "job_times")
 #: Written when the config trains models: the training table and the training-speed job's table.
 TRAINING_TABLES: tuple[str, ...] = ("training", "training_speed")
 #: Written when external (custom_*) scenes are evaluated.

@@ -200,8 +200,49 @@ def readme_block(repo: Path, run: str, config: str, link_prefix: str = "") -> st
     if previous and (run_dir / CHANGES_FILE).is_file():
         lines[-1] += (f" The run it replaced ({_label(previous)}): {tally_text(previous['tally'])}; "
                       f"[what moved]({link_prefix}{run}/{CHANGES_FILE}).")
+    lines += _cost_lines(run_dir, f"{link_prefix}{run}")
     lines.append("")
     return "\n".join(lines)
+
+
+def _cost_lines(run_dir: Path, link: str) -> list[str]:
+    """What the published run cost: its models' measured training time (tables/training.csv, each model's
+    ``train_minutes``; a twin published from its full model's run, ``run_of``, counted with that run) and its
+    jobs' time per stage (tables/job_times.csv, denoisers.report.job_times); empty where neither was published."""
+    import pandas as pd
+
+    from denoisers.report.job_times import hours_text, stage_seconds
+
+    lines: list[str] = []
+    training_file, jobs_file = run_dir / "tables" / "training.csv", run_dir / "tables" / "job_times.csv"
+    training = pd.read_csv(training_file) if training_file.is_file() else None
+    if training is not None and "run_of" in training:   # older runs cannot tell a shared twin's run apart
+        trained = training[training["status"] == "trained"]
+        trained = trained.assign(run_of=trained["run_of"].fillna("").astype(str))
+        own = trained[trained["run_of"] == ""]
+        lines += ["", f"Training: {len(trained)} models in {len(own)} runs, "
+                      f"{hours_text(float(own['train_minutes'].sum()) * 60)} of training wall time as each run "
+                      "measured it (a half-budget twin published from its full model's run counts with that run; "
+                      f"[training table]({link}/tables/training.md)), per model:", "",
+                  "<details><summary>training time per model</summary>", "",
+                  "| model | steps | training time | s/step | precision | CPU |", "|---|---|---|---|---|---|"]
+        for row in trained.itertuples():
+            time = "–" if row.train_minutes != row.train_minutes else hours_text(float(row.train_minutes) * 60)
+            if row.run_of:
+                time += f" (in {row.run_of}'s run)"
+            steps = int(row.steps) if row.steps == row.steps else "–"
+            lines.append(f"| {row.model} | {steps} | {time} | {_fmt(float(row.seconds_per_step), 3)} | "
+                         f"{row.precision} | {row.cpu} |")
+        lines += ["", "</details>"]
+    if jobs_file.is_file():
+        jobs = pd.read_csv(jobs_file)
+        stages = stage_seconds(jobs)
+        evaluation = {k: v for k, v in stages.items() if k not in ("scenes", "rendering", "training", "tuning")}
+        lines += ["", f"Evaluation: {hours_text(sum(evaluation.values()))} of job time ("
+                      + ", ".join(f"{k} {hours_text(v)}" for k, v in evaluation.items())
+                      + "); the whole run's jobs: " + ", ".join(f"{k} {hours_text(v)}" for k, v in stages.items())
+                      + f" (sums of job wall times; jobs ran side by side; [job times]({link}/tables/job_times.md))."]
+    return lines
 
 
 def update_blocks(path: Path, repo: Path, check: bool = False) -> list[str]:

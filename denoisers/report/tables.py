@@ -335,14 +335,27 @@ def _doubling_gain(curves: pd.DataFrame) -> float:
     return doubling_gain(val["step"].to_numpy(), val["val_psnr"].to_numpy())
 
 
+def shares_run(twin_curves: pd.DataFrame, full_curves: pd.DataFrame) -> bool:
+    """Whether a half-budget twin's logged curve (curves.csv: step, train_loss) is the head of its full model's,
+    i.e. the twin was published from the full model's run rather than trained on its own."""
+    columns = ["step", "train_loss"]
+    if any(c not in twin_curves or c not in full_curves for c in columns) or not 0 < len(twin_curves) <= len(full_curves):
+        return False
+    return twin_curves[columns].reset_index(drop=True).equals(
+        full_curves[columns].iloc[:len(twin_curves)].reset_index(drop=True))
+
+
 def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFrame:
     """One row per configured model: size, budget used, validation metrics of best.pt and convergence (the
     relative fall of the best validation loss over the last part of the run, training.convergence, which
     decides; beside it the line fit's fall with its 95 % half-width, the validation PSNR gained there and the gain
     a doubled budget would bring by a power law fitted to the validation curve, denoisers.report.budget), and
     whole_frame_gap_db: whole validation frames minus crop-sized windows of them, lowest scene (NaN: not checked;
-    denoisers.crop_check)."""
+    denoisers.crop_check). ``run_of``: for a half-budget twin published from its full model's run
+    (:func:`shares_run`), that model's id (its time is part of that run's), else empty."""
     import pandas as pd
+
+    from denoisers.training.models import half_of
 
     rule = {"window_fraction": 0.2, "min_improvement": 0.01, **((cfg or {}).get("training", {}).get("convergence", {}))}
 
@@ -357,6 +370,9 @@ def training_table(models: TrainedModels, cfg: dict | None = None) -> pd.DataFra
             trend, trend_half = model.validation_trend(rule["window_fraction"])
             if s.get("same_training_as"):   # the base's weights, not a training of its own (its time is the base's)
                 row["status"] = f"trained = {s['same_training_as']}"
+            full = half_of(cfg, spec.id) if cfg else None
+            row["run_of"] = (full if full in models.models and shares_run(model.curves, models.models[full].curves)
+                             else "")
             row.update({"parameters": s.get("parameters"), "parameters_full_width": s.get("parameters_full_width"),
                         "width": s.get("net", {}).get("config", {}).get("width"),
                         "steps": s.get("steps"), "stopped_by": s.get("stopped_by"),

@@ -225,7 +225,8 @@ def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
              "first 10 % (b T^−c (1 − 2^−c); denoisers/report/budget.py). `train_minutes`: the job's "
              "elapsed wall time (any stop of the run while it trained included); `step_minutes`: the median time "
              "per step between logged rows of its curves.csv (validation left out) times its steps, which a stopped "
-             "or briefly crowded job does not inflate. `whole_frame_gap_db`: a model trained on crops smaller than "
+             "or briefly crowded job does not inflate; `run_of`: a half-budget twin published from that full model's run "
+             "(the same logged curve up to its steps), whose minutes are part of that run's. `whole_frame_gap_db`: a model trained on crops smaller than "
              "the frames, scored on whole validation frames minus on crop-sized windows of them (lowest scene, "
              f"dB; denoisers/crop_check.py); below -{CROP_GAP_DB:g} dB it learned the crops' borders and counts as "
              "not converged; – where it was not checked (trained on whole frames, an adaptive method, or a model "
@@ -289,6 +290,19 @@ def _robustness_section(res: Results, tables: Path) -> list[str]:
             "of every input buffer (at least one) become NaN, +Inf or -Inf; seeded, identical for every method. "
             "Metrics treat non-finite outputs as 0; their count is listed.", "",
             markdown, "", "![Robustness grid](figures/robustness_grid.png)", ""]
+
+
+def _job_times_section(results_dir: Path, tables: Path) -> list[str]:
+    """tables/job_times.* from the run's benchmark files (denoisers.report.job_times) and its REPORT.md lines."""
+    from denoisers.report.job_times import job_times_markdown, job_times_table
+
+    table = job_times_table(results_dir)
+    markdown = job_times_markdown(table)
+    tab.write_table(table, tables, "job_times", markdown)
+    return ["", "## Job times", "",
+            "What the workflow's jobs took, from their Snakemake benchmark files (`benchmarks/`; a model installed "
+            "from the store counts its install job, its training time is in the training table; this report's own "
+            "job is not counted):", "", markdown]
 
 
 def _core_tables(res: Results, tables: Path) -> dict[str, str]:
@@ -384,6 +398,7 @@ def build_report(cfg: dict, results_dir: Path | None = None, out_dir: Path | Non
     if not_run:
         lines += ["", "## Not run", "", markdown_table(["method", "spp", "reason"],
                                                        [[r["id"], r["spp"], r["reason"]] for r in not_run])]
+    lines += _job_times_section(res.results_dir, tables)
     lines += ["", "## Metrics", ""]
     from denoisers import metrics
 
