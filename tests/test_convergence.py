@@ -10,7 +10,7 @@ import pytest
 
 from denoisers.report.claims import UNDERTRAINED_NOTE, claims_table
 from denoisers.report.trained import TrainedModel, TrainedModels
-from denoisers.report.tables import training_table
+from denoisers.report.training_tables import training_table
 from denoisers.reproductions import all_claims
 from denoisers.training.models import model_specs
 from tests.test_claims import CLEAR, claims_config, results_for

@@ -11,7 +11,7 @@ import pytest
 from denoisers.report.job_times import (STAGE_OF_KIND, BenchmarkFileError, job_times_markdown, job_times_table,
                                         stage_seconds)
 from denoisers.report.published import publish_run, readme_block
-from denoisers.report.tables import shares_run
+from denoisers.report.training_tables import shares_run
 from scenegen.config import load_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

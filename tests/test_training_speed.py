@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 import torch
 
-from denoisers.report import tables as tab
+from denoisers.report import training_tables
 from denoisers.report.writer import _training_speed_lines
 from denoisers.training import precision, speed
 from denoisers.training.models import model_specs
@@ -187,7 +187,7 @@ def synthetic_record() -> dict:
 
 
 def test_training_speed_table_from_a_synthetic_record() -> None:
-    table = tab.training_speed_table(synthetic_record()).set_index("variant")
+    table = training_tables.training_speed_table(synthetic_record()).set_index("variant")
     assert list(table.index) == ["fp32_nchw", "fp32_channels_last", "bf16_nchw"]
     base, fast = table.loc["fp32_nchw"], table.loc["fp32_channels_last"]
     assert (base.ms_per_step, base.ms_per_step_min, base.ms_per_step_max) == (100.0, 90.0, 110.0)
@@ -197,21 +197,21 @@ def test_training_speed_table_from_a_synthetic_record() -> None:
     assert fast.fraction_of_sgemm == pytest.approx(1.0) and fast.speedup == fast.speedup_min == fast.speedup_max == 2
     assert bool(base.configured) and not bool(fast.configured)
     assert table.loc["bf16_nchw", "status"] == "not timed" and math.isnan(table.loc["bf16_nchw", "ms_per_step"])
-    markdown = tab.training_speed_markdown(tab.training_speed_table(synthetic_record()))
+    markdown = training_tables.training_speed_markdown(training_tables.training_speed_table(synthetic_record()))
     assert "fp32 NCHW *" in markdown and "100.0 [90.0, 110.0]" in markdown and "1.00x [1.00, 1.00]" in markdown
     assert "50.0 [45.0, 55.0]" in markdown and "2.00x [2.00, 2.00]" in markdown and "50.0%" in markdown
     assert "10.000" in markdown and "not timed: bf16 is emulated here" in markdown
 
 
 def test_training_speed_verdict_explains_a_missed_target() -> None:
-    text = tab.training_speed_verdict(synthetic_record())
+    text = training_tables.training_speed_verdict(synthetic_record())
     assert "1.00x the fp32 eager (NCHW) step" in text and "range 1.00-1.00x" in text
     assert "1.6x target is not met" in text and f"auto resolved to fp32 ({EMULATED})" in text
     record = synthetic_record()
     model = record["models"][0]
     model["configured_variant"] = "fp32_channels_last"
     model["variants"][0]["configured"], model["variants"][1]["configured"] = False, True
-    assert "2.00x" in tab.training_speed_verdict(record) and "target is met" in tab.training_speed_verdict(record)
+    assert "2.00x" in training_tables.training_speed_verdict(record) and "target is met" in training_tables.training_speed_verdict(record)
 
 
 def test_report_subsection_and_its_not_run_line(tmp_path: Path) -> None:

@@ -162,7 +162,7 @@ def capacity_table(res: Results, ablation: Mapping[str, Any]) -> tuple[pd.DataFr
     """One row per size of the sweep (see the module docstring) and the base-model note of :func:`sweep`."""
     import pandas as pd
 
-    from denoisers.report.tables import _converged
+    from denoisers.report.training_tables import converged_text
 
     members, base_note = sweep(res, ablation)
     keys = swept_keys(members)
@@ -205,7 +205,7 @@ def capacity_table(res: Results, ablation: Mapping[str, Any]) -> tuple[pd.DataFr
                     "n_validation_sequences": val_n,
                     "psnr_mean": mean, "psnr_ci_low": low, "psnr_ci_high": high, "n_scenes": n,
                     **{key: speed.get(key, math.nan) for key in SPEED_KEYS},
-                    "converged": _converged(model.undertrained(res.cfg)) if model else "",
+                    "converged": converged_text(model.undertrained(res.cfg)) if model else "",
                     "status": "not run" if reasons else "ran",
                     "note": "; ".join(reasons + ([_timing_note(res, member.row, spp)] if not reasons else []))
                     .strip("; ")})

@@ -12,6 +12,7 @@ from denoisers.device import configured_device, device_info
 from denoisers.provenance import describe, provenance
 from denoisers.report import figures as fig
 from denoisers.report import tables as tab
+from denoisers.report import training_tables
 from denoisers.report import targets
 from denoisers.report.atlas import report_section as atlas_section
 from denoisers.report.capacity import capacity_section
@@ -206,7 +207,7 @@ def _tuning_section(res: Results, tables: Path) -> list[str]:
 def _training_section(res: Results, tables: Path, figures: Path) -> list[str]:
     if not res.models or not res.models.specs:
         return []
-    training = tab.training_table(res.models, res.cfg)
+    training = training_tables.training_table(res.models, res.cfg)
     conv = {"window_fraction": 0.2, "min_improvement": 0.01, **res.cfg.get("training", {}).get("convergence", {})}
     markdown = frame_to_markdown(formatted(training, {c: "" for c in TRAINING_COLUMNS if c in training}))
     tab.write_table(training, tables, "training", markdown)
@@ -252,8 +253,8 @@ def _training_speed_lines(res: Results, tables: Path) -> list[str]:
                f"{TRAINING_SPEED_FILE} is missing; rule time_training, stage target `timing`")
         tab.write_table(pd.DataFrame({"status": [f"not run ({why})"]}), tables, "training_speed")
         return ["### Training step speed", "", f"Not run ({why}).", ""]
-    table = tab.training_speed_table(record)
-    markdown = tab.training_speed_markdown(table)
+    table = training_tables.training_speed_table(record)
+    markdown = training_tables.training_speed_markdown(table)
     tab.write_table(table, tables, "training_speed", markdown)
     cpu, gemm = record["cpu"], record["gemm"]
     return ["### Training step speed", "",
@@ -266,7 +267,7 @@ def _training_speed_lines(res: Results, tables: Path) -> list[str]:
             "ms/step: median [min, max] over rounds; Mpix/s: training pixels per step / median; GFLOP/s: FLOPs of "
             "the fp32 step (forward and backward) / median, and its fraction of the sgemm; speed-up: per-round ratio "
             "to fp32 NCHW, median [min, max]; * = the configured step (`compute`, resolved on this machine).", "",
-            markdown, "", tab.training_speed_verdict(record), "",
+            markdown, "", training_tables.training_speed_verdict(record), "",
             "[training step speed (CSV)](tables/training_speed.csv)", ""]
 
 
