@@ -222,7 +222,8 @@ def _cost_lines(run_dir: Path, link: str) -> list[str]:
         own = trained[trained["run_of"] == ""]
         lines += ["", f"Training: {len(trained)} models in {len(own)} runs, "
                       f"{hours_text(float(own['train_minutes'].sum()) * 60)} of training wall time as each run "
-                      "measured it (a half-budget twin published from its full model's run counts with that run; "
+                      "measured it (validation included, and any pause of a stopped run; `s/step` is the median "
+                      "logged step time; a half-budget twin published from its full model's run counts with that run; "
                       f"[training table]({link}/tables/training.md)), per model:", "",
                   "<details><summary>training time per model</summary>", "",
                   "| model | steps | training time | s/step | precision | CPU |", "|---|---|---|---|---|---|"]
