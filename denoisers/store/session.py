@@ -69,6 +69,7 @@ def paused_group(pgid: int, call: Callable[[], object]) -> None:
     already = {pid for pid in group_pids(pgid) if _state(pid) == "T"}
     os.killpg(pgid, signal.SIGSTOP)
     try:
+        _wait_stopped(pgid)
         call()
     finally:
         for pid in group_pids(pgid):
@@ -77,6 +78,21 @@ def paused_group(pgid: int, call: Callable[[], object]) -> None:
                     os.kill(pid, signal.SIGCONT)
                 except ProcessLookupError:
                     pass
+
+
+#: States of /proc/<pid>/stat that count as no longer running: stopped, traced, zombie, dead (or gone: "?").
+_NOT_RUNNING = frozenset("TtZX?")
+
+
+def _wait_stopped(pgid: int, timeout_s: float = 10.0) -> None:
+    """Wait until every process of group ``pgid`` has stopped: SIGSTOP is delivered asynchronously, and a process
+    still running when the keep copies its checkpoint could be writing it."""
+    end = time.monotonic() + timeout_s
+    while any(_state(pid) not in _NOT_RUNNING for pid in group_pids(pgid)):
+        if time.monotonic() > end:
+            running = [pid for pid in group_pids(pgid) if _state(pid) not in _NOT_RUNNING]
+            raise TimeoutError(f"process group {pgid}: processes {running} still run {timeout_s:g} s after SIGSTOP")
+        time.sleep(0.01)
 
 
 def _state(pid: int) -> str:
