@@ -363,8 +363,9 @@ def test_the_store_stays_within_its_budget_and_every_entry_is_intact() -> None:
     budget = store.budget_bytes()
     # The ceiling of the budget itself: models, tuning and (since 2026-12-06) the evaluated scenes' references
     # (about 54 MB for the default config's 12), which every clone carries in its history.
-    # 280 MB since late 2026-12-06 for the rest of the Isik trainings (about 20 models of 1-1.3 MB and 3-4 MB checkpoints).
-    assert 0 < budget <= 300e6
+    # 320 MB since late 2026-12-06 for the rest of the Isik trainings: about 12 models of 1-1.3 MB, KPCN at width 0.5
+    # (about 10 MB per model and twin) and its part-way checkpoint across sessions (weights, Adam, EMA: about 40 MB).
+    assert 0 < budget <= 330e6
     assert store.size_bytes() <= budget, f"store/ holds {store.size_bytes() / 1e6:.1f} MB, budget {budget / 1e6} MB"
     from denoisers.store.entries import _check_files
 
