@@ -3,7 +3,7 @@ job and per stage (tables/job_times.csv / .md).
 
 A benchmark file is ``benchmarks/<kind>/<wildcards>.tsv`` or ``benchmarks/<kind>.tsv``; its ``s`` is the job's
 wall time in seconds and ``max_rss`` its peak resident memory in MB. The sums are job time, not the run's wall
-time: on ``c`` cores about ``c`` jobs ran at once. Every benchmark file in the folder counts, so a results folder
+time: jobs ran side by side (a render job uses every core, a training job one). Every benchmark file in the folder counts, so a results folder
 that earlier runs also wrote into holds their jobs too; the report's own job is not counted (Snakemake writes its
 file after it ends). A model installed from the store costs its install job here; what it cost to train is its
 ``train_minutes`` in the training table.
@@ -29,6 +29,8 @@ STAGE_OF_KIND: dict[str, str] = {
     "build_atlas": "stability",
 }
 STAGES: tuple[str, ...] = ("scenes", "rendering", "training", "tuning", "evaluation", "stability", "other")
+#: Stages that build the data and models the evaluation reads; the rest is the evaluation's job time.
+PREPARATION_STAGES: tuple[str, ...] = ("scenes", "rendering", "training", "tuning")
 COLUMNS: tuple[str, ...] = ("stage", "kind", "jobs", "job_seconds", "max_job_seconds", "max_rss_mb")
 
 
@@ -102,4 +104,4 @@ def job_times_markdown(table: pd.DataFrame) -> str:
     stages = stage_seconds(table)
     return (body.rstrip("\n") + "\n\nJob time per stage: " + ", ".join(f"{s} {hours_text(v)}" for s, v in stages.items())
             + f"; in all {hours_text(sum(stages.values()))} over {int(table['jobs'].sum())} jobs (sums of job wall "
-              "times: on c cores about c jobs ran at once).\n")
+              "times; jobs ran side by side).\n")

@@ -211,7 +211,7 @@ def _cost_lines(run_dir: Path, link: str) -> list[str]:
     jobs' time per stage (tables/job_times.csv, denoisers.report.job_times); empty where neither was published."""
     import pandas as pd
 
-    from denoisers.report.job_times import hours_text, stage_seconds
+    from denoisers.report.job_times import PREPARATION_STAGES, hours_text, stage_seconds
 
     lines: list[str] = []
     training_file, jobs_file = run_dir / "tables" / "training.csv", run_dir / "tables" / "job_times.csv"
@@ -238,7 +238,7 @@ def _cost_lines(run_dir: Path, link: str) -> list[str]:
     if jobs_file.is_file():
         jobs = pd.read_csv(jobs_file)
         stages = stage_seconds(jobs)
-        evaluation = {k: v for k, v in stages.items() if k not in ("scenes", "rendering", "training", "tuning")}
+        evaluation = {k: v for k, v in stages.items() if k not in PREPARATION_STAGES}
         lines += ["", f"Evaluation: {hours_text(sum(evaluation.values()))} of job time ("
                       + ", ".join(f"{k} {hours_text(v)}" for k, v in evaluation.items())
                       + "); the whole run's jobs: " + ", ".join(f"{k} {hours_text(v)}" for k, v in stages.items())

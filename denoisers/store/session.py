@@ -88,9 +88,8 @@ def _wait_stopped(pgid: int, timeout_s: float = 10.0) -> None:
     """Wait until every process of group ``pgid`` has stopped: SIGSTOP is delivered asynchronously, and a process
     still running when the keep copies its checkpoint could be writing it."""
     end = time.monotonic() + timeout_s
-    while any(_state(pid) not in _NOT_RUNNING for pid in group_pids(pgid)):
+    while running := [pid for pid in group_pids(pgid) if _state(pid) not in _NOT_RUNNING]:
         if time.monotonic() > end:
-            running = [pid for pid in group_pids(pgid) if _state(pid) not in _NOT_RUNNING]
             raise TimeoutError(f"process group {pgid}: processes {running} still run {timeout_s:g} s after SIGSTOP")
         time.sleep(0.01)
 
