@@ -11,7 +11,7 @@ import numpy as np
 
 from denoisers.store import ModelStore
 from denoisers.store.progress import NOT_STARTED, PART_WAY, STORED, TrainingProgress, estimate, progress_table, \
-    runs, training_progress
+    runs, shape_of, training_progress
 from denoisers.training.job import work_dir_for
 from denoisers.training.loop import load_checkpoint
 from denoisers.training.models import model_spec
@@ -97,3 +97,25 @@ def test_the_cli_lists_every_training_of_the_isik_config() -> None:
     ids = [spec.id for spec in trained_model_specs(load_config(REPO_ROOT / "config" / "isik2021.yaml"))]
     assert [line.split()[0] for line in lines[1:1 + len(ids)]] == ids
     assert lines[-1].startswith(f"{len(ids)} trainings: ")
+
+
+def test_a_model_with_no_run_borrows_the_rate_of_one_of_its_shape_only(tmp_path: Path) -> None:
+    """An ablation that only flips a network switch (here RAE's demodulation) estimates at the rate of the model it
+    ablates, labelled "same shape"; a model of another width has no measured rate and stays unknown."""
+    cfg = store_config(tmp_path, steps=4)
+    base = cfg["training"]["models"][0]
+    cfg["training"]["models"] = [base,
+                                 {**base, "id": "rae_nodemod", "net": {**base.get("net", {}), "demodulate": False}},
+                                 {**base, "id": "rae_wide", "net": {**base.get("net", {}), "width": 0.5}}]
+    specs = {m: model_spec(cfg, m) for m in ("rae", "rae_nodemod", "rae_wide")}
+    assert shape_of(specs["rae"]) == shape_of(specs["rae_nodemod"]) != shape_of(specs["rae_wide"])
+    rows = [TrainingProgress("rae", PART_WAY, 2, 4, 60.0, "fp32", "cpu", seconds_per_step=3.0),
+            TrainingProgress("rae_nodemod", NOT_STARTED, 0, 4, 0.0),
+            TrainingProgress("rae_wide", NOT_STARTED, 0, 4, 0.0)]
+    ablated = estimate(cfg, rows, rows[1])
+    assert (ablated.rate_from, ablated.same_shape, ablated.remaining_s) == ("rae", True, 12.0)
+    assert estimate(cfg, rows, rows[2]).remaining_s is None
+    own = estimate(cfg, rows, rows[0])
+    assert (own.rate_from, own.same_shape, own.remaining_s) == ("rae", False, 6.0)
+    text = progress_table(cfg, rows)
+    assert "(rate of rae, same shape)" in text and "no measured rate (rae_wide)" in text

@@ -12,19 +12,23 @@ left is read from the committed store, not from a results folder. ``python -m de
 while a test suite ran keeps its clock); ``s/step`` is the median of the trainer's logged step rates (curves.csv,
 a checkpoint's history), which pauses and validation do not move. It comes from the row itself, else from the run it
 shares (a twin is its full model's run stopped at
-half its steps), else from a seed replica of the same model; the estimate of what is left is that rate times the
+half its steps), else from a seed replica of the same model, else from a model of the same shape (same method,
+data, loss, optimizer, budget, compute and network width and kind, only the network's switches differ, such as
+Isik's ablations of the temporal model; labelled "same shape"); the estimate of what is left is that rate times the
 steps left, on the host that measured it (precision and CPU are listed, a bf16 host trains at another rate than
 an fp32 one). The totals count each run once: a twin's time is part of its full model's run, which continues it.
 """
 from __future__ import annotations
 
 import csv
+import json
 import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from denoisers.store.entries import Entry, ModelStore
+from denoisers.training.spec import ModelSpec
 from denoisers.training.models import (half_of, replica_ids, replica_of, same_training_as, trained_model_specs)
 
 STORED, PART_WAY, NOT_STARTED = "stored", "part-way", "not started"
@@ -50,11 +54,13 @@ class TrainingProgress:
 @dataclass(frozen=True)
 class Estimate:
     """What is left of a row: ``remaining_s`` at the rate ``seconds_per_step`` measured on row ``rate_from``
-    (None: no row of this model has trained yet)."""
+    (None: no row of this model or of its shape has trained yet); ``same_shape``: ``rate_from`` is another model of
+    the same shape (:func:`shape_of`), not a run or seed of this one."""
 
     remaining_steps: int
     seconds_per_step: float | None
     rate_from: str | None
+    same_shape: bool = False
 
     @property
     def remaining_s(self) -> float | None:
@@ -127,14 +133,46 @@ def _rate_sources(cfg: dict, row: TrainingProgress) -> list[str]:
     return [row.model_id, full, f"{full}_half", *siblings, *(f"{m}_half" for m in siblings)]
 
 
+#: ``net`` keys of the AFN, KPCN, RAE and NTASD configs that size a network (layers, features, kernels, what runs per
+#: frame); models that differ only in other ``net`` keys, switches such as ``temporal_kernel`` or ``fixed_lambda``,
+#: are of the same shape.
+SHAPE_KEYS = ("width", "temporal", "kernels", "kernel_size", "kernel_kind", "affinity_dim", "dilate",
+              "temporal_kernel_size", "embed_features", "layers", "features", "conv_size", "levels", "base_features",
+              "growth", "final_features", "variant", "sampling", "max_samples")
+
+
+def shape_of(spec: ModelSpec) -> str:
+    """What fixes a training's cost per step, as a comparable key: everything but the seed, the id and the
+    network's switches that are not in :data:`SHAPE_KEYS`."""
+    net = {key: spec.net.get(key) for key in SHAPE_KEYS}
+    return json.dumps([spec.method, net, spec.loss, spec.data, spec.optimizer, spec.budget, spec.compute,
+                       spec.threads], sort_keys=True, default=str)
+
+
+def _same_shape(cfg: dict, model_id: str) -> list[str]:
+    """Full models of ``cfg`` of the same shape as ``model_id`` (config order), ``model_id`` itself left out."""
+    specs = {spec.id: spec for spec in trained_model_specs(cfg)}
+    own = specs.get(model_id)
+    if own is None:
+        return []
+    key = shape_of(own)
+    return [m for m, spec in specs.items() if m != model_id and half_of(cfg, m) is None and shape_of(spec) == key]
+
+
 def estimate(cfg: dict, rows: Sequence[TrainingProgress], row: TrainingProgress) -> Estimate:
-    """What is left of ``row`` and how long it should take (:class:`Estimate`)."""
+    """What is left of ``row`` and how long it should take (:class:`Estimate`): at the rate of the row itself, its
+    run, a seed replica (``rate_from`` that row), else of a model of the same shape (``same_shape`` True)."""
     remaining = 0 if row.state == STORED or row.reuses else max(0, row.max_steps - row.step)
     by_id = {r.model_id: r for r in rows}
     for source in _rate_sources(cfg, row):
         other = by_id.get(source)
         if other is not None and other.seconds_per_step is not None:
             return Estimate(remaining, other.seconds_per_step, source)
+    if remaining:
+        for source in _same_shape(cfg, row.half_of or row.model_id):
+            other = by_id.get(source)
+            if other is not None and other.seconds_per_step is not None:
+                return Estimate(remaining, other.seconds_per_step, source, same_shape=True)
     return Estimate(remaining, None, None)
 
 
@@ -160,7 +198,8 @@ def progress_table(cfg: dict, rows: Sequence[TrainingProgress], markdown: bool =
                       _hours(row.elapsed_s) if row.elapsed_s else "-", f"{rate:.3f}" if rate else "-",
                       "-" if left.remaining_steps == 0 else
                       _hours(left.remaining_s) + ("" if left.rate_from in (None, row.model_id)
-                                                   else f" (rate of {left.rate_from})"),
+                                                   else f" (rate of {left.rate_from}"
+                                                   + (", same shape)" if left.same_shape else ")")),
                       row.precision or "-", row.cpu or "-"])
     own = runs(rows)
     done = sum(r.elapsed_s for r in own)
