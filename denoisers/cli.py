@@ -121,6 +121,9 @@ def _parser() -> argparse.ArgumentParser:
                               "lost before the deadline loses at most this much")
     session.add_argument("--commit", action="store_true",
                          help="commit the store after every keep (git commit -- store; nothing else is committed)")
+    session.add_argument("--restart-other-arithmetic", action="store_true",
+                         help="train afresh the models whose stored checkpoint has another step arithmetic than this "
+                              "machine resolves (bf16 / fp32), and let their checkpoints replace it (default: skip them)")
 
     tune = sub.add_parser("tune", help="grid-search a baseline's parameters on the training scenes (tuning.methods)")
     tune.add_argument("--config", type=Path, required=True, help="resolved config YAML")
@@ -268,10 +271,16 @@ def _run(args: argparse.Namespace) -> int:
         from denoisers.store.session import train_session
 
         result = train_session(args.models, args.minutes, shlex.split(args.snakemake), log=args.log,
-                               keep_every_minutes=args.keep_every, commit=args.commit)
+                               keep_every_minutes=args.keep_every, commit=args.commit,
+                               restart_other_arithmetic=args.restart_other_arithmetic)
+        if result.returncode is None and not result.stopped_at_deadline:
+            print(f"nothing to train on this machine: skipped {', '.join(result.skipped)} (their stored checkpoints "
+                  "have another step arithmetic)", file=sys.stderr)
+            return 1
         state = "stopped at the deadline" if result.stopped_at_deadline else f"finished (exit {result.returncode})"
         print(f"run {state}; published: {', '.join(result.published) or 'none'}; checkpointed: "
-              f"{', '.join(result.checkpointed) or 'none'}; untouched: {', '.join(result.untouched) or 'none'}")
+              f"{', '.join(result.checkpointed) or 'none'}; untouched: {', '.join(result.untouched) or 'none'}"
+              + (f"; skipped (another arithmetic): {', '.join(result.skipped)}" if result.skipped else ""))
         if not args.commit:
             print("commit store/ now: only what is committed survives the machine")
         return 0 if result.stopped_at_deadline or result.returncode == 0 else 1

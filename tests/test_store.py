@@ -331,7 +331,15 @@ def test_a_checkpoint_of_another_step_arithmetic_is_not_continued(tmp_path: Path
     meta = json.loads((entry.path / "meta.json").read_text())
     meta["compute"] = {"precision": "bf16-elsewhere", "channels_last": True}
     (entry.path / "meta.json").write_text(json.dumps(meta))
-    assert train(cfg, tmp_path / "fresh")["resumed_from"] is None
+    assert train(cfg, tmp_path / "fresh", stop_at_step=1)["resumed_from"] is None
+    # The fresh run's checkpoint (step 1) cannot replace the other arithmetic's (step 2) unless told to.
+    fresh = work_dir_for(tmp_path / "fresh" / "models", cfg, model_spec(cfg, "rae"))
+    with pytest.raises(StoreError, match="bf16-elsewhere channels-last.*neither can continue the other"):
+        ModelStore.of(cfg).publish_checkpoint(cfg, fresh)
+    assert json.loads((entry.path / "meta.json").read_text())["step"] == 2
+    replaced = ModelStore.of(cfg).publish_checkpoint(cfg, fresh, replace_other_arithmetic=True)
+    stored = json.loads((replaced.path / "meta.json").read_text())
+    assert replaced.path == entry.path and stored["step"] == 1 and stored["compute"] != meta["compute"]
 
 
 # --------------------------------------------------------------------------------------------- verify

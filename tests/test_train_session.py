@@ -216,24 +216,86 @@ def test_interval_keeps_run_while_the_run_goes_on_and_each_is_committed(tmp_path
     cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "smoke.yaml")
     out = tmp_path / "results"
     config_text = yaml.safe_dump(cfg, sort_keys=False)
-    script = (f"import pathlib, time; p = pathlib.Path({str(out / '.config' / 'abc.yaml')!r}); "
+    run_start = tmp_path / "run_start"
+    script = (f"import pathlib, time; pathlib.Path({str(run_start)!r}).write_text(repr(time.time())); "
+              f"p = pathlib.Path({str(out / '.config' / 'abc.yaml')!r}); "
               f"p.parent.mkdir(parents=True); p.write_text({config_text!r}); time.sleep(4)")
     keeps: list[tuple[float, list[str]]] = []
     commits: list[str] = []
 
-    def fake_keep(output_dir, model_ids, since, store_command):
-        keeps.append((time.monotonic(), list(model_ids)))
+    def fake_keep(output_dir, model_ids, since, store_command, **_):
+        keeps.append((time.time(), list(model_ids)))
         return (["rae"] if "rae" in model_ids else []), ["afn"], []
 
     monkeypatch.setattr(session, "POLL_SECONDS", 0.1)
     monkeypatch.setattr(session, "keep", fake_keep)
     monkeypatch.setattr(session, "commit_store", lambda root, message, cwd=None: commits.append(message) or True)
-    started = time.monotonic()
     result = session.train_session(["rae", "afn"], 1.0, output_dir=out, keep_every_minutes=1.0 / 60,
                                    commit=True, run_command=[sys.executable, "-c", script])
     assert result.returncode == 0 and not result.stopped_at_deadline
+    started = float(run_start.read_text())
     assert len(keeps) >= 3 and keeps[0][0] - started < 3.5           # at least one keep while the run went on
     assert keeps[0][1] == ["rae", "afn"] and all(ids == ["afn"] for _, ids in keeps[1:])
     assert result.published == ["rae"] and result.checkpointed == ["afn"]
     assert len(commits) == len(keeps) and "published rae" in commits[0] and "(end keep)" in commits[-1]
     assert all("interval keep" in message for message in commits[:-1])
+
+
+def _checkpoint_of_another_arithmetic(tmp_path: Path) -> tuple[dict, Path]:
+    """The tiny store config (tests/test_store.py) with 2 seeds and twins, written to a YAML file, and a stored
+    part-way checkpoint of its ``rae_seed1`` run whose recorded arithmetic this machine does not resolve."""
+    import json
+
+    import yaml
+
+    from denoisers.store import ModelStore, checkpoint_key
+    from denoisers.store.keys import short
+    from tests.test_store import store_config
+
+    cfg = store_config(tmp_path, steps=4)
+    cfg["training"]["models"] = cfg["training"]["models"][:1]
+    cfg["training"].update(seeds=2, half_budget=True)
+    folder = ModelStore.of(cfg).root / "checkpoints" / "rae_seed1" / short(checkpoint_key(cfg, "rae_seed1"))
+    folder.mkdir(parents=True)
+    (folder / "meta.json").write_text(json.dumps({"step": 3, "compute": {"precision": "bf16-elsewhere",
+                                                                         "channels_last": True}}))
+    config_file = tmp_path / "config.yaml"
+    config_file.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return cfg, config_file
+
+
+def test_a_run_part_way_in_another_arithmetic_is_skipped_or_restarted_on_purpose(tmp_path: Path,
+                                                                                   monkeypatch) -> None:
+    """A run whose stored checkpoint this machine cannot continue (another precision or layout) would start afresh
+    and have its keeps refused: the session skips it and its twin, saying so, or with
+    ``restart_other_arithmetic`` trains it and lets its checkpoint replace the stored one."""
+    import denoisers.store.session as session
+    from denoisers.store.session import other_arithmetic
+
+    cfg, config_file = _checkpoint_of_another_arithmetic(tmp_path)
+    found = other_arithmetic(cfg, ["rae", "rae_half", "rae_seed1", "rae_seed1_half", "not_a_model"])
+    assert sorted(found) == ["rae_seed1", "rae_seed1_half"]
+    assert "step 3" in found["rae_seed1"] and "bf16-elsewhere channels-last" in found["rae_seed1"]
+
+    keeps: list[dict] = []
+
+    def fake_keep(output_dir, model_ids, since, store_command, **kwargs):
+        keeps.append({"ids": list(model_ids), **kwargs})
+        return [], [], list(model_ids)
+
+    monkeypatch.setattr(session, "keep", fake_keep)
+    out = tmp_path / "results"
+    (out / ".config").mkdir(parents=True)
+    (out / ".config" / "abc.yaml").write_text(config_file.read_text())
+    args = ["--configfile", str(config_file)]
+    refused = session.train_session(["rae_seed1"], 1.0, args, output_dir=out,
+                                    run_command=[sys.executable, "-c", "raise SystemExit(7)"])
+    assert (refused.returncode, refused.skipped, keeps) == (None, ["rae_seed1"], [])     # nothing ran
+    result = session.train_session(["rae", "rae_seed1"], 1.0, args, output_dir=out,
+                                   run_command=[sys.executable, "-c", "pass"])
+    assert result.returncode == 0 and result.skipped == ["rae_seed1"]
+    assert keeps[-1]["ids"] == ["rae", "rae_half"] and keeps[-1]["replace_other_arithmetic"] == []
+    restarted = session.train_session(["rae_seed1"], 1.0, args, output_dir=out, restart_other_arithmetic=True,
+                                      run_command=[sys.executable, "-c", "pass"])
+    assert restarted.skipped == [] and keeps[-1]["ids"] == ["rae_seed1", "rae_seed1_half"]
+    assert keeps[-1]["replace_other_arithmetic"] == ["rae_seed1"]

@@ -35,6 +35,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        help="publish-references: scenes (default: every evaluated scene of the config)")
     store.add_argument("--out", type=Path, default=None, help="verify: the comparison record (JSON)")
     store.add_argument("--markdown", action="store_true", help="progress: a Markdown table")
+    store.add_argument("--replace-other-arithmetic", action="store_true",
+                       help="checkpoint: replace a stored checkpoint of another step arithmetic (precision, layout), "
+                            "which this run cannot continue, even one further along (a run restarted on purpose)")
     store.add_argument("--steps", type=int, default=None,
                        help="verify: retrain only the first steps (default: store.verify.steps, else the whole budget)")
 
@@ -120,7 +123,7 @@ def run(args: argparse.Namespace, cfg: dict) -> int:
                 continue
             if (Path(results) / "models" / model_id / "summary.json").exists() and args.model_id is None:
                 continue  # finished: publish the model instead
-            entry = store.publish_checkpoint(cfg, work_dir)
+            entry = store.publish_checkpoint(cfg, work_dir, replace_other_arithmetic=args.replace_other_arithmetic)
             print(f"checkpoint: {model_id} step {entry.summary()['step']} -> {entry.path}")
         return 0
     if args.action == "verify":

@@ -76,6 +76,14 @@ class Entry:
         return _read_json(self.path / ("summary.json" if (self.path / "summary.json").exists() else "meta.json"))
 
 
+def arithmetic_text(compute: dict[str, Any] | None) -> str:
+    """A training step's arithmetic as stored (``{"precision": "bf16", "channels_last": True}``) in words, e.g.
+    ``bf16 channels-last``."""
+    if not compute:
+        return "an unrecorded arithmetic"
+    return f"{compute.get('precision', '?')} {'channels-last' if compute.get('channels_last') else 'NCHW'}"
+
+
 def _read_json(path: Path) -> dict[str, Any]:
     try:
         return json.loads(path.read_text())
@@ -221,10 +229,12 @@ class ModelStore:
         self._drop_superseded_checkpoint(cfg, model_id, int(summary.get("steps", 0)))
         return entry, "published"
 
-    def publish_checkpoint(self, cfg: dict, work_dir: Path) -> Entry:
+    def publish_checkpoint(self, cfg: dict, work_dir: Path, replace_other_arithmetic: bool = False) -> Entry:
         """Copy the trainer's resumable state in ``work_dir`` (``models/.work/<id>-<digest>``) into the store,
         replacing an earlier checkpoint of the same run (StoreError if it holds fewer steps than the stored one, or if
-        the store holds the finished model of this config: nothing would continue the checkpoint)."""
+        the store holds the finished model of this config: nothing would continue the checkpoint). A stored
+        checkpoint of another step arithmetic (precision, layout), which this run could not continue, is replaced
+        only with ``replace_other_arithmetic`` (a run restarted on purpose); else StoreError says so."""
         from denoisers.device import configured_device, device_info
         from denoisers.provenance import provenance
         from denoisers.training.checkpoints import load_checkpoint
@@ -252,11 +262,17 @@ class ModelStore:
         if best_step > step or (best_recorded is not None and int(best_recorded) != best_step):
             raise StoreError(f"{work_dir}: best.pt (step {best_step}) does not belong to checkpoint.pt (step {step}, "
                              f"best step {best_recorded}): the trainer is writing; pause it (kill -STOP) and retry")
+        fingerprint = json.loads(data["fingerprint_data"])
         if (entry.path / "meta.json").exists():
             stored = _read_json(entry.path / "meta.json")
-            if int(stored["step"]) > step:
+            if stored.get("compute") != fingerprint.get("compute"):
+                if not replace_other_arithmetic:
+                    raise StoreError(f"{entry.path}: holds step {stored['step']} of a run trained with "
+                                     f"{arithmetic_text(stored.get('compute'))}, not {work_dir}'s "
+                                     f"{arithmetic_text(fingerprint.get('compute'))}: neither can continue the other; "
+                                     "replace it only on purpose (store checkpoint --replace-other-arithmetic)")
+            elif int(stored["step"]) > step:
                 raise StoreError(f"{entry.path}: holds step {stored['step']}, later than {work_dir}'s {step}")
-        fingerprint = json.loads(data["fingerprint_data"])
         meta = {"format": STORE_FORMAT, "key": key, "model_id": model_id, "step": step,
                 "max_steps": spec.budget.get("max_steps"), "elapsed_seconds": float(data.get("elapsed_seconds", 0)),
                 "compute": fingerprint.get("compute"), "fingerprint": data["fingerprint"],
@@ -277,8 +293,9 @@ class ModelStore:
             return None
         meta = _read_json(entry.path / "meta.json")
         if meta.get("compute") != compute:
-            log.warning("model %s: the stored checkpoint (%s) was trained with %s, this machine resolves %s: "
-                        "training from scratch", model_id, entry.path, meta.get("compute"), compute)
+            log.warning("model %s: the stored checkpoint (%s, step %s) was trained with %s, this machine resolves %s: "
+                        "training from scratch", model_id, entry.path, meta.get("step"),
+                        arithmetic_text(meta.get("compute")), arithmetic_text(compute))
             return None
         if int(meta["step"]) > int(model_spec(cfg, model_id).budget["max_steps"]):
             return None

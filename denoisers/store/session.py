@@ -15,6 +15,12 @@ them:
 
 Commit ``store/`` afterwards; the next session runs the same command and goes on.
 
+A run continues only on a machine that resolves the same step arithmetic (precision ``auto`` is bf16 where the CPU
+has native bfloat16, else fp32; denoisers.training.precision): elsewhere its stored checkpoint would be ignored and
+the run would start afresh, and its keeps would be refused while the stored checkpoint holds more steps. So a
+session skips the models whose stored checkpoint has another arithmetic than this machine's, and says which;
+``--restart-other-arithmetic`` trains them afresh here instead and lets the keeps replace that checkpoint.
+
 A machine can also go before the deadline (2026-12-06: one was shut down an hour into its session and took the
 session's training with it). ``--keep-every MINUTES`` pauses the run that often (SIGSTOP to its group), keeps what it
 has reached as in step 3 and lets it go on; with ``--commit`` each keep is committed (``git commit -- store``, nothing
@@ -48,6 +54,7 @@ class SessionResult:
     published: list[str] = field(default_factory=list)
     checkpointed: list[str] = field(default_factory=list)
     untouched: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
 
 
 def group_pids(pgid: int) -> list[int]:
@@ -157,12 +164,14 @@ def stored_finished(config_file: Path) -> Callable[[str], bool]:
 
 
 def keep(output_dir: Path, model_ids: Sequence[str], since: float, store_command: Callable[[list[str]], int],
-         is_stored: Callable[[str], bool] | None = None) -> tuple[list[str], list[str], list[str]]:
+         is_stored: Callable[[str], bool] | None = None,
+         replace_other_arithmetic: Sequence[str] = ()) -> tuple[list[str], list[str], list[str]]:
     """Publish the models of ``model_ids`` that finished since ``since`` and checkpoint the runs that moved since then
     but did not finish; ``store_command(args)`` runs ``python -m denoisers store <args>``. Returns (published,
     checkpointed, untouched) ids. A half-budget twin's run is its full model's (``{id}_half`` -> ``{id}``); a run
     whose full model the store holds (``is_stored``, default :func:`stored_finished`) is not checkpointed: the
-    store refuses it, since nothing would continue it (the twin then counts as untouched)."""
+    store refuses it, since nothing would continue it (the twin then counts as untouched). The checkpoints of the
+    runs in ``replace_other_arithmetic`` replace a stored one of another step arithmetic."""
     from denoisers.training.models import HALF_SUFFIX
 
     config = resolved_config(output_dir, since)
@@ -180,7 +189,8 @@ def keep(output_dir: Path, model_ids: Sequence[str], since: float, store_command
         moved = [p for p in models.glob(f".work/{run_id}-*/checkpoint.pt") if p.stat().st_mtime >= since]
         finished = (models / run_id / "summary.json").is_file() or (bool(moved) and is_stored(run_id))
         if moved and not finished and run_id not in checkpointed:
-            if store_command(["checkpoint", "--config", str(config), "--model-id", run_id]) == 0:
+            replace = ["--replace-other-arithmetic"] if run_id in replace_other_arithmetic else []
+            if store_command(["checkpoint", "--config", str(config), "--model-id", run_id, *replace]) == 0:
                 checkpointed.append(run_id)
                 continue
         if model_id not in published and run_id not in checkpointed:
@@ -199,14 +209,25 @@ def store_command(args: list[str]) -> int:
 
 
 def configured_trainings(config_file: Path) -> list[str]:
-    """Ids of every training of a resolved config (``trained_model_specs``: seed replicas and half-budget twins
-    included), without the variants that publish another model's weights (``same_training_as``)."""
+    """Ids of every training of a resolved config file (:func:`configured_trainings_of`)."""
     import yaml
 
+    return configured_trainings_of(yaml.safe_load(Path(config_file).read_text()))
+
+
+def configured_trainings_of(cfg: dict) -> list[str]:
+    """Ids of every training of ``cfg`` (``trained_model_specs``: seed replicas and half-budget twins included),
+    without the variants that publish another model's weights (``same_training_as``)."""
     from denoisers.training.models import same_training_as, trained_model_specs
 
-    cfg = yaml.safe_load(Path(config_file).read_text())
     return [spec.id for spec in trained_model_specs(cfg) if same_training_as(cfg, spec.id) is None]
+
+
+def half_of_run(cfg: dict, model_id: str) -> str:
+    """The run ``model_id`` trains in: a half-budget twin's is its full model's."""
+    from denoisers.training.models import half_of
+
+    return half_of(cfg, model_id) or model_id
 
 
 def kept_ids(model_ids: Sequence[str], configured: Sequence[str]) -> list[str]:
@@ -237,6 +258,33 @@ def commit_store(store_root: Path, message: str, cwd: Path = REPO_ROOT) -> bool:
     return result.returncode == 0
 
 
+def other_arithmetic(cfg: dict, model_ids: Sequence[str]) -> dict[str, str]:
+    """The ids of ``model_ids`` whose run (a twin's is its full model's) is part-way in the store with another step
+    arithmetic than this machine resolves for it, each with a line that says which. Such a run cannot continue here
+    (denoisers.training.job keys a run's work by the arithmetic it resolves to): it would start afresh."""
+    from denoisers.store.entries import ModelStore, arithmetic_text
+    from denoisers.training.models import model_spec
+    from denoisers.training.precision import resolve_compute
+
+    store = ModelStore.of(cfg)
+    trained = set(configured_trainings_of(cfg))
+    found = {}
+    for model_id in model_ids:
+        run_id = half_of_run(cfg, model_id)
+        if run_id not in trained:
+            continue                       # not a training of this config: the run reports it
+        entry = store.checkpoint_entry(cfg, run_id)
+        if entry is None or store.model_entry(cfg, run_id) is not None:
+            continue
+        meta = entry.summary()
+        here = resolve_compute(model_spec(cfg, run_id).compute).fingerprint()
+        if meta.get("compute") != here:
+            found[model_id] = (f"{model_id}: the stored checkpoint of {run_id} (step {meta.get('step')}) was trained "
+                               f"with {arithmetic_text(meta.get('compute'))}, this machine resolves "
+                               f"{arithmetic_text(here)}")
+    return found
+
+
 def store_root_of(config_file: Path) -> Path:
     """The store directory a resolved config names (absolute)."""
     import yaml
@@ -250,16 +298,32 @@ def store_root_of(config_file: Path) -> Path:
 def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequence[str] = (),
                   output_dir: Path | None = None, log: Path | None = None,
                   run_command: Sequence[str] | None = None, keep_every_minutes: float | None = None,
-                  commit: bool = False) -> SessionResult:
+                  commit: bool = False, restart_other_arithmetic: bool = False) -> SessionResult:
     """One session (module docstring); no ``model_ids``: every training of the config (:func:`configured_trainings`
     of the resolved config the run wrote). Every ``keep_every_minutes`` the run is paused and what it reached is
-    kept; ``commit``: each keep, and the last, is committed (:func:`commit_store`). ``run_command`` replaces
-    ``scripts/run-main.sh <targets> <args>`` (tests)."""
+    kept; ``commit``: each keep, and the last, is committed (:func:`commit_store`). Models whose stored checkpoint
+    has another step arithmetic than this machine's (:func:`other_arithmetic`, read with the ``--configfile`` of
+    ``snakemake_args``) are skipped, or with ``restart_other_arithmetic`` trained afresh and their checkpoints
+    replaced. ``run_command`` replaces ``scripts/run-main.sh <targets> <args>`` (tests)."""
     from scenegen.config import load_config, output_root
 
+    config_files = [snakemake_args[i + 1] for i, a in enumerate(snakemake_args[:-1]) if a == "--configfile"]
+    cfg = load_config(config_files[-1] if config_files else REPO_ROOT / "config" / "config.yaml")
     if output_dir is None:
-        config_files = [snakemake_args[i + 1] for i, a in enumerate(snakemake_args[:-1]) if a == "--configfile"]
-        output_dir = output_root(load_config(config_files[-1] if config_files else REPO_ROOT / "config" / "config.yaml"))
+        output_dir = output_root(cfg)
+    requested = list(model_ids) or configured_trainings_of(cfg)
+    other = other_arithmetic(cfg, requested)
+    for line in other.values():
+        print(f"train-session: {line}: " + ("training it afresh here (--restart-other-arithmetic)"
+                                            if restart_other_arithmetic else
+                                            "skipped (continue it on such a machine, or --restart-other-arithmetic)"),
+              file=sys.stderr)
+    skipped = [] if restart_other_arithmetic else [m for m in requested if m in other]
+    if skipped:
+        model_ids = [m for m in requested if m not in other]
+        if not model_ids:
+            return SessionResult(None, False, skipped=skipped)
+    replace = sorted({half_of_run(cfg, m) for m in other}) if restart_other_arithmetic else []
     output_dir = Path(output_dir)
     if not output_dir.is_absolute():
         output_dir = REPO_ROOT / output_dir
@@ -279,7 +343,8 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
                 raise
             return [], [], []      # the run has not started its workflow yet
         ids = [m for m in kept_ids(model_ids, configured_trainings(config)) if m not in done]
-        published, checkpointed, untouched = keep(output_dir, ids, since, store_command)
+        published, checkpointed, untouched = keep(output_dir, ids, since, store_command,
+                                                  replace_other_arithmetic=replace)
         done.extend(published)
         if commit and (published or checkpointed):
             what = "; ".join(part for part in (f"published {', '.join(published)}" if published else "",
@@ -292,4 +357,4 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
     returncode, stopped = run_until(command, minutes * 60.0, log=log, every_s=every_s,
                                     on_interval=lambda: keep_now(final=False))
     _, checkpointed, untouched = keep_now(final=True)
-    return SessionResult(returncode, stopped, list(done), checkpointed, untouched)
+    return SessionResult(returncode, stopped, list(done), checkpointed, untouched, skipped)
