@@ -299,3 +299,17 @@ def test_a_run_part_way_in_another_arithmetic_is_skipped_or_restarted_on_purpose
                                       run_command=[sys.executable, "-c", "pass"])
     assert restarted.skipped == [] and keeps[-1]["ids"] == ["rae_seed1", "rae_seed1_half"]
     assert keeps[-1]["replace_other_arithmetic"] == ["rae_seed1"]
+
+
+def test_the_command_says_when_every_model_is_skipped(tmp_path: Path) -> None:
+    """``python -m denoisers train-session``: with only models of another arithmetic it runs nothing and exits 1."""
+    import subprocess
+
+    _, config_file = _checkpoint_of_another_arithmetic(tmp_path)
+    repo = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-m", "denoisers", "train-session", "--minutes", "1", "--snakemake",
+                           f"--configfile {config_file}", "rae_seed1_half"], cwd=repo, capture_output=True, text=True)
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert "rae_seed1_half: the stored checkpoint of rae_seed1 (step 3)" in done.stderr
+    assert "nothing to train on this machine: skipped rae_seed1_half" in done.stderr
+    assert not (tmp_path / "results").exists()
