@@ -75,6 +75,23 @@ def test_a_model_with_its_own_seeds_trains_that_often_and_keeps_its_key() -> Non
     assert model_key(cfg, "dasr") == before
 
 
+def test_an_ablation_variant_with_its_own_seeds_trains_that_often_and_keeps_its_key() -> None:
+    """A variant's ``seeds`` replaces its ablation's (Isik's KPCN at ours-single's parameter count, which C3.1
+    compares at, in a sweep trained once); the other variants keep the ablation's, and no key moves."""
+    cfg = default_config(3)
+    before = {spec.id: model_key(cfg, spec.id) for spec in model_specs(cfg)}
+    sweep = next(a for a in cfg["training"]["ablations"] if a["id"] == "rae_capacity")
+    sweep["variants"] = [{**sweep["variants"][0], "seeds": 2}, {"id": "levels4", "net": {"levels": 4}}]
+    variant = f"rae_capacity_{sweep['variants'][0]['id']}"
+    cfg = validate_config(cfg)
+    assert training_problems(cfg, build_tasks=False) == []
+    ids = [spec.id for spec in trained_model_specs(cfg)]
+    assert f"{variant}_seed1" in ids and f"{variant}_seed2" not in ids
+    assert not any(i.startswith("rae_capacity_levels4_seed") for i in ids) and "rae_capacity_levels4" in ids
+    assert all(model_key(cfg, m) == key for m, key in before.items() if m in ids)
+    assert model_spec(cfg, f"{variant}_seed1").seed == model_spec(cfg, "rae_seed1").seed
+
+
 def test_seed_count_does_not_re_key_the_first_seed() -> None:
     one, three = default_config(1), default_config(3)
     for spec in model_specs(one):

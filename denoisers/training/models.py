@@ -139,18 +139,17 @@ def seed_count(cfg: dict) -> int:
 
 
 def model_seed_count(cfg: dict, model_id: str) -> int:
-    """How many times model ``model_id`` trains: its own ``seeds`` (a ``training.models`` entry) or its ablation's
-    where that is set (e.g. 1 for a capacity sweep, which feeds measurements, not claims), else
+    """How many times model ``model_id`` trains: its own ``seeds`` (a ``training.models`` entry or an ablation
+    variant), else its ablation's where that is set (e.g. 1 for a capacity sweep, which feeds measurements), else
     :func:`seed_count`."""
     training = cfg.get("training") or {}
     for entry in training.get("models", []):
         if entry["id"] == model_id and entry.get("seeds"):
             return int(entry["seeds"])
-    own = {entry["id"]: int(entry["seeds"]) for entry in training.get("ablations", []) if entry.get("seeds")}
-    if own:
-        for spec in model_specs(cfg):
-            if spec.id == model_id and spec.ablation in own:
-                return own[spec.ablation]
+    for ablation in training.get("ablations", []):
+        for variant in ablation.get("variants", []):
+            if f"{ablation['id']}_{variant['id']}" == model_id:
+                return int(variant.get("seeds") or ablation.get("seeds") or seed_count(cfg))
     return seed_count(cfg)
 
 
@@ -395,11 +394,12 @@ def training_problems(cfg: dict, build_tasks: bool = True) -> list[str]:
                             f"{ablation['model']!r}, which is not in training.models; allowed: {base_ids}")
         if ablation_kind(ablation) == CAPACITY_KIND:
             for variant in ablation["variants"]:
-                other = sorted(key for key in variant if key not in ("id", "net") and variant[key])
+                other = sorted(key for key in variant if key not in ("id", "net", "seeds") and variant[key])
                 if other:
                     problems.append(f"config key 'training.ablations' entry {ablation['id']!r} (kind capacity) variant "
-                                    f"{variant['id']!r} overrides {', '.join(other)}; allowed: only net (a capacity "
-                                    "ablation trains every size with the base model's data, seed and budget)")
+                                    f"{variant['id']!r} overrides {', '.join(other)}; allowed: only net, and seeds "
+                                    "(a capacity ablation trains every size with the base model's data, seed and "
+                                    "budget)")
         variant_ids = [v["id"] for v in ablation["variants"]]
         for dup in sorted({v for v in variant_ids if variant_ids.count(v) > 1}):
             problems.append(f"config key 'training.ablations' entry {ablation['id']!r} has variant {dup!r} twice")
