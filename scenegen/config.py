@@ -285,6 +285,16 @@ def validate_config(cfg: dict[str, Any]) -> dict[str, Any]:
 
 def load_config(path: str | Path) -> dict[str, Any]:
     """Load a YAML config file, validate it against the schema and return it with defaults filled."""
+    cfg = read_config_file(path)
+    try:
+        return validate_config(cfg)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """A YAML config file's mapping as written (not validated); a ConfigError naming the file if it cannot be read,
+    is not YAML or is not a mapping."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -296,10 +306,7 @@ def load_config(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config file {path} is not valid YAML: {err}") from err
     if not isinstance(cfg, dict):
         raise ConfigError(f"config file {path} must contain a mapping of keys, got {type(cfg).__name__}")
-    try:
-        return validate_config(cfg)
-    except ConfigError as err:
-        raise ConfigError(f"{path}: {err}") from None
+    return cfg
 
 
 def _lookup(cfg: dict[str, Any], dotted_key: str) -> Any:

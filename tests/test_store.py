@@ -318,6 +318,7 @@ def test_a_published_checkpoint_continues_in_a_fresh_process_and_folder(tmp_path
     # would continue it.
     ModelStore.of(cfg).publish_model(cfg, resumed / "rae")
     assert ModelStore.of(cfg).checkpoint_entry(cfg, "rae") is None
+    assert not entry.path.parent.exists()       # no empty folder left under the model's id
     with pytest.raises(StoreError, match="holds it finished"):
         ModelStore.of(cfg).publish_checkpoint(cfg, work_dir_for(resumed, cfg, spec))
     assert ModelStore.of(cfg).checkpoint_entry(cfg, "rae") is None

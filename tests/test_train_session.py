@@ -7,6 +7,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from denoisers.store.session import keep, resolved_config, run_until, store_command
 
 
@@ -313,3 +315,25 @@ def test_the_command_says_when_every_model_is_skipped(tmp_path: Path) -> None:
     assert "rae_seed1_half: the stored checkpoint of rae_seed1 (step 3)" in done.stderr
     assert "nothing to train on this machine: skipped rae_seed1_half" in done.stderr
     assert not (tmp_path / "results").exists()
+
+
+def test_the_arithmetic_check_reads_the_config_with_its_command_line_overrides(tmp_path: Path) -> None:
+    """``--config`` overrides in the session's Snakemake arguments change what the run trains, so the check of stored
+    checkpoints reads them too: with one seed in the file ``rae_seed1`` is no training of the config; with
+    ``--config 'training={seeds: 2}'`` it is, and its checkpoint of another arithmetic is found."""
+    import yaml
+
+    from denoisers.store.session import other_arithmetic, session_config
+    from scenegen.config import ConfigError
+
+    cfg, config_file = _checkpoint_of_another_arithmetic(tmp_path)
+    written = yaml.safe_load(config_file.read_text())
+    written["training"]["seeds"] = 1
+    config_file.write_text(yaml.safe_dump(written, sort_keys=False))
+    plain = session_config(["--configfile", str(config_file), "--cores", "2"])
+    assert plain["training"]["seeds"] == 1 and other_arithmetic(plain, ["rae_seed1"]) == {}
+    overridden = session_config(["--configfile", str(config_file), "--config", "training={seeds: 2}", "--cores", "2"])
+    assert overridden["training"]["seeds"] == 2                  # an int, as the workflow parses it
+    assert list(other_arithmetic(overridden, ["rae_seed1"])) == ["rae_seed1"]
+    with pytest.raises(ConfigError, match=r"(?s)with --config training=\{seeds: many\}.*training\.seeds"):
+        session_config(["--configfile", str(config_file), "--config", "training={seeds: many}"])

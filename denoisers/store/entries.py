@@ -310,6 +310,8 @@ class ModelStore:
         entry = self.checkpoint_entry(cfg, model_id)
         if entry is not None and int(_read_json(entry.path / "meta.json")["step"]) <= steps:
             shutil.rmtree(entry.path)
+            if not any(entry.path.parent.iterdir()):
+                entry.path.parent.rmdir()       # the model's folder: nothing else is checkpointed under its id
             log.info("model %s: removed the stored checkpoint %s (the finished model supersedes it)", model_id,
                      entry.path)
 

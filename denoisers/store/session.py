@@ -28,6 +28,7 @@ else), so a lost machine loses at most that interval.
 """
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -295,6 +296,37 @@ def store_root_of(config_file: Path) -> Path:
     return root if root.is_absolute() else REPO_ROOT / root
 
 
+def session_config(snakemake_args: Sequence[str]) -> dict:
+    """The validated config a run with ``snakemake_args`` reads: the last ``--configfile`` (default
+    config/config.yaml) with the ``--config KEY=VALUE ...`` overrides merged as Snakemake merges them (its own
+    parser), their string leaves parsed where the schema wants another type (scenegen.overrides), as the workflow
+    does before it validates."""
+    from snakemake.cli import parse_config
+    from snakemake.utils import update_config
+
+    from scenegen.config import ConfigError, load_schema, read_config_file, validate_config
+    from scenegen.overrides import coerce_override_strings
+
+    args = list(snakemake_args)
+    config_files = [args[i + 1] for i, a in enumerate(args[:-1]) if a == "--configfile"]
+    path = Path(config_files[-1] if config_files else REPO_ROOT / "config" / "config.yaml")
+    overrides: list[str] = []
+    for i, arg in enumerate(args):
+        if arg in ("--config", "-C"):
+            overrides += list(itertools.takewhile(lambda a: not a.startswith("-"), args[i + 1:]))
+    cfg = read_config_file(path)
+    if overrides:
+        try:
+            update_config(cfg, parse_config(overrides))
+        except ValueError as err:
+            raise ConfigError(f"--config {' '.join(overrides)}: {err}") from None
+        coerce_override_strings(cfg, load_schema())
+    try:
+        return validate_config(cfg)
+    except ConfigError as err:
+        raise ConfigError(f"{path}{' with --config ' + ' '.join(overrides) if overrides else ''}: {err}") from None
+
+
 def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequence[str] = (),
                   output_dir: Path | None = None, log: Path | None = None,
                   run_command: Sequence[str] | None = None, keep_every_minutes: float | None = None,
@@ -302,13 +334,11 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
     """One session (module docstring); no ``model_ids``: every training of the config (:func:`configured_trainings`
     of the resolved config the run wrote). Every ``keep_every_minutes`` the run is paused and what it reached is
     kept; ``commit``: each keep, and the last, is committed (:func:`commit_store`). Models whose stored checkpoint
-    has another step arithmetic than this machine's (:func:`other_arithmetic`, read with the ``--configfile`` of
-    ``snakemake_args``) are skipped, or with ``restart_other_arithmetic`` trained afresh and their checkpoints
+    has another step arithmetic than this machine's (:func:`other_arithmetic`, on :func:`session_config`) are skipped, or with ``restart_other_arithmetic`` trained afresh and their checkpoints
     replaced. ``run_command`` replaces ``scripts/run-main.sh <targets> <args>`` (tests)."""
-    from scenegen.config import load_config, output_root
+    from scenegen.config import output_root
 
-    config_files = [snakemake_args[i + 1] for i, a in enumerate(snakemake_args[:-1]) if a == "--configfile"]
-    cfg = load_config(config_files[-1] if config_files else REPO_ROOT / "config" / "config.yaml")
+    cfg = session_config(snakemake_args)
     if output_dir is None:
         output_dir = output_root(cfg)
     requested = list(model_ids) or configured_trainings_of(cfg)

@@ -117,7 +117,7 @@ def _build_model_specs(cfg: dict) -> list[ModelSpec]:
             continue  # reported by training_problems
         budget = _schema_defaults("training_budget", ablation["budget"]) if ablation.get("budget") else base.budget
         for variant in ablation["variants"]:
-            model_id = f"{ablation['id']}_{variant['id']}"
+            model_id = variant_model_id(ablation, variant)
             specs.append(ModelSpec(
                 id=model_id, method=base.method, seed=base.seed,
                 net={**base.net, **copy.deepcopy(variant.get("net") or {})},
@@ -127,6 +127,11 @@ def _build_model_specs(cfg: dict) -> list[ModelSpec]:
                 ablation=ablation["id"], variant=variant["id"], compute=copy.deepcopy(base.compute),
                 threads=base.threads))
     return specs
+
+
+def variant_model_id(ablation: Mapping[str, Any], variant: Mapping[str, Any]) -> str:
+    """The model id of one variant of a ``training.ablations`` entry: ``{ablation id}_{variant id}``."""
+    return f"{ablation['id']}_{variant['id']}"
 
 
 #: Id suffix of a seed replica: model ``{id}`` trains again as ``{id}_seed{k}``, k = 1 .. training.seeds - 1.
@@ -148,7 +153,7 @@ def model_seed_count(cfg: dict, model_id: str) -> int:
             return int(entry["seeds"])
     for ablation in training.get("ablations", []):
         for variant in ablation.get("variants", []):
-            if f"{ablation['id']}_{variant['id']}" == model_id:
+            if variant_model_id(ablation, variant) == model_id:
                 return int(variant.get("seeds") or ablation.get("seeds") or seed_count(cfg))
     return seed_count(cfg)
 
