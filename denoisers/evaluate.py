@@ -106,15 +106,19 @@ def _row_spp(cfg: dict, wanted: Sequence[int] | None) -> tuple[int, ...]:
 
 def ablation_method_specs(cfg: dict) -> list[MethodSpec]:
     """Rows evaluating every trained ablation variant (denoisers.training.models.model_specs with
-    ``ablation`` set): id and ``params.model`` = the model id, at its ablation's ``spp`` or else
-    ``evaluation.ablation_spp`` (default [1]; [] = none), not in the robustness scenario."""
+    ``ablation`` set): id and ``params.model`` = the model id, at the variant's own ``spp``, else its ablation's,
+    else ``evaluation.ablation_spp`` (default [1]; [] = none), not in the robustness scenario."""
     from denoisers.training.models import model_specs
 
     default = cfg["evaluation"].get("ablation_spp", [1])
-    own = {entry["id"]: entry["spp"] for entry in (cfg.get("training") or {}).get("ablations", []) if "spp" in entry}
+    ablations = (cfg.get("training") or {}).get("ablations", [])
+    own = {entry["id"]: entry["spp"] for entry in ablations if "spp" in entry}
+    own_variant = {(entry["id"], variant["id"]): variant["spp"] for entry in ablations
+                   for variant in entry["variants"] if "spp" in variant}
     specs = []
     for model in model_specs(cfg):
-        spp = _row_spp(cfg, own.get(model.ablation, default)) if model.ablation else []
+        spp = (_row_spp(cfg, own_variant.get((model.ablation, model.variant), own.get(model.ablation, default)))
+               if model.ablation else [])
         if spp:
             specs.append(MethodSpec(model.id, model.method, {"model": model.id}, spp, robustness=False,
                                     role=ABLATION_ROLE))
@@ -234,6 +238,12 @@ def evaluation_problems(cfg: dict, check_methods: bool = True) -> list[str]:
             problems.append(f"config key 'training.ablations' entry {entry['id']!r} has spp {entry['spp']!r} with "
                             f"values {own_outside} that are not in 'evaluation.spp' = {evaluated!r}; allowed: values "
                             "of evaluation.spp, or [] to not evaluate its variants")
+        for variant in entry["variants"]:
+            own_outside = [spp for spp in variant.get("spp", []) if spp not in evaluated]
+            if own_outside:
+                problems.append(f"config key 'training.ablations' entry {entry['id']!r} variant {variant['id']!r} has "
+                                f"spp {variant['spp']!r} with values {own_outside} that are not in 'evaluation.spp' = "
+                                f"{evaluated!r}; allowed: values of evaluation.spp, or [] to not evaluate it")
     if variants and outside:
         problems.append(f"config key 'evaluation.ablation_spp' = {ablation_spp!r} has values {outside} that are not in "
                         f"'evaluation.spp' = {evaluated!r}; allowed: values of evaluation.spp, or [] to not "

@@ -287,6 +287,38 @@ def test_an_ablation_may_set_its_own_evaluated_spp() -> None:
     assert not [s for s in method_specs(validate_config(cfg)) if s.id.startswith("rae_capacity")]
 
 
+def test_a_variant_may_set_its_own_evaluated_spp() -> None:
+    """A size a claim compares at every spp (Isik's KPCN at ours-single's parameter count, C3.1) sets ``spp`` on
+    its variant: its rows (seed replicas included) and timing use it, the other sizes keep the ablation's."""
+    cfg = smoke_config(ablation_spp=[1])
+    ablation = ablation_of(cfg)
+    ablation["seeds"] = 2
+    ablation["variants"] = [{**ablation["variants"][0], "spp": [1, 2]}, *ablation["variants"][1:]]
+    cfg = validate_config(cfg)
+    assert training_problems(cfg, build_tasks=False) == [] and evaluation_problems(cfg) == []
+    rows = {spec.id: spec.spp for spec in method_specs(cfg) if spec.id.startswith("rae_capacity")}
+    assert rows["rae_capacity_width0125"] == rows["rae_capacity_width0125_seed1"] == (1, 2)
+    assert rows["rae_capacity_levels4"] == rows["rae_capacity_levels4_seed1"] == (1,)
+    assert [run for run in timed_runs(cfg) if run[0].startswith("rae_capacity")] == [
+        ("rae_capacity_width0125", 1), ("rae_capacity_width0125", 2), ("rae_capacity_levels4", 1)]
+    ablation_of(cfg)["variants"][0]["spp"] = [3]
+    problems = "\n".join(evaluation_problems(validate_config(cfg)))
+    assert "'training.ablations' entry 'rae_capacity' variant 'width0125' has spp [3]" in problems
+
+
+def test_the_sizes_are_compared_at_an_spp_every_size_ran_at() -> None:
+    """With one size evaluated at more spp than the others (its own ``spp``), the table compares every size at an
+    spp they share: the training spp only where all of them ran there."""
+    cfg = capacity_config()
+    ablation_of(cfg)["variants"][0]["spp"] = [1, 2]
+    for model in cfg["training"]["models"]:
+        if model["id"] == "rae":
+            model.setdefault("data", {})["spp"] = 2          # trained at 2 spp, which only width0125 is scored at
+    cfg = validate_config(cfg)
+    table, _ = capacity_table(make_results(cfg), ablation_of(cfg))
+    assert set(table["spp"]) == {1} and table["psnr_mean"].notna().all()
+
+
 def test_an_ablation_spp_outside_the_evaluated_spp_is_refused() -> None:
     cfg = smoke_config(ablation_spp=[1])
     ablation_of(cfg)["spp"] = [3]

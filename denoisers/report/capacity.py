@@ -5,8 +5,8 @@ A capacity ablation trains the base model at several sizes (variants override on
 ``width`` and ``levels``) with the same data, seed and budget. The base model itself joins the sweep when the
 ablation's step budget equals its own (then its configured size is one of the points). Per size the report
 shows the parameters (the trained model's summary.json), the test PSNR (mean over the evaluated scenes with a
-95 % Student-t interval, at the spp the variants are evaluated at: the ablation's ``spp``, else
-``evaluation.ablation_spp``), the paired
+95 % Student-t interval, at an spp every variant is evaluated at: a variant's own ``spp``, else the
+ablation's, else ``evaluation.ablation_spp``; the training spp where they share it), the paired
 per-scene difference to the best size with its interval, ms/frame from the timing job (which times the
 capacity variants too) and whether the run converged; a chart plots PSNR against parameters and against
 ms/frame.
@@ -118,14 +118,16 @@ def net_values(spec: ModelSpec, model: TrainedModel | None, keys: Sequence[str])
 
 
 def _spp(res: Results, members: Sequence[Member]) -> int | None:
-    """The spp the sizes are compared at: the variants' training spp if their rows are evaluated there, else
-    the first of their evaluated spp (None: the variants are not evaluated)."""
+    """The spp the sizes are compared at: the variants' training spp if every variant's row is evaluated there,
+    else the first spp they share (a variant may have its own spp), else the first variant's first (None: the
+    variants are not evaluated)."""
     evaluated = [spec.spp for spec in res.specs if spec.role == "ablation"
                  and any(member.row == spec.id for member in members)]
     if not evaluated:
         return None
+    shared = [spp for spp in evaluated[0] if all(spp in other for other in evaluated[1:])] or list(evaluated[0])
     trained = int(members[0].spec.data.get("spp", 1))
-    return trained if trained in evaluated[0] else evaluated[0][0]
+    return trained if trained in shared else shared[0]
 
 
 def select_smallest(psnr: Mapping[str, float], parameters: Mapping[str, float],

@@ -399,12 +399,12 @@ def training_problems(cfg: dict, build_tasks: bool = True) -> list[str]:
                             f"{ablation['model']!r}, which is not in training.models; allowed: {base_ids}")
         if ablation_kind(ablation) == CAPACITY_KIND:
             for variant in ablation["variants"]:
-                other = sorted(key for key in variant if key not in ("id", "net", "seeds") and variant[key])
+                other = sorted(key for key in variant if key not in ("id", "net", "seeds", "spp") and variant[key])
                 if other:
                     problems.append(f"config key 'training.ablations' entry {ablation['id']!r} (kind capacity) variant "
                                     f"{variant['id']!r} overrides {', '.join(other)}; allowed: only net, and seeds "
-                                    "(a capacity ablation trains every size with the base model's data, seed and "
-                                    "budget)")
+                                    "and spp (a capacity ablation trains every size with the base model's data, seed "
+                                    "and budget)")
         variant_ids = [v["id"] for v in ablation["variants"]]
         for dup in sorted({v for v in variant_ids if variant_ids.count(v) > 1}):
             problems.append(f"config key 'training.ablations' entry {ablation['id']!r} has variant {dup!r} twice")
