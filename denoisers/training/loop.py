@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import copy
 import json
-import logging
 import math
 import random
 import time
@@ -44,11 +43,8 @@ from denoisers.training.checkpoints import (CHECKPOINT_FORMAT, CHECKPOINT_VERSIO
                                             load_checkpoint, load_model, rng_state, save_atomic, set_rng_state)
 from denoisers.training.curves import plot_curves
 from denoisers.training.precision import log_choice, loss_model, prepare_model, resolve
-from denoisers.training.run_clock import RunClock
 from denoisers.training.schedules import lr_factor
 from scenegen.atomic import write_text_atomic
-
-log = logging.getLogger(__name__)
 
 __all__ = ["BatchSource", "CheckpointError", "NonFiniteLossError", "Trainer", "TrainerConfig", "TrainResult",
            "TrainingTask", "load_checkpoint", "load_model", "lr_factor"]
@@ -261,22 +257,22 @@ class Trainer:
         assert self.model is not None and self.optimizer is not None
         log_choice(self.compute, self.task.name)
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        clock = RunClock().start()         # elapsed time and rates leave out the time the process was stopped
+        started = time.perf_counter()
         elapsed_at_start = self.elapsed
-        last_checkpoint = time.perf_counter()
-        log_started, log_step = 0.0, self.step
+        last_checkpoint = started
+        log_started, log_step = started, self.step
         first_step = self.step
         progress = tqdm(total=config.max_steps, initial=self.step, disable=not config.progress, unit="step",
                         desc=f"train {self.task.name}", dynamic_ncols=True, mininterval=1.0)
         try:
             while self._budget_left():
                 loss_value, terms = self._train_step()
-                running = clock.seconds()
-                self.elapsed = elapsed_at_start + running
+                self.elapsed = elapsed_at_start + (time.perf_counter() - started)
                 self._accumulate(loss_value, terms)
                 if self.step % config.log_every == 0:
-                    self._log_row(steps_per_s=(self.step - log_step) / max(running - log_started, 1e-9))
-                    log_started, log_step = running, self.step
+                    now = time.perf_counter()
+                    self._log_row(steps_per_s=(self.step - log_step) / max(now - log_started, 1e-9))
+                    log_started, log_step = now, self.step
                 if config.validate_every and self.step % config.validate_every == 0:
                     self._validate()
                 time_due = config.checkpoint_seconds is not None and \
@@ -286,17 +282,14 @@ class Trainer:
                     last_checkpoint = time.perf_counter()
                 progress.update(1)
                 progress.set_postfix(loss=f"{loss_value:.4g}", refresh=False, steps_per_s=
-                                     f"{(self.step - first_step) / max(running, 1e-9):.3g}")
+                                     f"{(self.step - first_step) / max(time.perf_counter() - started, 1e-9):.3g}")
                 if on_step is not None:
                     on_step(self.step)
         finally:
             progress.close()
-            clock.close()
-        if clock.stopped_seconds:
-            log.info("%s: %.0f s stopped (kill -STOP) left out of the elapsed time", self.task.name,
-                     clock.stopped_seconds)
         if self._accumulator.get("count"):
-            self._log_row(steps_per_s=(self.step - log_step) / max(clock.seconds() - log_started, 1e-9))
+            now = time.perf_counter()
+            self._log_row(steps_per_s=(self.step - log_step) / max(now - log_started, 1e-9))
         if self.validation and self.last_validation_step != self.step:
             self._validate()
         if not self.validation or self.best is None or not self.best_path.exists():
