@@ -233,17 +233,15 @@ def evaluation_problems(cfg: dict, check_methods: bool = True) -> list[str]:
     ablation_spp = list(evaluation.get("ablation_spp", [1]))
     outside = [spp for spp in ablation_spp if spp not in evaluated]
     for entry in (cfg.get("training") or {}).get("ablations", []):
-        own_outside = [spp for spp in entry.get("spp", []) if spp not in evaluated]
-        if own_outside:
-            problems.append(f"config key 'training.ablations' entry {entry['id']!r} has spp {entry['spp']!r} with "
-                            f"values {own_outside} that are not in 'evaluation.spp' = {evaluated!r}; allowed: values "
-                            "of evaluation.spp, or [] to not evaluate its variants")
-        for variant in entry["variants"]:
-            own_outside = [spp for spp in variant.get("spp", []) if spp not in evaluated]
+        owners = [(f"entry {entry['id']!r}", entry, "its variants"),
+                  *((f"entry {entry['id']!r} variant {variant['id']!r}", variant, "it")
+                    for variant in entry["variants"])]
+        for where, owner, what in owners:
+            own_outside = [spp for spp in owner.get("spp", []) if spp not in evaluated]
             if own_outside:
-                problems.append(f"config key 'training.ablations' entry {entry['id']!r} variant {variant['id']!r} has "
-                                f"spp {variant['spp']!r} with values {own_outside} that are not in 'evaluation.spp' = "
-                                f"{evaluated!r}; allowed: values of evaluation.spp, or [] to not evaluate it")
+                problems.append(f"config key 'training.ablations' {where} has spp {owner['spp']!r} with values "
+                                f"{own_outside} that are not in 'evaluation.spp' = {evaluated!r}; allowed: values of "
+                                f"evaluation.spp, or [] to not evaluate {what}")
     if variants and outside:
         problems.append(f"config key 'evaluation.ablation_spp' = {ablation_spp!r} has values {outside} that are not in "
                         f"'evaluation.spp' = {evaluated!r}; allowed: values of evaluation.spp, or [] to not "

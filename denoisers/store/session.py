@@ -334,8 +334,9 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
     """One session (module docstring); no ``model_ids``: every training of the config (:func:`configured_trainings`
     of the resolved config the run wrote). Every ``keep_every_minutes`` the run is paused and what it reached is
     kept; ``commit``: each keep, and the last, is committed (:func:`commit_store`). Models whose stored checkpoint
-    has another step arithmetic than this machine's (:func:`other_arithmetic`, on :func:`session_config`) are skipped, or with ``restart_other_arithmetic`` trained afresh and their checkpoints
-    replaced. ``run_command`` replaces ``scripts/run-main.sh <targets> <args>`` (tests)."""
+    has another step arithmetic than this machine's (:func:`other_arithmetic`, on :func:`session_config`) are
+    skipped, or with ``restart_other_arithmetic`` trained afresh and their checkpoints replaced. ``run_command``
+    replaces ``scripts/run-main.sh <targets> <args>`` (tests)."""
     from scenegen.config import output_root
 
     cfg = session_config(snakemake_args)
