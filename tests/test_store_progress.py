@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from denoisers.store import ModelStore
-from denoisers.store.progress import NOT_STARTED, PART_WAY, STORED, TrainingProgress, estimate, progress_table, \
-    runs, shape_of, training_progress
+from denoisers.store.progress import NOT_STARTED, PART_WAY, STORED, TrainingProgress, estimate, host_plan, \
+    progress_table, runs, shape_of, training_progress
 from denoisers.training.job import work_dir_for
 from denoisers.training.loop import load_checkpoint
 from denoisers.training.models import model_spec
@@ -96,7 +96,7 @@ def test_the_cli_lists_every_training_of_the_isik_config() -> None:
 
     ids = [spec.id for spec in trained_model_specs(load_config(REPO_ROOT / "config" / "isik2021.yaml"))]
     assert [line.split()[0] for line in lines[1:1 + len(ids)]] == ids
-    assert lines[-1].startswith(f"{len(ids)} trainings: ")
+    assert lines[1 + len(ids)].startswith(f"{len(ids)} trainings: ")
 
 
 def test_a_model_with_no_run_borrows_the_rate_of_one_of_its_shape_only(tmp_path: Path) -> None:
@@ -119,3 +119,28 @@ def test_a_model_with_no_run_borrows_the_rate_of_one_of_its_shape_only(tmp_path:
     assert (own.rate_from, own.same_shape, own.remaining_s) == ("rae", False, 6.0)
     text = progress_table(cfg, rows)
     assert "(rate of rae, same shape)" in text and "no measured rate (rae_wide)" in text
+
+
+def test_the_totals_plan_per_arithmetic_and_set_apart_the_checkpoints_of_the_other(tmp_path: Path) -> None:
+    """A host that trains in bf16 estimates at bf16 rates only, one in fp32 at fp32 rates; a part-way run whose
+    checkpoint holds one arithmetic is left to a host of that kind (a run continues only in its own arithmetic)."""
+    cfg = seeded_config(tmp_path)
+    cfg["training"]["seeds"] = 3
+    cfg["training"]["half_budget"] = False
+    # rae: part-way in bf16 (1 s/step); rae_seed1 stored in fp32 (3 s/step); rae_seed2 not started.
+    rows = [TrainingProgress("rae", PART_WAY, 1, 4, 1.0, "bf16", "cpu", seconds_per_step=1.0),
+            TrainingProgress("rae_seed1", STORED, 4, 4, 12.0, "fp32", "cpu", seconds_per_step=3.0),
+            TrainingProgress("rae_seed2", NOT_STARTED, 0, 4, 0.0)]
+    bf16, fp32 = host_plan(cfg, rows, "bf16"), host_plan(cfg, rows, "fp32")
+    # bf16: rae's 3 steps and rae_seed2's 4 at rae's 1 s/step; fp32: rae_seed2's 4 steps at rae_seed1's 3 s/step.
+    assert (bf16.seconds, bf16.runs, bf16.unknown, bf16.elsewhere) == (7.0, 2, [], [])
+    assert (fp32.seconds, fp32.runs, fp32.unknown, fp32.elsewhere) == (12.0, 1, [], ["rae"])
+    assert estimate(cfg, rows, rows[2], "fp32").rate_from == "rae_seed1"
+    assert estimate(cfg, rows, rows[2], "bf16").rate_from == "rae"
+    # No row of an arithmetic measured a rate: the run is counted as unknown there, not at the other's rate.
+    only_bf16 = [rows[0], rows[2]]
+    fp32 = host_plan(cfg, only_bf16, "fp32")
+    assert (fp32.seconds, fp32.unknown, fp32.elsewhere) == (0.0, ["rae_seed2"], ["rae"])
+    text = progress_table(cfg, rows)
+    assert "On a host that trains in bf16: about 0.00 h for the 2 runs" in text
+    assert "On a host that trains in fp32: about 0.00 h for the 1 runs" in text and "(rae)" in text

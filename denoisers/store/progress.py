@@ -17,6 +17,11 @@ data, loss, optimizer, budget, compute and network width and kind, only the netw
 Isik's ablations of the temporal model; labelled "same shape"); the estimate of what is left is that rate times the
 steps left, on the host that measured it (precision and CPU are listed, a bf16 host trains at another rate than
 an fp32 one). The totals count each run once: a twin's time is part of its full model's run, which continues it.
+
+Which machine comes next is not known, so the totals also plan per step arithmetic (:func:`host_plan`): for a host
+that trains in bf16, and one that trains in fp32, what is left of the runs it can start or continue, at rates that
+rows of that arithmetic measured; a part-way run whose checkpoint holds the other arithmetic is listed apart (it
+continues only on such a host, denoisers.store.session).
 """
 from __future__ import annotations
 
@@ -159,11 +164,13 @@ def _same_shape(cfg: dict, model_id: str) -> list[str]:
     return [m for m, spec in specs.items() if m != model_id and half_of(cfg, m) is None and shape_of(spec) == key]
 
 
-def estimate(cfg: dict, rows: Sequence[TrainingProgress], row: TrainingProgress) -> Estimate:
+def estimate(cfg: dict, rows: Sequence[TrainingProgress], row: TrainingProgress,
+             precision: str | None = None) -> Estimate:
     """What is left of ``row`` and how long it should take (:class:`Estimate`): at the rate of the row itself, its
-    run, a seed replica (``rate_from`` that row), else of a model of the same shape (``same_shape`` True)."""
+    run, a seed replica (``rate_from`` that row), else of a model of the same shape (``same_shape`` True); with
+    ``precision`` ("bf16", "fp32") only rows trained in that arithmetic lend their rate."""
     remaining = 0 if row.state == STORED or row.reuses else max(0, row.max_steps - row.step)
-    by_id = {r.model_id: r for r in rows}
+    by_id = {r.model_id: r for r in rows if precision is None or r.precision == precision}
     for source in _rate_sources(cfg, row):
         other = by_id.get(source)
         if other is not None and other.seconds_per_step is not None:
@@ -174,6 +181,55 @@ def estimate(cfg: dict, rows: Sequence[TrainingProgress], row: TrainingProgress)
             if other is not None and other.seconds_per_step is not None:
                 return Estimate(remaining, other.seconds_per_step, source, same_shape=True)
     return Estimate(remaining, None, None)
+
+
+@dataclass(frozen=True)
+class HostPlan:
+    """What is left for a host that trains in ``precision``: ``seconds`` of training steps over the runs it can start
+    or continue (``runs`` of them), at rates that rows of that arithmetic measured (:func:`estimate`); ``unknown``:
+    such runs with no rate of that arithmetic; ``elsewhere``: part-way runs whose checkpoint holds another
+    arithmetic (they continue on a host of that kind)."""
+
+    precision: str
+    seconds: float
+    runs: int
+    unknown: list[str]
+    elsewhere: list[str]
+
+
+def host_plan(cfg: dict, rows: Sequence[TrainingProgress], precision: str) -> HostPlan:
+    """:class:`HostPlan` of ``rows`` (:func:`training_progress`) for a host whose step arithmetic is ``precision``;
+    each run counted once (:func:`runs`)."""
+    seconds, count, unknown, elsewhere = 0.0, 0, [], []
+    for row in runs(rows):
+        if row.state == PART_WAY and row.precision != precision:
+            elsewhere.append(row.model_id)
+            continue
+        left = estimate(cfg, rows, row, precision)
+        if not left.remaining_steps:
+            continue
+        count += 1
+        if left.remaining_s is None:
+            unknown.append(row.model_id)
+        else:
+            seconds += left.remaining_s
+    return HostPlan(precision, seconds, count, unknown, elsewhere)
+
+
+#: The step arithmetics a host here trains in (denoisers.training.precision: bf16 where the CPU has it).
+HOST_PRECISIONS = ("bf16", "fp32")
+
+
+def host_plan_text(plan: HostPlan) -> str:
+    """One sentence of the totals: what a host of ``plan.precision`` has left."""
+    text = (f"On a host that trains in {plan.precision}: about {_hours(plan.seconds)} for the {plan.runs} runs it can "
+            f"start or continue, at {plan.precision} rates")
+    if plan.unknown:
+        text += f" (not counting {len(plan.unknown)} with no {plan.precision} rate: {', '.join(plan.unknown)})"
+    if plan.elsewhere:
+        text += (f"; {len(plan.elsewhere)} part-way runs hold another arithmetic's checkpoint and continue on such "
+                 f"a host ({', '.join(plan.elsewhere)})")
+    return text + "."
 
 
 def runs(rows: Sequence[TrainingProgress]) -> list[TrainingProgress]:
@@ -213,6 +269,9 @@ def progress_table(cfg: dict, rows: Sequence[TrainingProgress], markdown: bool =
               f"not included)"
               + (f", not counting {len(unknown)} runs with no measured rate ({', '.join(unknown)})" if unknown else "")
               + ".")
+    if any(e.remaining_steps for e in left):
+        totals += ("\n\n" if markdown else "\n").join(
+            ["", *(host_plan_text(host_plan(cfg, rows, p)) for p in HOST_PRECISIONS)])
     if markdown:
         table = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         table += ["| " + " | ".join(f"`{c}`" if i == 0 else c for i, c in enumerate(line)) + " |" for line in lines]
