@@ -337,3 +337,29 @@ def test_the_arithmetic_check_reads_the_config_with_its_command_line_overrides(t
     assert list(other_arithmetic(overridden, ["rae_seed1"])) == ["rae_seed1"]
     with pytest.raises(ConfigError, match=r"(?s)with --config training=\{seeds: many\}.*training\.seeds"):
         session_config(["--configfile", str(config_file), "--config", "training={seeds: many}"])
+
+
+def test_runs_that_continue_here_go_first_unless_the_arguments_prioritize(tmp_path: Path) -> None:
+    """A run part-way in the store with this machine's arithmetic is prioritized (its twin names the same run);
+    one of another arithmetic, a stored model and one not started are not; given ``--prioritize`` wins."""
+    import json
+
+    from denoisers.store import ModelStore, checkpoint_key
+    from denoisers.store.keys import short
+    from denoisers.store.session import continued_here, priority_args
+    from denoisers.training.models import model_spec
+    from denoisers.training.precision import resolve_compute
+
+    cfg, _ = _checkpoint_of_another_arithmetic(tmp_path)      # rae_seed1: part-way in another arithmetic
+    here = resolve_compute(model_spec(cfg, "rae").compute).fingerprint()
+    folder = ModelStore.of(cfg).root / "checkpoints" / "rae" / short(checkpoint_key(cfg, "rae"))
+    folder.mkdir(parents=True)
+    (folder / "meta.json").write_text(json.dumps({"step": 3, "compute": here}))
+    ids = ["rae", "rae_half", "rae_seed1", "rae_seed1_half"]
+    assert continued_here(cfg, ids) == ["rae"]
+    assert continued_here(cfg, ["rae_half"]) == ["rae"] and continued_here(cfg, ["rae_seed1"]) == []
+    out = tmp_path / "results"
+    assert priority_args(cfg, ids, out, ["--configfile", "c.yaml"]) == ["--prioritize", f"{out}/models/rae"]
+    assert priority_args(cfg, ids, out, ["--prioritize", "x"]) == []
+    assert priority_args(cfg, ids, out, ["-P", "x"]) == []
+    assert priority_args(cfg, ["rae_seed1"], out, []) == []

@@ -7,7 +7,8 @@ them:
 1. it runs the workflow for the given models (``scripts/run-main.sh results/models/<id> ...``, so a stored model is
    installed and a stored part-way checkpoint continued, denoisers.training.job) in its own process group; without
    model ids, for every model the config trains (the stage target ``train``: seed replicas and half-budget twins
-   included, the stored ones installed), so a session need not know what earlier ones finished;
+   included, the stored ones installed), so a session need not know what earlier ones finished; the runs that
+   continue a stored checkpoint go first (Snakemake's ``--prioritize``, unless the arguments prioritize already);
 2. at ``--minutes`` it stops that run (SIGTERM to the group; the trainers checkpoint every 300 s and every
    ``training.validate_every`` steps, so at most that much work is lost);
 3. it publishes every model that finished in this session (``store publish``) and the part-way state of every one
@@ -34,7 +35,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -259,17 +260,15 @@ def commit_store(store_root: Path, message: str, cwd: Path = REPO_ROOT) -> bool:
     return result.returncode == 0
 
 
-def other_arithmetic(cfg: dict, model_ids: Sequence[str]) -> dict[str, str]:
-    """The ids of ``model_ids`` whose run (a twin's is its full model's) is part-way in the store with another step
-    arithmetic than this machine resolves for it, each with a line that says which. Such a run cannot continue here
-    (denoisers.training.job keys a run's work by the arithmetic it resolves to): it would start afresh."""
-    from denoisers.store.entries import ModelStore, arithmetic_text
+def _part_way_runs(cfg: dict, model_ids: Sequence[str]) -> Iterator[tuple[str, str, dict, dict]]:
+    """(model id, its run, the stored checkpoint's meta, the arithmetic this machine resolves for the run) for each
+    id of ``model_ids`` whose run (a twin's is its full model's) is a training of ``cfg`` part-way in the store."""
+    from denoisers.store.entries import ModelStore
     from denoisers.training.models import model_spec
     from denoisers.training.precision import resolve_compute
 
     store = ModelStore.of(cfg)
     trained = set(configured_trainings_of(cfg))
-    found = {}
     for model_id in model_ids:
         run_id = half_of_run(cfg, model_id)
         if run_id not in trained:
@@ -277,13 +276,42 @@ def other_arithmetic(cfg: dict, model_ids: Sequence[str]) -> dict[str, str]:
         entry = store.checkpoint_entry(cfg, run_id)
         if entry is None or store.model_entry(cfg, run_id) is not None:
             continue
-        meta = entry.summary()
-        here = resolve_compute(model_spec(cfg, run_id).compute).fingerprint()
+        yield model_id, run_id, entry.summary(), resolve_compute(model_spec(cfg, run_id).compute).fingerprint()
+
+
+def other_arithmetic(cfg: dict, model_ids: Sequence[str]) -> dict[str, str]:
+    """The ids of ``model_ids`` whose run (a twin's is its full model's) is part-way in the store with another step
+    arithmetic than this machine resolves for it, each with a line that says which. Such a run cannot continue here
+    (denoisers.training.job keys a run's work by the arithmetic it resolves to): it would start afresh."""
+    from denoisers.store.entries import arithmetic_text
+
+    found = {}
+    for model_id, run_id, meta, here in _part_way_runs(cfg, model_ids):
         if meta.get("compute") != here:
             found[model_id] = (f"{model_id}: the stored checkpoint of {run_id} (step {meta.get('step')}) was trained "
                                f"with {arithmetic_text(meta.get('compute'))}, this machine resolves "
                                f"{arithmetic_text(here)}")
     return found
+
+
+def continued_here(cfg: dict, model_ids: Sequence[str]) -> list[str]:
+    """The runs of ``model_ids`` (a twin's is its full model's, each once) that continue a stored checkpoint of
+    this machine's arithmetic."""
+    runs = [run_id for _, run_id, meta, here in _part_way_runs(cfg, model_ids) if meta.get("compute") == here]
+    return list(dict.fromkeys(runs))
+
+
+def priority_args(cfg: dict, model_ids: Sequence[str], output_dir: Path, snakemake_args: Sequence[str]) -> list[str]:
+    """Snakemake arguments that run the runs continued here (:func:`continued_here`) before the others, so a run
+    most of the way done is finished and published first (``--prioritize <output_dir>/models/<run>``); none when
+    ``snakemake_args`` prioritize already or no run continues."""
+    if any(arg in ("--prioritize", "-P") or arg.startswith("--prioritize=") for arg in snakemake_args):
+        return []
+    runs = continued_here(cfg, model_ids)
+    if not runs:
+        return []
+    root = output_dir.relative_to(REPO_ROOT).as_posix() if output_dir.is_relative_to(REPO_ROOT) else str(output_dir)
+    return ["--prioritize", *(f"{root}/models/{run}" for run in runs)]
 
 
 def store_root_of(config_file: Path) -> Path:
@@ -360,7 +388,10 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
         output_dir = REPO_ROOT / output_dir
     if run_command is None:
         targets = [f"{output_dir.relative_to(REPO_ROOT).as_posix()}/models/{m}" for m in model_ids] or ["train"]
-        run_command = ["bash", str(REPO_ROOT / "scripts" / "run-main.sh"), *targets, *snakemake_args]
+        ahead = priority_args(cfg, list(model_ids) or configured_trainings_of(cfg), output_dir, snakemake_args)
+        if ahead:
+            print(f"train-session: runs continued here go first ({' '.join(ahead[1:])})", file=sys.stderr)
+        run_command = ["bash", str(REPO_ROOT / "scripts" / "run-main.sh"), *targets, *snakemake_args, *ahead]
     command = list(run_command)
     since = time.time() - 1.0
 
