@@ -280,6 +280,7 @@ def _run(args: argparse.Namespace) -> int:
         state = "stopped at the deadline" if result.stopped_at_deadline else f"finished (exit {result.returncode})"
         print(f"run {state}; published: {', '.join(result.published) or 'none'}; checkpointed: "
               f"{', '.join(result.checkpointed) or 'none'}; untouched: {', '.join(result.untouched) or 'none'}"
+              + (f"; stored before: {', '.join(result.already_stored)}" if result.already_stored else "")
               + (f"; skipped (another arithmetic): {', '.join(result.skipped)}" if result.skipped else ""))
         if not args.commit:
             print("commit store/ now: only what is committed survives the machine")

@@ -93,6 +93,19 @@ def test_without_model_ids_a_session_keeps_every_training_of_the_config(tmp_path
     assert result.published == [] and result.checkpointed == []
 
 
+def test_models_the_store_held_before_are_reported_apart_from_the_untouched(tmp_path: Path) -> None:
+    """The 2026-12-07 session listed ``afn_nar_half``, stored a session earlier, among the untouched."""
+    from denoisers.store.session import train_session
+
+    out = tmp_path / "results"
+    script = (f"import pathlib; p = pathlib.Path({str(out / '.config' / 'abc.yaml')!r}); "
+              "p.parent.mkdir(parents=True); p.write_text('output_dir: x')")
+    result = train_session(["idle", "stored"], 1.0, output_dir=out, run_command=[sys.executable, "-c", script],
+                           is_stored={"stored"}.__contains__)
+    assert result.returncode == 0
+    assert result.untouched == ["idle"] and result.already_stored == ["stored"]
+
+
 def test_given_ids_are_kept_with_their_half_budget_twins() -> None:
     """A model's target trains its twin too (the 2026-12-06 Isik sessions trained twins they did not publish)."""
     from denoisers.store.session import kept_ids

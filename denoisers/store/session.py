@@ -57,6 +57,7 @@ class SessionResult:
     checkpointed: list[str] = field(default_factory=list)
     untouched: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
+    already_stored: list[str] = field(default_factory=list)   # untouched because the store held them already
 
 
 def group_pids(pgid: int) -> list[int]:
@@ -358,13 +359,15 @@ def session_config(snakemake_args: Sequence[str]) -> dict:
 def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequence[str] = (),
                   output_dir: Path | None = None, log: Path | None = None,
                   run_command: Sequence[str] | None = None, keep_every_minutes: float | None = None,
-                  commit: bool = False, restart_other_arithmetic: bool = False) -> SessionResult:
+                  commit: bool = False, restart_other_arithmetic: bool = False,
+                  is_stored: Callable[[str], bool] | None = None) -> SessionResult:
     """One session (module docstring); no ``model_ids``: every training of the config (:func:`configured_trainings`
     of the resolved config the run wrote). Every ``keep_every_minutes`` the run is paused and what it reached is
     kept; ``commit``: each keep, and the last, is committed (:func:`commit_store`). Models whose stored checkpoint
     has another step arithmetic than this machine's (:func:`other_arithmetic`, on :func:`session_config`) are
     skipped, or with ``restart_other_arithmetic`` trained afresh and their checkpoints replaced. ``run_command``
-    replaces ``scripts/run-main.sh <targets> <args>`` (tests)."""
+    replaces ``scripts/run-main.sh <targets> <args>`` (tests). Of the models the session left alone, those the
+    store already held (``is_stored``, default :func:`stored_finished`) are reported apart from the untouched."""
     from scenegen.config import output_root
 
     cfg = session_config(snakemake_args)
@@ -419,4 +422,8 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
     returncode, stopped = run_until(command, minutes * 60.0, log=log, every_s=every_s,
                                     on_interval=lambda: keep_now(final=False))
     _, checkpointed, untouched = keep_now(final=True)
-    return SessionResult(returncode, stopped, list(done), checkpointed, untouched, skipped)
+    if is_stored is None:
+        is_stored = stored_finished(resolved_config(output_dir, since))
+    already = [m for m in untouched if is_stored(m)]
+    return SessionResult(returncode, stopped, list(done), checkpointed, [m for m in untouched if m not in already],
+                         skipped, already)
