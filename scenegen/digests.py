@@ -5,7 +5,7 @@ generate_scene, render_noisy and render_reference, so Snakemake reruns exactly t
 changed; denoisers.experiment combines them into the lineage digests that outputs record, and the
 training job keys its data on the training scenes' render digests. Config level (no rendering), except that a
 custom scene's digest covers the contents of its XML and of every file the XML references
-(scenegen.custom_check.scene_files: Mitsuba's parser, no instantiation).
+(scenegen.custom.check.scene_files: Mitsuba's parser, no instantiation).
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from scenegen.config import (STABILITY_CONTROL_SUFFIX, STABILITY_PREFIX, VOLUME_
                              config_digest, extra_scene, scene_frame_count, scene_frames_per_chunk,
                              scene_reference_spp, scene_render_config, stability_scenario, volume_clip_spec,
                              volume_extra)
-from scenegen.custom_check import scene_files
+from scenegen.custom.check import scene_files
 
 #: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
 SCENE_LAYOUT_KEYS = frozenset({"n_train", "n_test", "frames_per_chunk"})

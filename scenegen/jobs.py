@@ -50,7 +50,7 @@ def run_generate(cfg: dict, scene_id: str, out_dir: Path) -> dict:
 
     init_mitsuba(cfg["render"]["variant"])
     if scene_id.startswith(CUSTOM_PREFIX):
-        from scenegen.custom import import_custom_scene
+        from scenegen.custom.scene import import_custom_scene
 
         with atomic_directory(out_dir) as tmp_dir:
             manifest = import_custom_scene(extra_scene(cfg, scene_id), scene_id, tmp_dir)

@@ -272,7 +272,7 @@ def attach_face_attributes(mesh, shape: dict, material: dict | None) -> None:
     ``shape`` needs its ``index``; ``material`` is a manifest material record (None: diffuse, roughness 1).
     The albedo colour of conductors and dielectrics comes from the mesh's BSDF (``specular_albedo``);
     blend BSDFs get albedo source 2 (quadrature), others 0 (the integrator decides per sample).
-    Used for procedural scenes (``scenegen.render``) and XML meshes (``scenegen.custom``)."""
+    Used for procedural scenes (``scenegen.render``) and XML meshes (``scenegen.custom.scene``)."""
     import mitsuba as mi
 
     from scenegen.integrator import ALBEDO_SOURCE_ATTRIBUTE, ALBEDO_SOURCE_QUADRATURE

@@ -79,7 +79,7 @@ def load_frame_scene(manifest: dict, scene_dir: Path, frame: int, settings: Rend
     if mode != "path":
         integrator.update(type="mcdn_features", mode=mode)
     if manifest.get("kind") == "custom":
-        from scenegen.custom import load_custom_frame_scene
+        from scenegen.custom.scene import load_custom_frame_scene
 
         return load_custom_frame_scene(manifest, frame, width=settings.width, height=settings.height,
                                        integrator=integrator)
@@ -222,7 +222,7 @@ def frame_meta(manifest: dict, scene_id: str, frame: int, settings: RenderSettin
 
     depths = {"max_depth": settings.max_depth, "rr_depth": settings.rr_depth}
     if manifest.get("kind") == "custom":      # rendered with the XML's (or its entry's) depths
-        from scenegen.custom import integrator_settings
+        from scenegen.custom.scene import integrator_settings
 
         authored = integrator_settings(manifest)
         depths.update({key: authored[key] for key in depths if key in authored})

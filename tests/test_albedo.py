@@ -273,11 +273,11 @@ def _check_shapes(layers: dict, expectations: list[tuple[tuple[float, float], np
 
 
 def test_xml_scene_shapes(tmp_path):
-    """Bring-your-own XML scene through scenegen.custom: analytic spheres and meshes get their albedo
+    """Bring-your-own XML scene through scenegen.custom.scene: analytic spheres and meshes get their albedo
     from their BSDF's parameters; a conductor wrapped in ``twosided`` (parameters not read) falls back
     to its directional albedo at normal incidence, F0 up to the masking loss (< 0.1 % at alpha 0.3)
     and the quadrature error."""
-    from scenegen.custom import import_custom_scene, load_custom_frame_scene
+    from scenegen.custom.scene import import_custom_scene, load_custom_frame_scene
 
     eta, k = METAL_IOR["gold"]
     xml = tmp_path / "scene.xml"

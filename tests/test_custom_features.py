@@ -19,8 +19,8 @@ init_mitsuba()
 
 import mitsuba as mi  # noqa: E402
 
-from scenegen.custom import import_custom_scene  # noqa: E402
-from scenegen.custom_check import check_scene, custom_scene_problems  # noqa: E402
+from scenegen.custom.scene import import_custom_scene  # noqa: E402
+from scenegen.custom.check import check_scene, custom_scene_problems  # noqa: E402
 from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, render_gbuffer,  # noqa: E402
                              render_sample_layers)
 

@@ -24,8 +24,8 @@ init_mitsuba()
 import mitsuba as mi  # noqa: E402
 
 from scenegen.config import load_config  # noqa: E402
-from scenegen.custom import CustomSceneError, import_custom_scene  # noqa: E402
-from scenegen.custom_check import custom_scene_problems, scene_files  # noqa: E402
+from scenegen.custom.scene import CustomSceneError, import_custom_scene  # noqa: E402
+from scenegen.custom.check import custom_scene_problems, scene_files  # noqa: E402
 from scenegen.digests import render_digest, scene_digest  # noqa: E402
 from scenegen.render import (NonFiniteCounter, RenderSettings, load_frame_scene, render_gbuffer,  # noqa: E402
                              render_sample_layers)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from scenegen.config import load_config
-from scenegen.custom import CustomSceneError, import_custom_scene
+from scenegen.custom.scene import CustomSceneError, import_custom_scene
 from scenegen.dataset import load_clip
 from scenegen.jobs import run_generate, run_render_noisy, run_render_reference
 

@@ -1,5 +1,5 @@
 """Bring-your-own XML scenes are rendered as authored: hide_emitters, max_depth / rr_depth, one object id
-per authored shape, and every substitution recorded (scenegen.custom, scenegen.custom_xml, the integrator).
+per authored shape, and every substitution recorded (scenegen.custom.scene, scenegen.custom.parse, the integrator).
 
 References are Mitsuba's own ``path`` integrator and analytic screen positions, never the harness's code.
 """
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from scenegen.config import ConfigError, load_config, validate_config
-from scenegen.custom import UNBOUNDED_DEPTH, import_custom_scene, integrator_settings
+from scenegen.custom.scene import UNBOUNDED_DEPTH, import_custom_scene, integrator_settings
 from scenegen.render import RenderSettings, load_frame_scene, render_gbuffer
 
 REPO = Path(__file__).resolve().parents[1]
@@ -269,7 +269,7 @@ def test_material_features_of_xml_bsdfs_follow_the_plugin(bsdf: dict, expected: 
     """Smooth and two-sided BSDFs are recognised (Mitsuba's class names are SmoothConductor, TwoSidedBRDF, ...)."""
     import mitsuba as mi
 
-    from scenegen.custom import _material_record
+    from scenegen.custom.scene import _material_record
     from scenegen.mitsuba_env import init_mitsuba
 
     init_mitsuba("llvm_ad_rgb")

@@ -302,7 +302,7 @@ def _resolved_use(cfg: dict, row: dict[str, str]) -> str:
 
 
 def substitutions_table(res: Results) -> pd.DataFrame:
-    """Every substitution recorded in the external scenes' manifests (scenegen.custom_xml.substitutions),
+    """Every substitution recorded in the external scenes' manifests (scenegen.custom.parse.substitutions),
     one row each: scene, what, authored, used (config values filled in), why."""
     import pandas as pd
 

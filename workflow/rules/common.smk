@@ -20,7 +20,7 @@ from scenegen.config import (
     volume_extra,
     volume_scene_ids,
 )
-from scenegen.custom_check import custom_scene_problems
+from scenegen.custom.check import custom_scene_problems
 from scenegen.digests import masks_digest as scene_masks_digest
 from scenegen.scenarios import stability_control_ids
 # Light modules: torch and the methods are only imported when the evaluation runs are planned.

@@ -6,7 +6,7 @@ the render, motion-vector and evaluation code treat custom scenes like generated
 ``load_custom_frame_scene`` loads the XML, keeps its shapes and emitters, and swaps in the
 project's integrator and the frame's sensor.
 
-Rendered as authored where the per-sample design allows it (``scenegen.custom_xml`` reads what the
+Rendered as authored where the per-sample design allows it (``scenegen.custom.parse`` reads what the
 XML asks for): the integrator's ``max_depth``, ``rr_depth`` (unless the extra_scenes entry sets
 them) and ``hide_emitters`` are honoured; the integrator itself, a pixel filter other than a
 one-pixel box, the resolution, the sampler and a non-pinhole sensor are replaced, and every such
@@ -18,7 +18,7 @@ per-face attributes the feature integrator reads (``scenegen.mitsuba_scene.attac
 shape index, material features, albedo source): meshes as mesh attributes, analytic shapes
 (sphere, disk, cylinder, ...) as constant texture attributes with the same values. Instancing
 (``shapegroup`` / ``instance``) and participating media are refused when the config is read
-(``scenegen.custom_check``): they would not render as authored. The manifest records each shape's
+(``scenegen.custom.check``): they would not render as authored. The manifest records each shape's
 material and area emitter, the other emitters, the ``$name`` params and the files the scene is made of.
 
 Camera paths (speeds relative to the scene's bounding-box diagonal D, per frame):
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenegen.custom_xml import (
+from scenegen.custom.parse import (
     CustomSceneError,
     ParsedXml,
     authored_settings,
@@ -59,9 +59,9 @@ __all__ = ["CustomSceneError", "LoadedXml", "camera_path", "import_custom_scene"
 @dataclass
 class LoadedXml:
     """An XML scene ready to render: ``scene`` (every authored shape with its face attributes),
-    ``shapes`` (manifest records in authored order), ``authored`` (custom_xml.authored_settings), the
+    ``shapes`` (manifest records in authored order), ``authored`` (parse.authored_settings), the
     ``materials`` the shapes index, the ``emitters`` that are not area lights ({name, type}) and the
-    ``files`` the scene is made of ({path: SHA-256}, custom_check.scene_files)."""
+    ``files`` the scene is made of ({path: SHA-256}, check.scene_files)."""
 
     scene: object
     shapes: list[dict]
@@ -150,7 +150,7 @@ def load_xml(xml: Path, params: dict | None = None) -> LoadedXml:
     inside a shape group) and area emitter."""
     import mitsuba as mi
 
-    from scenegen.custom_check import scene_files
+    from scenegen.custom.check import scene_files
 
     path = Path(xml).resolve()
     if not path.is_file():

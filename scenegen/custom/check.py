@@ -8,7 +8,7 @@ feature that would render wrongly is in ``UNSUPPORTED`` and refused with the rea
 
 A file reference is a ``filename`` property of any plugin (meshes: obj, ply, serialized; bitmap textures;
 envmap; measured data), resolved as Mitsuba does: against the main XML's folder first, then the working
-directory (``scenegen.custom_xml.xml_folder_on_resolver``). Parsing needs no Mitsuba variant to be set:
+directory (``scenegen.custom.parse.xml_folder_on_resolver``). Parsing needs no Mitsuba variant to be set:
 it uses ``scalar_rgb``'s parser, which knows the same plugins.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from scenegen.custom_xml import CustomSceneError, parse_state, xml_folder_on_resolver
+from scenegen.custom.parse import CustomSceneError, parse_state, xml_folder_on_resolver
 
 #: Parser variant of the config-time checks (plugins are the same in every variant).
 CHECK_VARIANT = "scalar_rgb"
