@@ -111,8 +111,8 @@ def reference_rates(sidecars: dict[str, np.ndarray], needed: set[str], speed: di
 def render_work(cfg: dict) -> pd.DataFrame:
     """One row per (scene, chunk): reference samples and noisy pixel-layers the config asks for, and the
     integrators that render them (volumetric clips: one chunk each, at the ``volumes`` section's settings)."""
-    from scenegen.config import (chunk_count, chunk_frames, scene_ids, scene_reference_spp, scene_render_config,
-                                 stability_scene_ids, volume_scene_ids)
+    from scenegen.catalog import (chunk_count, chunk_frames, scene_ids, scene_reference_spp, scene_render_config,
+                                  stability_scene_ids, volume_scene_ids)
 
     from scenegen.scenarios import stability_control_ids
 

@@ -63,7 +63,8 @@ def render_one(config: str, device: str, scene_dir: str, out_dir: str, reference
     """(In a child process.) Render chunk 0 of the first test scene with ``device``; generate the scene first if
     asked. Returns timings and samples/s."""
     from denoisers.device import resolve_config_device
-    from scenegen.config import load_config, scene_ids
+    from scenegen.catalog import scene_ids
+    from scenegen.config import load_config
     from scenegen.jobs import run_generate, run_render_noisy, run_render_reference
 
     cfg = load_config(config)

@@ -38,7 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from denoisers.metrics import psnr  # noqa: E402
 from denoisers.nets.rae import RAEConfig  # noqa: E402
 from denoisers.training.models import training_split  # noqa: E402
-from scenegen.config import load_config, scene_render_config  # noqa: E402
+from scenegen.catalog import scene_render_config
+from scenegen.config import load_config  # noqa: E402
 from scenegen.dataset import load_clip  # noqa: E402
 
 #: Relative albedo mismatch above which a pixel counts as aliased in the printed fraction.

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from denoisers.training.models import resolve_method_params
-from scenegen.config import CUSTOM_PREFIX, SCENE_SPLITS, scene_frame_count, scene_ids
+from scenegen.catalog import CUSTOM_PREFIX, SCENE_SPLITS, scene_frame_count, scene_ids
 
 TEST_PREFIX = f"{SCENE_SPLITS[1]}_"
 #: Per-frame metrics of the CSVs, in column order (names of denoisers.metrics.frame_metrics).

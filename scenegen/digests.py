@@ -11,10 +11,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from scenegen.config import (STABILITY_CONTROL_SUFFIX, STABILITY_PREFIX, VOLUME_CUSTOM_PREFIX, VOLUME_PREFIX,
-                             config_digest, extra_scene, scene_frame_count, scene_frames_per_chunk,
-                             scene_reference_spp, scene_render_config, stability_scenario, volume_clip_spec,
-                             volume_extra)
+from scenegen.catalog import (STABILITY_CONTROL_SUFFIX, STABILITY_PREFIX, VOLUME_CUSTOM_PREFIX, VOLUME_PREFIX,
+                              extra_scene, scene_frame_count, scene_frames_per_chunk, scene_reference_spp,
+                              scene_render_config, stability_scenario, volume_clip_spec, volume_extra)
+from scenegen.config import config_digest
 from scenegen.custom.check import scene_files
 
 #: scenes.* keys that say how many scenes exist or how frames are batched, not what a scene holds.
@@ -25,7 +25,7 @@ NOISY_ONLY_KEYS = frozenset({"spp", "extra_radiance_spp"})
 NOISY_FORMAT_VERSION = 2
 #: render.* keys only the references depend on; train_reference_spp, test_reference_spp and
 #: test_reference_spp_per_scene enter a reference
-#: digest as the scene's effective reference_spp (scenegen.config.scene_reference_spp), so null or absent changes no digest.
+#: digest as the scene's effective reference_spp (scenegen.catalog.scene_reference_spp), so null or absent changes no digest.
 REFERENCE_ONLY_KEYS = frozenset({"reference_spp", "reference_batch_spp", "train_reference_spp",
                                  "test_reference_spp", "test_reference_spp_per_scene", "reference_integrator"})
 #: render.* keys only the noisy renders depend on, with the value that enters no digest (so configs written before

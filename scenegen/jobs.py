@@ -16,8 +16,8 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen.atomic import atomic_directory
-from scenegen.config import (CUSTOM_PREFIX, STABILITY_PREFIX, VOLUME_PREFIX, extra_scene, scene_frame_count,
-                             scene_frames_per_chunk, scene_reference_spp, scene_render_config)
+from scenegen.catalog import (CUSTOM_PREFIX, STABILITY_PREFIX, VOLUME_PREFIX, extra_scene, scene_frame_count,
+                              scene_frames_per_chunk, scene_reference_spp, scene_render_config)
 from scenegen.mitsuba_env import init_mitsuba
 from scenegen.render import (NonFiniteCounter, RenderSettings, frame_meta, load_frame_scene, noisy_frame_seed,
                              psnr_between_halves, reference_batch_seeds,
@@ -133,7 +133,7 @@ def run_render_noisy(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_
 
 def run_render_reference(cfg: dict, scene_id: str, chunk: int, scene_dir: Path, out_dir: Path) -> None:
     """Render the high-spp references (two independent halves) of one chunk, at the scene's reference spp
-    (scenegen.config.scene_reference_spp); the sidecars record it. An evaluated scene's chunk stored under its render
+    (scenegen.catalog.scene_reference_spp); the sidecars record it. An evaluated scene's chunk stored under its render
     digest is copied from the store instead (scenegen.reference_store; store.references).
     ``render.reference_integrator``: "path" renders radiance with Mitsuba's ``path`` integrator (the buffers the
     evaluation and training use); "features" renders with the feature integrator and adds the feature means."""

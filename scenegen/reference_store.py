@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from scenegen.atomic import atomic_directory, write_text_atomic
-from scenegen.config import (EVALUATED_PREFIXES, chunk_count, chunk_frames, scene_ids, scene_reference_spp,
-                             scene_render_config)
+from scenegen.catalog import (EVALUATED_PREFIXES, chunk_count, chunk_frames, scene_ids, scene_reference_spp,
+                              scene_render_config)
 from scenegen.digests import render_digest
 from scenegen.render import reference_batch_seeds
 

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from scenegen.atomic import atomic_directory
-from scenegen.config import chunk_count, output_root, scene_ids, stability_scene_ids, volume_scene_ids
+from scenegen.catalog import chunk_count, scene_ids, stability_scene_ids, volume_scene_ids
+from scenegen.config import output_root
 from scenegen.digests import render_digest, scene_digest
 
 RENDER_KINDS = ("noisy", "reference")

@@ -9,16 +9,8 @@ from typing import Any
 import pytest
 import yaml
 
-from scenegen.config import (
-    ConfigError,
-    chunk_count,
-    chunk_frames,
-    config_digest,
-    load_config,
-    load_schema,
-    scene_ids,
-    validate_config,
-)
+from scenegen.catalog import chunk_count, chunk_frames, scene_ids
+from scenegen.config import ConfigError, config_digest, load_config, load_schema, validate_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO_ROOT / "config" / "config.yaml"

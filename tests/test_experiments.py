@@ -24,7 +24,8 @@ from denoisers.experiment import DIGEST_KEY, Lineage, SettingsMismatchError
 from denoisers.report.collect import collect
 from denoisers.training.job import train_model, work_dir_for
 from denoisers.training.models import model_spec
-from scenegen.config import ConfigError, OUTPUT_ENTRIES, load_config, scene_ids, validate_config
+from scenegen.catalog import scene_ids
+from scenegen.config import ConfigError, OUTPUT_ENTRIES, load_config, validate_config
 from tests.test_evaluate import write_synthetic_scene
 from tests.test_evaluate import smoke_config as evaluation_config
 from tests.test_report import report_config, write_results

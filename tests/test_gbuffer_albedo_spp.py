@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import scenegen.integrator  # noqa: F401 -- registers mcdn_features
-from scenegen.config import load_config, scene_ids, validate_config
+from scenegen.catalog import scene_ids
+from scenegen.config import load_config, validate_config
 from scenegen.digests import render_digest, scene_digest
 from scenegen.render import RenderSettings, gbuffer_albedo_mean, split_channels
 

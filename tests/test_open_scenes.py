@@ -16,7 +16,8 @@ import mitsuba as mi  # noqa: E402
 
 from scenegen import lights  # noqa: E402
 from scenegen.camera import lift_low_views  # noqa: E402
-from scenegen.config import load_config, scene_ids  # noqa: E402
+from scenegen.catalog import scene_ids
+from scenegen.config import load_config  # noqa: E402
 from scenegen.exr import read_exr, write_exr  # noqa: E402
 from scenegen.generate import generate_scene, open_scene  # noqa: E402
 from scenegen.mitsuba_scene import build_scene_dict, preview_mean_luminance  # noqa: E402

@@ -38,8 +38,9 @@ from denoisers.report import report_outputs
 from denoisers.report.verdicts import INCONCLUSIVE, NOT_RUN
 from denoisers.reproductions import all_claims
 from denoisers.training.models import MODEL_FILES, capacity_model_ids, model_dir, model_specs
-from scenegen.config import (CUSTOM_PREFIX, chunk_count, chunk_frames, load_config, scene_frame_count, scene_ids,
-                             scene_reference_spp, volume_scene_ids)
+from scenegen.catalog import (CUSTOM_PREFIX, chunk_count, chunk_frames, scene_frame_count, scene_ids,
+                              scene_reference_spp, volume_scene_ids)
+from scenegen.config import load_config
 from scenegen.channels import ALL, REFERENCE_BUFFERS, SAMPLE_BUFFERS
 from scenegen.dataset import REQUIRED_REFERENCE_BUFFERS, load_clip
 
@@ -599,7 +600,7 @@ def test_the_stability_suite_scores_every_row_and_builds_the_atlas(pipeline: Pip
     CSV and a summary with the failure metrics), the atlas files exist, and ATLAS.md and REPORT.md name every row."""
     from denoisers.report.atlas import atlas_outputs
     from denoisers.jobs.stability import scores_csv, stability_runs
-    from scenegen.config import stability_scene_ids
+    from scenegen.catalog import stability_scene_ids
 
     scenes = stability_scene_ids(pipeline.cfg)
     runs = [run for run in stability_runs(pipeline.cfg) if run.runnable]

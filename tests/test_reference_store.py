@@ -14,7 +14,8 @@ import pytest
 
 import scenegen.jobs
 from scenegen import jobs
-from scenegen.config import ConfigError, load_config, scene_reference_spp, validate_config
+from scenegen.catalog import scene_reference_spp
+from scenegen.config import ConfigError, load_config, validate_config
 from scenegen.digests import render_digest
 from scenegen.reference_store import (ReferenceStoreError, install_reference_chunk, publish_reference,
                                       reference_entry, reference_key, reference_problems)
@@ -182,6 +183,6 @@ def test_a_name_the_config_lacks_is_ignored():
     cfg = _default()
     cfg["render"]["test_reference_spp_per_scene"] = {"test_099": 8192}
     validate_config(cfg)
-    from scenegen.config import evaluated_reference_text
+    from scenegen.catalog import evaluated_reference_text
 
     assert evaluated_reference_text(cfg) == f"{cfg['render']['test_reference_spp']} spp"

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from scenegen.cli import main as scenegen_main
-from scenegen.config import chunk_count, load_config, scene_ids
+from scenegen.catalog import chunk_count, scene_ids
+from scenegen.config import load_config
 from scenegen.share import all_scene_ids, share_renders
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

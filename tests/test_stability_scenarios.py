@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from scenegen.config import (ConfigError, load_config, scene_ids, stability_scene_ids, training_scene_split,
-                             validate_config)
+from scenegen.catalog import scene_ids, stability_scene_ids, training_scene_split
+from scenegen.config import ConfigError, load_config, validate_config
 from scenegen.scenarios import MASK_KINDS, SCENARIOS, draw_scenario, generate_scenario
 from scenegen.scenarios.masks import FAST_MOTION_FRACTION
 

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from scenegen import jobs
-from scenegen.config import ConfigError, chunk_count, load_config, scene_frame_count, scene_ids, validate_config
+from scenegen.catalog import chunk_count, scene_frame_count, scene_ids
+from scenegen.config import ConfigError, load_config, validate_config
 from scenegen.digests import render_digest, scene_digest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -17,8 +17,8 @@ import pytest
 from denoisers import evaluate
 from denoisers.experiment import Lineage
 from denoisers.training.models import training_split
-from scenegen.config import (ConfigError, config_digest, extra_scene, load_config, scene_frame_count,
-                             scene_ids, scene_reference_spp, validate_config)
+from scenegen.catalog import extra_scene, scene_frame_count, scene_ids, scene_reference_spp
+from scenegen.config import ConfigError, config_digest, load_config, validate_config
 from scenegen.custom.check import scene_files
 from scenegen.digests import NOISY_FORMAT_VERSION, render_digest, scene_digest
 from scenegen.exr import read_exr

@@ -21,7 +21,8 @@ from denoisers.registry import Denoiser, Frame
 from denoisers.training.models import resolve_method_params
 from denoisers.jobs.tuning import (TuningError, check_training_scenes, grid_combinations, tune_method,
                               tuned_params, tuning_problems)
-from scenegen.config import load_config, scene_ids, validate_config
+from scenegen.catalog import scene_ids
+from scenegen.config import load_config, validate_config
 from scenegen.seeds import scene_seed
 from tests.test_evaluate import write_synthetic_scene
 

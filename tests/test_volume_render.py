@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from scenegen import jobs
-from scenegen.config import (load_config, scene_ids, scene_reference_spp, scene_render_config, volume_clip_spec,
-                             volume_scene_ids)
+from scenegen.catalog import scene_ids, scene_reference_spp, scene_render_config, volume_clip_spec, volume_scene_ids
+from scenegen.config import load_config
 from scenegen.channels import VOLUME_BUFFERS
 from scenegen.dataset import MissingBufferError, load_clip, load_reference_frame
 from scenegen.digests import render_digest, scene_digest

@@ -13,7 +13,8 @@ from denoisers import registry
 from denoisers.experiment import train_digest
 from denoisers.training.models import model_spec, training_problems, training_split
 from scenegen import jobs
-from scenegen.config import load_config, volume_scene_ids, volume_training_split
+from scenegen.catalog import volume_scene_ids, volume_training_split
+from scenegen.config import load_config
 from scenegen.dataset import load_clip
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -26,8 +26,8 @@ from denoisers.evaluate import evaluated_scene_ids
 from denoisers.device import resolve_config_device
 from denoisers.training.models import (method_model, model_specs, same_training_as, trained_model_specs,
                                        training_split, trains_on_volumes)
-from scenegen.config import (chunk_count, config_digest, load_config, scene_ids, stability_scene_ids, volume_scene_ids,
-                             volume_training_split)
+from scenegen.catalog import chunk_count, scene_ids, stability_scene_ids, volume_scene_ids, volume_training_split
+from scenegen.config import config_digest, load_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"

@@ -53,7 +53,7 @@ def _row_runs(cfg: dict, method_id: str, kind: str) -> tuple[list, list[str]]:
         return robustness_runs(cfg), evaluated_scene_ids(cfg)
     if kind == "stability":
         from denoisers.jobs.stability import stability_runs
-        from scenegen.config import stability_scene_ids
+        from scenegen.catalog import stability_scene_ids
         from scenegen.scenarios import stability_control_ids
 
         return stability_runs(cfg), stability_scene_ids(cfg) + stability_control_ids(cfg)
@@ -215,7 +215,7 @@ def score_scenarios_row(cfg: dict, denoised_row: Path, render_root: Path, masks_
     (``masks_root/{scene}``) and, for an animated scenario, its control clip denoised by the same row at the same
     spp (the lag metric's steady state). The controls get no scores of their own. Returns the number of clips."""
     from denoisers.jobs.stability import score_scenario
-    from scenegen.config import stability_scene_ids
+    from scenegen.catalog import stability_scene_ids
     from scenegen.scenarios import scenario_control
 
     denoised_row = Path(denoised_row)

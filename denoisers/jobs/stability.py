@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from denoisers.evaluate import METHOD_ROLE, MethodSpec, Run, method_specs
-from scenegen.config import config_digest, scene_render_config, short_digest, stability_scene_ids
+from scenegen.catalog import scene_render_config, stability_scene_ids
+from scenegen.config import config_digest, short_digest
 
 #: Defaults of the evaluation keys of the ``stability`` section (the schema's).
 DEFAULT_DENOISE_SPP: tuple[int, ...] = (2,)

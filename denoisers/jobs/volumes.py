@@ -20,7 +20,7 @@ from pathlib import Path
 
 from denoisers.evaluate import Run, volume_method_specs
 from denoisers.training.models import resolve_method_params
-from scenegen.config import VOLUME_CUSTOM_PREFIX, VOLUME_PREFIX, volume_scene_ids
+from scenegen.catalog import VOLUME_CUSTOM_PREFIX, VOLUME_PREFIX, volume_scene_ids
 
 VOLUME_TEST_PREFIX = f"{VOLUME_PREFIX}test_"
 

@@ -21,7 +21,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from scenegen.config import STABILITY_PREFIX, stability_scene_ids
+from scenegen.catalog import STABILITY_PREFIX, stability_scene_ids
 
 if TYPE_CHECKING:
     import pandas as pd

@@ -41,7 +41,8 @@ from denoisers.report.volumes import VolumeResults, collect_volumes
 from denoisers.jobs.timing import TIMING_JOB_FILE, TimingJob, read_timing_job, timed_runs, timing_scene, timing_settings
 from denoisers.training.speed import TRAINING_SPEED_FILE, read_training_speed, speed_models
 from denoisers.jobs.tuning import TUNED_KEY, tuning_file
-from scenegen.config import CUSTOM_PREFIX, output_root
+from scenegen.catalog import CUSTOM_PREFIX
+from scenegen.config import output_root
 
 if TYPE_CHECKING:
     import pandas as pd

@@ -5,7 +5,7 @@ from denoisers.evaluate import evaluated_scene_ids
 from denoisers.report.capacity import output_names as capacity_names
 from denoisers.reproductions import all_reproductions
 from denoisers.training.models import model_specs
-from scenegen.config import CUSTOM_PREFIX
+from scenegen.catalog import CUSTOM_PREFIX
 
 #: Cross-paper tables, written as tables/{name}.csv and tables/{name}.md.
 CORE_TABLES: tuple[str, ...] = ("summary", "per_scene", "timing", "equal_time", "noise_floor", "robustness",

@@ -13,7 +13,7 @@ from denoisers.evaluate import ALL_METRICS, REFERENCE_METHODS
 from denoisers.report.collect import DERIVED_METRICS, TIMING_COLUMNS, Results
 from denoisers.report.stats import HIGHER_IS_BETTER, LABELS, fmt, fmt_ci, markdown_table, mean_ci
 from denoisers.training.models import method_model
-from scenegen.config import SCENE_SPLITS, scene_ids
+from scenegen.catalog import SCENE_SPLITS, scene_ids
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -294,7 +294,7 @@ def _resolved_use(cfg: dict, row: dict[str, str]) -> str:
     if row["what"] == "resolution":
         return f"{render['width']}x{render['height']} (render.width x render.height)"
     if row["what"] == "sampler":     # external scenes are evaluated scenes (render.test_reference_spp)
-        from scenegen.config import evaluated_reference_text
+        from scenegen.catalog import evaluated_reference_text
 
         return (f"independent: {render['spp']} 1-spp layers (+{render['extra_radiance_spp']} radiance-only); "
                 f"references of {evaluated_reference_text(cfg)} in two halves")

@@ -15,7 +15,7 @@ from denoisers.report.seeds import SeedAveraged
 from denoisers.report.stats import pooled_psnr
 from denoisers.jobs.volumes import (volume_denoised_dir, volume_metrics_csv, volume_robustness_dir, volume_robustness_runs,
                                    volume_runs, volume_test_scene_ids)
-from scenegen.config import volume_clip_spec
+from scenegen.catalog import volume_clip_spec
 
 if TYPE_CHECKING:
     import pandas as pd

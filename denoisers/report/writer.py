@@ -68,7 +68,7 @@ def _reference_spp_text(cfg: dict) -> str:
     """The references' spp and integrator, per kind of scene where they differ: evaluated (test_*, custom_*;
     render.test_reference_spp and test_reference_spp_per_scene), validation (render.reference_spp) and training
     (render.train_reference_spp)."""
-    from scenegen.config import evaluated_reference_spp, reference_spp_exceptions
+    from scenegen.catalog import evaluated_reference_spp, reference_spp_exceptions
 
     render = cfg["render"]
     integrator = {"path": " (Mitsuba's path integrator)", "features": " (the feature integrator)"}.get(

@@ -21,7 +21,7 @@ from denoisers.report.verdicts import Decision, not_run
 from denoisers.report.claims import row_at as claims_row_at
 from denoisers.report.stats import fmt, fmt_ci, frame_to_markdown, mean_ci
 from denoisers.reproductions.base import Reproduction
-from scenegen.config import evaluated_reference_text
+from scenegen.catalog import evaluated_reference_text
 
 if TYPE_CHECKING:
     import pandas as pd

@@ -29,7 +29,8 @@ from typing import Any
 
 from denoisers.training.spec import ModelSpec
 from denoisers.training.tasks import sequence_problems, task_builder, task_problems
-from scenegen.config import SCENE_SPLITS, output_root, training_scene_split, volume_training_split
+from scenegen.catalog import SCENE_SPLITS, training_scene_split, volume_training_split
+from scenegen.config import output_root
 from scenegen.channels import VOLUME_ZERO_PIXEL_BUFFERS
 
 TRAIN_PREFIX = f"{SCENE_SPLITS[0]}_"
@@ -311,7 +312,7 @@ def trains_on_volumes(spec: ModelSpec | None) -> bool:
 def training_split(cfg: dict, spec: ModelSpec | None = None) -> tuple[list[str], list[str]]:
     """(training scenes, validation scenes) of model ``spec`` (None: the surface models'): the train_* ids with
     the last ``validation_scenes`` held out, or, for a model with ``data.scenes: volumes``, the vol_train_* clips
-    (scenegen.config.volume_training_split)."""
+    (scenegen.catalog.volume_training_split)."""
     if trains_on_volumes(spec):
         return volume_training_split(cfg)
     return training_scene_split(cfg)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from scenegen.config import STABILITY_CONTROL_SUFFIX, stability_control_id, stability_scenario, stability_scene_ids
+from scenegen.catalog import STABILITY_CONTROL_SUFFIX, stability_control_id, stability_scenario, stability_scene_ids
 from scenegen.generate import SceneDraft, write_draft
 from scenegen.scenarios import library  # noqa: F401 -- registers the scenarios
 from scenegen.scenarios.builder import ScenarioSettings

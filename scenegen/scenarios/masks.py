@@ -163,7 +163,7 @@ def visibility_masks(manifest: dict, scene_dir: Path, settings, gbuffer: dict[st
 def derive_masks(cfg: dict, scene_id: str, scene_dir: Path, render_dir: Path, out_dir: Path) -> dict:
     """Write ``out_dir``/masks/frame_TTTT.exr and events.json for stability scene ``scene_id``; return the events."""
     from scenegen.atomic import atomic_directory, write_text_atomic
-    from scenegen.config import scene_render_config
+    from scenegen.catalog import scene_render_config
     from scenegen.dataset import load_clip
     from scenegen.exr import write_exr
     from scenegen.mitsuba_env import init_mitsuba

@@ -26,7 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen.atomic import atomic_directory, write_text_atomic
-from scenegen.config import volume_clip_spec, volume_extra
+from scenegen.catalog import volume_clip_spec, volume_extra
 from scenegen.mitsuba_env import init_mitsuba, is_jit_variant
 from scenegen.render import (NonFiniteCounter, RenderSettings, frame_meta, noisy_frame_seed, psnr_between_halves,
                              reference_batch_seeds, render_reference_frame, render_spp, sample_wavefront,

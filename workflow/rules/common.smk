@@ -9,17 +9,8 @@ import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
-from scenegen.config import (
-    chunk_count,
-    config_digest,
-    config_problems,
-    extra_scene,
-    output_root,
-    scene_ids,
-    stability_scene_ids,
-    volume_extra,
-    volume_scene_ids,
-)
+from scenegen.catalog import chunk_count, extra_scene, scene_ids, stability_scene_ids, volume_extra, volume_scene_ids
+from scenegen.config import config_digest, config_problems, output_root
 from scenegen.custom.check import custom_scene_problems
 from scenegen.digests import masks_digest as scene_masks_digest
 from scenegen.scenarios import stability_control_ids
