@@ -19,6 +19,7 @@
   readme      regenerate the README's and docs' published-run blocks (--check: fail when out of date)
   job-counts  regenerate the README's and docs' dag-jobs blocks from dry runs (--check: fail when out of date)
   store       the model store: list, publish, checkpoint, verify, check (denoisers.store.cli)
+  submission  what this checkout's commits cost to submit, against the workplace's limits (--check: fail past them)
   methods     list the registered methods
 """
 from __future__ import annotations
@@ -106,6 +107,7 @@ def _parser() -> argparse.ArgumentParser:
     jobs.add_argument("--check", action="store_true", help="only check; exit 1 when a block is out of date")
 
     from denoisers.store.cli import add_parser as add_store_parser
+    from denoisers.store.submission import DEFAULT_BUDGET_MIB
 
     add_store_parser(sub)
     session = sub.add_parser("train-session", help="train models until a deadline, then publish the finished ones "
@@ -124,6 +126,23 @@ def _parser() -> argparse.ArgumentParser:
     session.add_argument("--restart-other-arithmetic", action="store_true",
                          help="train afresh the models whose stored checkpoint has another step arithmetic than this "
                               "machine resolves (bf16 / fp32), and let their checkpoints replace it (default: skip them)")
+    session.add_argument("--submission-budget", type=float, default=DEFAULT_BUDGET_MIB, metavar="MIB",
+                         help="with --commit: the MiB of diffs (old + new bytes of every changed file, summed over the "
+                              "commits since --submission-base) the session's commits may reach; a keep that would "
+                              "pass it stays on disk (default %(default)g of the 256 MiB a submission may hold; 0: no "
+                              "budget)")
+    session.add_argument("--submission-base", default=None, metavar="REV",
+                         help="the commit the session's submission starts after (default: where this checkout's "
+                              "branch began, the oldest entry of its reflog)")
+
+    submission = sub.add_parser("submission", help="what this checkout's commits cost to submit: the diffs (old + new "
+                                                   "bytes per changed file) and new objects of the commits after the "
+                                                   "base, against the workplace's limits (denoisers.store.submission)")
+    submission.add_argument("--base", default=None, metavar="REV",
+                            help="the commit the submission starts after (default: where this checkout's branch "
+                                 "began, the oldest entry of its reflog)")
+    submission.add_argument("--check", action="store_true", help="exit 1 when the commits pass the workplace's limits")
+    submission.add_argument("--largest", type=int, default=5, help="list this many of the costliest commits")
 
     tune = sub.add_parser("tune", help="grid-search a baseline's parameters on the training scenes (tuning.methods)")
     tune.add_argument("--config", type=Path, required=True, help="resolved config YAML")
@@ -265,6 +284,14 @@ def _run(args: argparse.Namespace) -> int:
         print(("out of date: " if args.check else "regenerated: ") + (", ".join(stale) or "none"))
         return 1 if args.check and stale else 0
 
+    if args.command == "submission":
+        from denoisers.store.code import REPO_ROOT
+        from denoisers.store.submission import submission_report
+
+        text, within = submission_report(REPO_ROOT, args.base, args.largest)
+        print(text)
+        return 1 if args.check and not within else 0
+
     if args.command == "train-session":
         import shlex
 
@@ -272,7 +299,9 @@ def _run(args: argparse.Namespace) -> int:
 
         result = train_session(args.models, args.minutes, shlex.split(args.snakemake), log=args.log,
                                keep_every_minutes=args.keep_every, commit=args.commit,
-                               restart_other_arithmetic=args.restart_other_arithmetic)
+                               restart_other_arithmetic=args.restart_other_arithmetic,
+                               submission_budget_mib=args.submission_budget or None,
+                               submission_base=args.submission_base)
         if result.returncode is None and not result.stopped_at_deadline:
             print(f"nothing to train on this machine: skipped {', '.join(result.skipped)} (their stored checkpoints "
                   "have another step arithmetic)", file=sys.stderr)
@@ -284,6 +313,9 @@ def _run(args: argparse.Namespace) -> int:
               + (f"; skipped (another arithmetic): {', '.join(result.skipped)}" if result.skipped else ""))
         if not args.commit:
             print("commit store/ now: only what is committed survives the machine")
+        elif result.uncommitted:
+            print(f"left on disk, not committed: {', '.join(result.uncommitted)} (`python -m denoisers store "
+                  "submission` says what the session's commits cost; commit more only within its limits)")
         return 0 if result.stopped_at_deadline or result.returncode == 0 else 1
 
     if args.command == "job-counts":

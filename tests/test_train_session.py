@@ -244,9 +244,16 @@ def test_interval_keeps_run_while_the_run_goes_on_and_each_is_committed(tmp_path
 
     monkeypatch.setattr(session, "POLL_SECONDS", 0.1)
     monkeypatch.setattr(session, "keep", fake_keep)
-    monkeypatch.setattr(session, "commit_store", lambda root, message, cwd=None: commits.append(message) or True)
+    budgets: list = []
+
+    def fake_commit(root, message, cwd=None, budget=None):
+        budgets.append(budget)
+        return commits.append(message) or True
+
+    monkeypatch.setattr(session, "commit_store", fake_commit)
+    monkeypatch.setattr(session, "uncommitted_entries", lambda root: [])
     result = session.train_session(["rae", "afn"], 1.0, output_dir=out, keep_every_minutes=1.0 / 60,
-                                   commit=True, run_command=[sys.executable, "-c", script])
+                                   commit=True, run_command=[sys.executable, "-c", script], submission_base="HEAD")
     assert result.returncode == 0 and not result.stopped_at_deadline
     started = float(run_start.read_text())
     assert len(keeps) >= 3 and keeps[0][0] - started < 3.5           # at least one keep while the run went on
@@ -254,6 +261,8 @@ def test_interval_keeps_run_while_the_run_goes_on_and_each_is_committed(tmp_path
     assert result.published == ["rae"] and result.checkpointed == ["afn"]
     assert len(commits) == len(keeps) and "published rae" in commits[0] and "(end keep)" in commits[-1]
     assert all("interval keep" in message for message in commits[:-1])
+    # Every keep is committed within the session's submission budget, measured from the given base afresh.
+    assert all(b is not None and b.commits == 0 and b.limit_bytes == 192 * 1024 * 1024 for b in budgets)
 
 
 def _checkpoint_of_another_arithmetic(tmp_path: Path) -> tuple[dict, Path]:

@@ -26,6 +26,12 @@ A machine can also go before the deadline (2026-12-06: one was shut down an hour
 session's training with it). ``--keep-every MINUTES`` pauses the run that often (SIGSTOP to its group), keeps what it
 has reached as in step 3 and lets it go on; with ``--commit`` each keep is committed (``git commit -- store``, nothing
 else), so a lost machine loses at most that interval.
+
+Each commit stays within the session's submission budget (denoisers.store.submission): a stop whose commits pass
+the workplace's limits lands none of them, and keeps that replace a checkpoint every interval add up (on 2026-12-07
+a session's six keeps of a 27 MB KPCN checkpoint did, and all its training was lost). What would pass the budget
+(``--submission-budget``, 192 MiB of the 256 MiB diff limit by default) stays on disk, finished models go in
+before checkpoints, and the command names what it left uncommitted.
 """
 from __future__ import annotations
 
@@ -40,6 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from denoisers.store.code import REPO_ROOT
+from denoisers.store.submission import DEFAULT_BUDGET_MIB, SubmissionBudget, entry_of, fit_staged, session_base
 
 #: Seconds between checks of the run.
 POLL_SECONDS = 10.0
@@ -58,6 +65,7 @@ class SessionResult:
     untouched: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     already_stored: list[str] = field(default_factory=list)   # untouched because the store held them already
+    uncommitted: list[str] = field(default_factory=list)      # store entries left on disk, not committed
 
 
 def group_pids(pgid: int) -> list[int]:
@@ -244,21 +252,45 @@ def kept_ids(model_ids: Sequence[str], configured: Sequence[str]) -> list[str]:
     return list(dict.fromkeys([*model_ids, *twins]))
 
 
-def commit_store(store_root: Path, message: str, cwd: Path = REPO_ROOT) -> bool:
-    """Commit the store directory as it is on disk, and nothing else (``git add -A <store>``, ``git commit --
-    <store>``: what else is staged stays staged). Returns whether a commit was made (False: nothing changed, or git
-    refused, e.g. another git command holds the index; the next keep tries again)."""
+def commit_store(store_root: Path, message: str, cwd: Path = REPO_ROOT,
+                 budget: SubmissionBudget | None = None) -> bool:
+    """Commit the store directory as it is on disk, and nothing else: the commit is built in a separate index from
+    HEAD and the store's files, so what else is staged stays staged. With ``budget``, only the store entries that
+    keep the session's submission within it are committed (:func:`denoisers.store.submission.fit_staged`); the
+    others stay on disk, uncommitted, and are named on stderr and in the message. Returns whether a commit was made
+    (False: nothing changed, nothing fitted, or git refused, e.g. another git command holds HEAD; the next keep
+    tries again)."""
     store_root = Path(store_root)
     relative = store_root.relative_to(cwd).as_posix() if store_root.is_absolute() else store_root.as_posix()
-    if subprocess.run(["git", "add", "-A", "--", relative], cwd=cwd, capture_output=True).returncode != 0:
-        return False
-    if subprocess.run(["git", "diff", "--cached", "--quiet", "--", relative], cwd=cwd).returncode == 0:
-        return False
-    result = subprocess.run(["git", "commit", "-q", "-m", message, "--", relative], cwd=cwd, capture_output=True,
-                            text=True)
-    if result.returncode != 0:
-        print(f"train-session: git commit of {relative} failed: {result.stderr.strip()}", file=sys.stderr)
-    return result.returncode == 0
+    index = Path(cwd, subprocess.run(["git", "rev-parse", "--git-path", "index.train-session"], cwd=cwd,
+                                     capture_output=True, text=True).stdout.strip())
+    env = {**os.environ, "GIT_INDEX_FILE": str(index)}
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", *args], cwd=cwd, env=env, capture_output=True, text=True)
+
+    try:
+        if git("read-tree", "HEAD").returncode != 0 or git("add", "-A", "--", relative).returncode != 0:
+            return False
+        if git("diff", "--cached", "--quiet", "--", relative).returncode == 0:
+            return False
+        if budget is not None:
+            kept, held = fit_staged(budget, relative, cwd, env=env)
+            if held:
+                print(f"train-session: not committed, left on disk: {', '.join(held)} (committing it would pass "
+                      f"the session's submission budget; {budget.describe()})", file=sys.stderr)
+                message += f" (left on disk for the submission budget: {', '.join(held)})"
+            if not kept:
+                return False
+        result = git("commit", "-q", "-m", message)
+        if result.returncode != 0:
+            print(f"train-session: git commit of {relative} failed: {result.stderr.strip()}", file=sys.stderr)
+            return False
+    finally:
+        index.unlink(missing_ok=True)
+    # The checkout's own index: the store's paths as committed (the ones held back show as unstaged changes).
+    subprocess.run(["git", "reset", "-q", "--", relative], cwd=cwd, capture_output=True)
+    return True
 
 
 def _part_way_runs(cfg: dict, model_ids: Sequence[str]) -> Iterator[tuple[str, str, dict, dict]]:
@@ -360,10 +392,15 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
                   output_dir: Path | None = None, log: Path | None = None,
                   run_command: Sequence[str] | None = None, keep_every_minutes: float | None = None,
                   commit: bool = False, restart_other_arithmetic: bool = False,
-                  is_stored: Callable[[str], bool] | None = None) -> SessionResult:
+                  is_stored: Callable[[str], bool] | None = None,
+                  submission_budget_mib: float | None = DEFAULT_BUDGET_MIB,
+                  submission_base: str | None = None) -> SessionResult:
     """One session (module docstring); no ``model_ids``: every training of the config (:func:`configured_trainings`
     of the resolved config the run wrote). Every ``keep_every_minutes`` the run is paused and what it reached is
-    kept; ``commit``: each keep, and the last, is committed (:func:`commit_store`). Models whose stored checkpoint
+    kept; ``commit``: each keep, and the last, is committed (:func:`commit_store`), as far as the commits after
+    ``submission_base`` (default: where this checkout's branch began, :func:`denoisers.store.submission.session_base`)
+    stay within ``submission_budget_mib`` of diffs (None: no budget); what does not fit stays on disk and is listed
+    in the result's ``uncommitted``. Models whose stored checkpoint
     has another step arithmetic than this machine's (:func:`other_arithmetic`, on :func:`session_config`) are
     skipped, or with ``restart_other_arithmetic`` trained afresh and their checkpoints replaced. ``run_command``
     replaces ``scripts/run-main.sh <targets> <args>`` (tests). Of the models the session left alone, those the
@@ -397,6 +434,10 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
         run_command = ["bash", str(REPO_ROOT / "scripts" / "run-main.sh"), *targets, *snakemake_args, *ahead]
     command = list(run_command)
     since = time.time() - 1.0
+    base = (submission_base or session_base(REPO_ROOT)) if commit and submission_budget_mib is not None else None
+    if base:
+        so_far = SubmissionBudget.measure(REPO_ROOT, base, submission_budget_mib)
+        print(f"train-session: submission so far, {so_far.describe()}", file=sys.stderr)
 
     done: list[str] = []           # published by an interval keep: not published again
 
@@ -411,11 +452,13 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
         published, checkpointed, untouched = keep(output_dir, ids, since, store_command,
                                                   replace_other_arithmetic=replace)
         done.extend(published)
-        if commit and (published or checkpointed):
+        if commit:                 # also when nothing is new: what an earlier keep left on disk may fit now
             what = "; ".join(part for part in (f"published {', '.join(published)}" if published else "",
                                                 f"checkpoints of {', '.join(checkpointed)}" if checkpointed else "")
-                             if part)
-            commit_store(store_root_of(config), f"train-session ({'end' if final else 'interval'} keep): {what}")
+                             if part) or "what earlier keeps left on disk"
+            budget = SubmissionBudget.measure(REPO_ROOT, base, submission_budget_mib) if base else None
+            commit_store(store_root_of(config), f"train-session ({'end' if final else 'interval'} keep): {what}",
+                         budget=budget)
         return published, checkpointed, untouched
 
     every_s = keep_every_minutes * 60.0 if keep_every_minutes else None
@@ -425,5 +468,16 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
     if is_stored is None:
         is_stored = stored_finished(resolved_config(output_dir, since))
     already = [m for m in untouched if is_stored(m)]
+    uncommitted = uncommitted_entries(store_root_of(resolved_config(output_dir, since))) if commit else []
     return SessionResult(returncode, stopped, list(done), checkpointed, [m for m in untouched if m not in already],
-                         skipped, already)
+                         skipped, already, uncommitted)
+
+
+def uncommitted_entries(store_root: Path, cwd: Path = REPO_ROOT) -> list[str]:
+    """The store entries (``<store>/<kind>/<id>``) with changes on disk that no commit holds."""
+    store_root = Path(store_root)
+    relative = store_root.relative_to(cwd).as_posix() if store_root.is_absolute() else store_root.as_posix()
+    out = subprocess.run(["git", "status", "--porcelain", "-z", "--no-renames", "--untracked-files=all", "--",
+                          relative], cwd=cwd,
+                         capture_output=True, text=True).stdout
+    return sorted({entry_of(item[3:], relative) for item in out.split("\0") if len(item) > 3})
