@@ -24,8 +24,8 @@ session skips the models whose stored checkpoint has another arithmetic than thi
 
 A machine can also go before the deadline (2026-12-06: one was shut down an hour into its session and took the
 session's training with it). ``--keep-every MINUTES`` pauses the run that often (SIGSTOP to its group), keeps what it
-has reached as in step 3 and lets it go on; with ``--commit`` each keep is committed (``git commit -- store``, nothing
-else), so a lost machine loses at most that interval.
+has reached as in step 3 and lets it go on; with ``--commit`` each keep is committed (the store only, built in a
+separate index), so a lost machine loses at most that interval.
 
 Each commit stays within the session's submission budget (denoisers.store.submission): a stop whose commits pass
 the workplace's limits lands none of them, and keeps that replace a checkpoint every interval add up (on 2026-12-07
