@@ -110,3 +110,22 @@ def test_a_keep_past_the_budget_commits_models_first_and_leaves_the_rest_on_disk
     # Without a budget everything goes in.
     assert commit_store(repo / "store", "keep", cwd=repo)
     assert uncommitted_entries(repo / "store", cwd=repo) == []
+
+
+def test_interval_keeps_leave_room_for_the_last_keep_to_replace_the_checkpoint(repo: Path) -> None:
+    """A 20 000-byte checkpoint replaced at every keep, budget 100 000: each interval keep commits it only while
+    40 000 (its replacement: old + new) stay free for the end keep, which then fits."""
+    state = repo / "store" / "checkpoints" / "kpcn" / "k" / "state.pt"
+
+    def keep(seed: int, final: bool) -> bool:
+        _write(state, 20_000, seed=seed)
+        budget = SubmissionBudget.measure(repo, limit_mib=100_000 / MIB)
+        return commit_store(repo / "store", "keep", cwd=repo, budget=budget, reserve_for_end=not final)
+
+    assert keep(1, final=False)                    # 20 000 spent, 40 000 kept free: 60 000
+    assert keep(2, final=False)                    # + 40 000 = 60 000 spent, 40 000 kept free: 100 000
+    assert not keep(3, final=False)                # + 40 000 would leave no room for the end: left on disk
+    assert uncommitted_entries(repo / "store", cwd=repo) == ["store/checkpoints/kpcn"]
+    assert keep(4, final=True)                     # the end keep takes the room: 100 000
+    assert SubmissionBudget.measure(repo).diff_bytes == 100_000
+    assert uncommitted_entries(repo / "store", cwd=repo) == []

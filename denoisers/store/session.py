@@ -253,11 +253,12 @@ def kept_ids(model_ids: Sequence[str], configured: Sequence[str]) -> list[str]:
 
 
 def commit_store(store_root: Path, message: str, cwd: Path = REPO_ROOT,
-                 budget: SubmissionBudget | None = None) -> bool:
+                 budget: SubmissionBudget | None = None, reserve_for_end: bool = False) -> bool:
     """Commit the store directory as it is on disk, and nothing else: the commit is built in a separate index from
     HEAD and the store's files, so what else is staged stays staged. With ``budget``, only the store entries that
     keep the session's submission within it are committed (:func:`denoisers.store.submission.fit_staged`); the
-    others stay on disk, uncommitted, and are named on stderr and in the message. Returns whether a commit was made
+    others stay on disk, uncommitted, and are named on stderr and in the message; ``reserve_for_end`` (an interval
+    keep) leaves room for the last keep to replace the session's checkpoints once more. Returns whether a commit was made
     (False: nothing changed, nothing fitted, or git refused, e.g. another git command holds HEAD; the next keep
     tries again)."""
     store_root = Path(store_root)
@@ -275,7 +276,7 @@ def commit_store(store_root: Path, message: str, cwd: Path = REPO_ROOT,
         if git("diff", "--cached", "--quiet", "--", relative).returncode == 0:
             return False
         if budget is not None:
-            kept, held = fit_staged(budget, relative, cwd, env=env)
+            kept, held = fit_staged(budget, relative, cwd, env=env, reserve_for_end=reserve_for_end)
             if held:
                 print(f"train-session: not committed, left on disk: {', '.join(held)} (committing it would pass "
                       f"the session's submission budget; {budget.describe()})", file=sys.stderr)
@@ -458,7 +459,7 @@ def train_session(model_ids: Sequence[str], minutes: float, snakemake_args: Sequ
                              if part) or "what earlier keeps left on disk"
             budget = SubmissionBudget.measure(REPO_ROOT, base, submission_budget_mib) if base else None
             commit_store(store_root_of(config), f"train-session ({'end' if final else 'interval'} keep): {what}",
-                         budget=budget)
+                         budget=budget, reserve_for_end=not final)
         return published, checkpointed, untouched
 
     every_s = keep_every_minutes * 60.0 if keep_every_minutes else None

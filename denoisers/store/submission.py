@@ -11,7 +11,8 @@ new blob of every path it changes (a binary rewritten, or a text file rewritten,
 every new line added; a small text edit is overcounted, which errs on the safe side), its pack the new blobs
 uncompressed. :class:`SubmissionBudget` holds what the commits since the base cost and a limit below the
 workplace's; :func:`fit_staged` unstages whole store entries (``<store>/<kind>/<id>``) that would pass it, finished
-models first in, checkpoints last, so that what is committed stays a consistent store and the rest stays on disk.
+models first in, checkpoints last, so that what is committed stays a consistent store and the rest stays on disk;
+an interval keep also leaves room for the last keep to replace the session's checkpoints once more.
 """
 from __future__ import annotations
 
@@ -140,9 +141,11 @@ class SubmissionBudget:
         new = {c.new_oid: c.new_bytes for c in changes if c.new_oid and c.new_oid not in self._blobs}
         return sum(c.diff_bytes for c in changes), sum(new.values())
 
-    def fits(self, changes: Sequence[Change]) -> bool:
+    def fits(self, changes: Sequence[Change], room_bytes: int = 0) -> bool:
+        """Whether ``changes`` fit, leaving ``room_bytes`` of diffs (and of pack) unspent."""
         diff, pack = self.cost(changes)
-        return self.diff_bytes + diff <= self.limit_bytes and self.pack_bytes + pack <= self.pack_limit_bytes
+        return (self.diff_bytes + diff + room_bytes <= self.limit_bytes
+                and self.pack_bytes + pack + room_bytes // 2 <= self.pack_limit_bytes)
 
     def add(self, changes: Sequence[Change]) -> None:
         diff, pack = self.cost(changes)
@@ -163,23 +166,46 @@ def entry_of(path: str, store_prefix: str) -> str:
     return f"{store_prefix}/{'/'.join(parts[:2])}" if len(parts) > 2 else path
 
 
-def fit_staged(budget: SubmissionBudget, store_prefix: str, cwd: Path,
-               env: Mapping[str, str] | None = None) -> tuple[list[str], list[str]]:
+def _kind(entry: str, store_prefix: str) -> str:
+    return entry[len(store_prefix):].lstrip("/").split("/")[0]
+
+
+def fit_staged(budget: SubmissionBudget, store_prefix: str, cwd: Path, env: Mapping[str, str] | None = None,
+               reserve_for_end: bool = False) -> tuple[list[str], list[str]]:
     """Keep staged only the store entries that fit ``budget``, whole entries in :data:`KIND_ORDER` (then by name);
     unstage the others (their files stay on disk) in the index ``env`` names (default the checkout's). Returns
-    (entries kept staged, entries held back); the budget counts the kept ones."""
+    (entries kept staged, entries held back); the budget counts the kept ones.
+
+    ``reserve_for_end`` (an interval keep): a checkpoint goes in only while the budget keeps room for the session's
+    last keep to replace every checkpoint the session has committed once more (twice its bytes: the old and the
+    new file), so that interval keeps of a large checkpoint cannot spend what its last state needs; finished models
+    are not held back for that room."""
     groups: dict[str, list[Change]] = {}
     for change in staged_changes(cwd, [store_prefix], env=env):
         groups.setdefault(entry_of(change.path, store_prefix), []).append(change)
+    reserve: dict[str, int] = {}     # checkpoint entry -> the bytes its replacement at the last keep costs
+    if reserve_for_end:
+        raw = _git(["diff", "--raw", "-z", "--no-renames", "--no-abbrev", budget.base, "HEAD", "--",
+                    f"{store_prefix}/checkpoints"], cwd)
+        for change in _changes(raw, cwd):
+            entry = entry_of(change.path, store_prefix)
+            reserve[entry] = reserve.get(entry, 0) + 2 * change.new_bytes
 
     def order(entry: str) -> tuple[int, str]:
-        kind = entry[len(store_prefix):].lstrip("/").split("/")[0]
+        kind = _kind(entry, store_prefix)
         return (KIND_ORDER.index(kind) if kind in KIND_ORDER else len(KIND_ORDER), entry)
 
     kept, held = [], []
     for entry in sorted(groups, key=order):
-        if budget.fits(groups[entry]):
-            budget.add(groups[entry])
+        changes = groups[entry]
+        room = 0
+        if reserve_for_end and _kind(entry, store_prefix) == "checkpoints":
+            after = {**reserve, entry: 2 * sum(c.new_bytes for c in changes)}
+            room = sum(after.values())
+        if budget.fits(changes, room):
+            budget.add(changes)
+            if room:
+                reserve = after
             kept.append(entry)
         else:
             held.append(entry)
