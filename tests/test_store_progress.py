@@ -143,4 +143,7 @@ def test_the_totals_plan_per_arithmetic_and_set_apart_the_checkpoints_of_the_oth
     assert (fp32.seconds, fp32.unknown, fp32.elsewhere) == (0.0, ["rae_seed2"], ["rae"])
     text = progress_table(cfg, rows)
     assert "On a host that trains in bf16: about 0.00 h for the 2 runs" in text
+    # The rates' hosts are named: the same arithmetic runs at other rates on another CPU.
+    assert (bf16.measured_on, fp32.measured_on) == (("cpu",), ())
+    assert "at bf16 rates measured on cpu (another CPU" in text
     assert "On a host that trains in fp32: about 0.00 h for the 1 runs" in text and "(rae)" in text

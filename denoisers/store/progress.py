@@ -188,19 +188,23 @@ class HostPlan:
     """What is left for a host that trains in ``precision``: ``seconds`` of training steps over the runs it can start
     or continue (``runs`` of them), at rates that rows of that arithmetic measured (:func:`estimate`); ``unknown``:
     such runs with no rate of that arithmetic; ``elsewhere``: part-way runs whose checkpoint holds another
-    arithmetic (they continue on a host of that kind)."""
+    arithmetic (they continue on a host of that kind); ``measured_on``: the CPUs of the rows that lent the rates
+    (one arithmetic runs at other rates on another CPU: on 2026-12-07 the temporal AFN took 2.8 s/step in bf16 on
+    an Intel Xeon, 1.1 on an AMD EPYC)."""
 
     precision: str
     seconds: float
     runs: int
     unknown: list[str]
     elsewhere: list[str]
+    measured_on: tuple[str, ...] = ()
 
 
 def host_plan(cfg: dict, rows: Sequence[TrainingProgress], precision: str) -> HostPlan:
     """:class:`HostPlan` of ``rows`` (:func:`training_progress`) for a host whose step arithmetic is ``precision``;
     each run counted once (:func:`runs`)."""
-    seconds, count, unknown, elsewhere = 0.0, 0, [], []
+    seconds, count, unknown, elsewhere, cpus = 0.0, 0, [], [], []
+    cpu_of = {r.model_id: r.cpu for r in rows}
     for row in runs(rows):
         if row.state == PART_WAY and row.precision != precision:
             elsewhere.append(row.model_id)
@@ -213,7 +217,8 @@ def host_plan(cfg: dict, rows: Sequence[TrainingProgress], precision: str) -> Ho
             unknown.append(row.model_id)
         else:
             seconds += left.remaining_s
-    return HostPlan(precision, seconds, count, unknown, elsewhere)
+            cpus.append(cpu_of.get(left.rate_from) or "?")
+    return HostPlan(precision, seconds, count, unknown, elsewhere, tuple(dict.fromkeys(sorted(cpus))))
 
 
 #: The step arithmetics a host here trains in (denoisers.training.precision: bf16 where the CPU has it).
@@ -223,7 +228,9 @@ HOST_PRECISIONS = ("bf16", "fp32")
 def host_plan_text(plan: HostPlan) -> str:
     """One sentence of the totals: what a host of ``plan.precision`` has left."""
     text = (f"On a host that trains in {plan.precision}: about {_hours(plan.seconds)} for the {plan.runs} runs it can "
-            f"start or continue, at {plan.precision} rates")
+            f"start or continue, at {plan.precision} rates"
+            + (f" measured on {' and '.join(plan.measured_on)} (another CPU trains at other rates)"
+               if plan.measured_on else ""))
     if plan.unknown:
         text += f" (not counting {len(plan.unknown)} with no {plan.precision} rate: {', '.join(plan.unknown)})"
     if plan.elsewhere:
