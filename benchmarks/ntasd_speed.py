@@ -1,7 +1,8 @@
 """Inference speed of the Hasselgren et al. 2020 variants (issue 12 §3): sampler + denoiser ms/frame at 128^2
 and 256^2 through the registry method (what the evaluation times), the networks' convolution GFLOP/s as a
 fraction of a float32 sgemm timed in the same interleaved rounds (target >= 30 %), and the kernel
-application's share of a frame.
+application's share of a frame (the backend apply_kernels picks, native where it builds, beside the torch
+reference).
 
     python benchmarks/ntasd_speed.py [--sizes 128 256] [--width 0.5] [--threads N] [--repeats 9]
 
@@ -80,6 +81,9 @@ def build_items(sizes: list[int], width: float, count: int, gemm_size: int) -> l
         image = torch.rand(3, size, size)
         weights = torch.softmax(torch.rand(25, size, size), dim=0)
         items.append(Item("apply_kernels 5x5", size, None, lambda _, i=image, w=weights: kernels.apply_kernels(i, w)))
+        # The torch reference beside the backend apply_kernels picks (the native one where it builds).
+        items.append(Item("apply_kernels 5x5 (torch)", size, None,
+                          lambda _, i=image, w=weights: kernels.apply_kernels_torch(i, w)))
     return items + gemm_items(gemm_size)
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -182,14 +181,16 @@ def test_missing_channel_names_file_channel_and_alternatives(tmp_path: Path) -> 
     assert str(path) in message and "'albedo.R'" in message and "radiance.G" in message
 
 
-def test_write_200_channels_is_fast(tmp_path: Path, rng: np.random.Generator) -> None:
-    noise = rng.uniform(0, 1, (128, 128)).astype(np.float32)
-    channels = {f"s{s:02d}.buf{b}.{c}": noise * (s + b + i)
+def test_200_channels_round_trip(tmp_path: Path, rng: np.random.Generator) -> None:
+    """A per-sample file's size (8 samples x 5 buffers x 5 planes at 128 x 128, two planes of each buffer in HALF):
+    every value comes back, the HALF planes as float16 rounds them. Its speed: benchmarks/exr_speed.py."""
+    channels = {f"s{s:02d}.buf{b}.{c}": rng.uniform(0, 1, (128, 128)).astype(np.float32) * (s + b + i + 1)
                 for s in range(8) for b in range(5) for i, c in enumerate("XYZRG")}
     assert len(channels) == 200
     half = {name for name in channels if name.endswith((".X", ".Y"))}
-    start = time.perf_counter()
     write_exr(tmp_path / "big.exr", channels, half=half)
-    elapsed = time.perf_counter() - start
-    assert elapsed < 1.0, f"writing 200 channels at 128x128 took {elapsed:.2f} s"
-    assert len(list_channels(tmp_path / "big.exr")) == 200
+    assert sorted(list_channels(tmp_path / "big.exr")) == sorted(channels)
+    back, _ = read_exr(tmp_path / "big.exr")
+    for name, plane in channels.items():
+        expected = plane.astype(np.float16).astype(np.float32) if name in half else plane
+        np.testing.assert_array_equal(back[name], expected, err_msg=name)

@@ -2,8 +2,6 @@
 the motion-vector warp (denoisers/kernels.py, denoisers/native/kernels.cpp)."""
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 import torch
@@ -175,18 +173,3 @@ def test_warp_is_the_existing_motion_vector_warp() -> None:
                                rtol=1e-5, atol=1e-5)
     batch = torch.stack([previous, 2 * previous])
     torch.testing.assert_close(kernels.warp_previous(batch, motion)[1], 2 * warped)
-
-
-def test_timing_print() -> None:
-    """Not a benchmark: one tiny timing line of both paths at 128 x 128, k = 5."""
-    image, weights = random_case(3, 128, 128, 5)
-    start = time.perf_counter()
-    kernels.apply_kernels_torch(image, weights)
-    torch_ms = (time.perf_counter() - start) * 1e3
-    line = f"apply_kernels 128x128 k=5: torch {torch_ms:.2f} ms"
-    if native_available():
-        kernels.apply_kernels(image, weights, backend="native")
-        start = time.perf_counter()
-        kernels.apply_kernels(image, weights, backend="native")
-        line += f", native {(time.perf_counter() - start) * 1e3:.2f} ms"
-    print(line)
