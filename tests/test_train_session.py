@@ -246,8 +246,11 @@ def test_interval_keeps_run_while_the_run_goes_on_and_each_is_committed(tmp_path
     monkeypatch.setattr(session, "keep", fake_keep)
     budgets: list = []
 
-    def fake_commit(root, message, cwd=None, budget=None):
+    reserves: list[bool] = []
+
+    def fake_commit(root, message, cwd=None, budget=None, reserve_for_end=False):
         budgets.append(budget)
+        reserves.append(reserve_for_end)
         return commits.append(message) or True
 
     monkeypatch.setattr(session, "commit_store", fake_commit)
@@ -263,6 +266,8 @@ def test_interval_keeps_run_while_the_run_goes_on_and_each_is_committed(tmp_path
     assert all("interval keep" in message for message in commits[:-1])
     # Every keep is committed within the session's submission budget, measured from the given base afresh.
     assert all(b is not None and b.commits == 0 and b.limit_bytes == 192 * 1024 * 1024 for b in budgets)
+    # Interval keeps leave room for the end keep; the end keep spends it.
+    assert reserves == [True] * (len(commits) - 1) + [False]
 
 
 def _checkpoint_of_another_arithmetic(tmp_path: Path) -> tuple[dict, Path]:
