@@ -121,6 +121,7 @@ class SubmissionBudget:
     diff_bytes: int = 0
     pack_bytes: int = 0
     commits: int = 0
+    per_commit: list[tuple[int, str]] = field(default_factory=list, repr=False)   # (diff bytes, commit)
     _blobs: set[str] = field(default_factory=set, repr=False)
 
     @classmethod
@@ -128,8 +129,10 @@ class SubmissionBudget:
         base = base or session_base(cwd)
         budget = cls(_git(["rev-parse", base], cwd).strip(), int(limit_mib * MIB))
         for commit in _git(["rev-list", "--reverse", f"{budget.base}..HEAD"], cwd).split():
-            budget.add(commit_changes(commit, cwd))
+            changes = commit_changes(commit, cwd)
+            budget.add(changes)
             budget.commits += 1
+            budget.per_commit.append((sum(c.diff_bytes for c in changes), commit))
         return budget
 
     @property
@@ -218,16 +221,12 @@ def submission_report(cwd: Path, base: str | None = None, largest: int = 5) -> t
     """Lines that say what the commits after ``base`` (default :func:`session_base`) cost against the workplace's
     limits, with the ``largest`` costliest commits; and whether they are within both limits."""
     budget = SubmissionBudget.measure(cwd, base, DIFF_LIMIT_BYTES / MIB)
-    costs = []
-    for commit in _git(["rev-list", f"{budget.base}..HEAD"], cwd).split():
-        changes = commit_changes(commit, cwd)
-        costs.append((sum(c.diff_bytes for c in changes), commit))
     within = budget.diff_bytes <= DIFF_LIMIT_BYTES and budget.pack_bytes <= PACK_LIMIT_BYTES
     lines = [f"{budget.commits} commits since {budget.base[:12]}: diffs {budget.diff_bytes / MIB:.1f} MiB of "
              f"{DIFF_LIMIT_BYTES // MIB} MiB, new objects at most {budget.pack_bytes / MIB:.1f} MiB of "
              f"{PACK_LIMIT_BYTES // MIB} MiB packed: " + ("within the limits" if within else "PAST THE LIMITS, the "
                                                            "submission would be refused whole")]
-    for size, commit in sorted(costs, reverse=True)[:largest]:
+    for size, commit in sorted(budget.per_commit, reverse=True)[:largest]:
         subject = _git(["log", "-1", "--format=%s", commit], cwd).strip()
         lines.append(f"  {size / MIB:8.1f} MiB  {commit[:12]}  {subject[:90]}")
     return "\n".join(lines), within
